@@ -1,0 +1,38 @@
+# Two commands matter: `make demo` and `make test`. Both set up everything
+# they need (virtualenv, pinned wheels, colcon build) on first use and skip
+# what is already up to date afterwards.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+VPY := $(VENV)/bin/python
+STAMP := $(VENV)/.requirements.stamp
+BUILT := install/vlp_ros/share/vlp_ros/package.xml
+SOURCES := $(shell find vlp_ros config launch resource -type f -not -name '*.pyc') setup.py setup.cfg package.xml
+RUN := source scripts/setup_env.sh &&
+
+.PHONY: all venv build test demo bench clean
+
+all: build
+
+$(STAMP): requirements/ros.txt requirements/tools.txt requirements/constraints.txt
+	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(VPY) -m pip install --quiet --disable-pip-version-check \
+		-r requirements/ros.txt -r requirements/tools.txt -c requirements/constraints.txt
+	touch $(VENV)/COLCON_IGNORE $@
+
+venv: $(STAMP)
+
+$(BUILT): $(STAMP) $(SOURCES)
+	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
+	touch $@
+
+build: $(BUILT)
+
+test: build
+	$(RUN) python -m pytest test $(PYTEST_ARGS)
+
+demo: build
+	$(RUN) python -m vlp_ros.evaluation.demo $(DEMO_ARGS)
+
+clean:
+	rm -rf build install log

@@ -1,0 +1,1 @@
+"""Lamp IDs carried by fast brightness switching, read through a rolling shutter."""
