@@ -1,0 +1,1 @@
+"""Camera pose from observed lamps: closed forms, refinement, disambiguation, fusion."""

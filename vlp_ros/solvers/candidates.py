@@ -1,0 +1,50 @@
+"""What every pose solver hands back: candidate poses, and the decision among them."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from vlp_ros.pose import Pose
+
+
+@dataclass
+class PoseCandidate:
+    """One pose that explains an observation.
+
+    ``cost`` is the chi-square of the fit: the sum of squared residuals, each
+    divided by its measurement sigma (so ~ ``residual_count`` - 6 for the right
+    pose under the stated noise). Lower explains the image better.
+    """
+
+    pose: Pose
+    cost: float
+    residual_count: int = 0
+
+
+class Reason(str, Enum):
+    """Why a pose was, or was not, chosen. ``str`` so it logs and serialises as its value."""
+
+    UNIQUE = 'unique'                          # a single candidate (or both coincide)
+    STATIC_PRIOR = 'static_prior'              # decided by the configured up direction
+    GRAVITY = 'gravity'                        # decided by the IMU's up direction
+    CONTINUITY = 'continuity'                  # decided by a recent pose of this camera
+    MULTI_LAMP = 'multi_lamp'                  # decided by other lamps in the same frame
+    COST = 'cost'                              # one candidate's fit is overwhelmingly better
+    AMBIGUOUS = 'ambiguous'                    # nothing tells the candidates apart
+    CONFLICTING_HINTS = 'conflicting_hints'    # hints point to different candidates
+    NO_CANDIDATE_AGREES = 'no_candidate_agrees'  # every candidate contradicts a hint
+    NO_CANDIDATES = 'no_candidates'            # the solver found no pose at all
+    INCONSISTENT_LAMPS = 'inconsistent_lamps'  # the lamps of one frame admit no common pose
+
+
+@dataclass
+class Choice:
+    """The outcome of disambiguation: ``pose`` is None exactly when no pose may be published."""
+
+    pose: Pose | None
+    reason: Reason
+    detail: str = ''
+
+    @property
+    def ok(self) -> bool:
+        return self.pose is not None
