@@ -53,8 +53,8 @@ class CameraModel:
             x = (px[:, 0, 0] - k[0, 2] - k[0, 1] * (px[:, 0, 1] - k[1, 2]) / k[1, 1]) / k[0, 0]
             y = (px[:, 0, 1] - k[1, 2]) / k[1, 1]
             return np.stack([x, y], axis=1)
-        return cv2.undistortPointsIter(
-            px, self.K, self.D, None, None,
+        return cv2.undistortPoints(
+            px, self.K, self.D, None, None, None,
             (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)).reshape(-1, 2)
 
     def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
