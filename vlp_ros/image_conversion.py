@@ -1,0 +1,84 @@
+"""Camera pixel formats to what the detector takes: bgr8 (H, W, 3) or mono8 (H, W)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from vlp_ros.image_message import CompressedImageMessage, ImageMessage
+
+# OpenCV names Bayer patterns after the second row's first two pixels, so ROS's
+# bayer_rggb8 is OpenCV's BayerBG (as in cv_bridge).
+_BAYER = {
+    'bayer_rggb8': cv2.COLOR_BayerBG2BGR,
+    'bayer_bggr8': cv2.COLOR_BayerRG2BGR,
+    'bayer_gbrg8': cv2.COLOR_BayerGR2BGR,
+    'bayer_grbg8': cv2.COLOR_BayerGB2BGR,
+}
+# ROS's yuv422 is UYVY; yuv422_yuy2 (also called yuyv) is YUYV.
+_YUV = {
+    'yuv422': cv2.COLOR_YUV2BGR_UYVY,
+    'uyvy': cv2.COLOR_YUV2BGR_UYVY,
+    'yuv422_yuy2': cv2.COLOR_YUV2BGR_YUYV,
+    'yuyv': cv2.COLOR_YUV2BGR_YUYV,
+}
+_CHANNELS = {'mono8': 1, 'bgr8': 3, 'rgb8': 3, 'bgra8': 4, 'rgba8': 4,
+             **{name: 1 for name in _BAYER}, **{name: 2 for name in _YUV}}
+SUPPORTED_ENCODINGS = tuple(sorted(_CHANNELS))
+
+
+class ImageConversionError(ValueError):
+    """A frame whose size, step or encoding does not describe its data."""
+
+
+def pixels_of(msg: ImageMessage) -> np.ndarray:
+    """The message's pixels as bgr8 or mono8; a view where no conversion is needed."""
+    encoding = msg.encoding.lower()
+    channels = _CHANNELS.get(encoding)
+    if channels is None:
+        raise ImageConversionError(
+            f'unsupported encoding {msg.encoding!r} (supported: {", ".join(SUPPORTED_ENCODINGS)})')
+    if msg.height == 0 or msg.width == 0:
+        raise ImageConversionError(f'empty image {msg.width}x{msg.height}')
+    if encoding in _YUV and msg.width % 2:
+        raise ImageConversionError(f'{encoding} needs an even width, got {msg.width}')
+    row_bytes = msg.width * channels
+    if msg.step < row_bytes:
+        raise ImageConversionError(f'step {msg.step} is smaller than width x {channels} = {row_bytes}')
+    if msg.data.size < msg.step * (msg.height - 1) + row_bytes:
+        raise ImageConversionError(
+            f'data has {msg.data.size} bytes, {msg.width}x{msg.height} {encoding} with step {msg.step} '
+            f'needs {msg.step * msg.height}')
+    rows = np.lib.stride_tricks.as_strided(
+        msg.data, shape=(msg.height, row_bytes), strides=(msg.step, 1), writeable=False)
+    image = rows.reshape(msg.height, msg.width, channels)
+    return _to_bgr_or_mono(image, encoding)
+
+
+def _to_bgr_or_mono(image: np.ndarray, encoding: str) -> np.ndarray:
+    if encoding == 'mono8':
+        return image[:, :, 0]
+    if encoding == 'bgr8':
+        return image
+    if encoding == 'rgb8':
+        return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    if encoding == 'bgra8':
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    if encoding == 'rgba8':
+        return cv2.cvtColor(image, cv2.COLOR_RGBA2BGR)
+    if encoding in _BAYER:
+        return cv2.cvtColor(np.ascontiguousarray(image[:, :, 0]), _BAYER[encoding])
+    return cv2.cvtColor(np.ascontiguousarray(image), _YUV[encoding])
+
+
+def decode_compressed(msg: CompressedImageMessage) -> np.ndarray:
+    """A jpeg or png CompressedImage as bgr8 (or mono8 for grey images)."""
+    if msg.data.size == 0:
+        raise ImageConversionError('compressed image has no data')
+    image = cv2.imdecode(msg.data, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ImageConversionError(f'corrupt or unsupported compressed image (format {msg.format!r})')
+    if image.dtype != np.uint8:
+        raise ImageConversionError(f'compressed image has {image.dtype} pixels; 8-bit expected')
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return image
