@@ -1,0 +1,257 @@
+"""The locator's settings, validated from flat ROS-style parameter values.
+
+ROS-free: the node reads its parameters into a ``dict`` and this module turns it
+into typed settings, raising ``ConfigError`` whose message names the parameter.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vlp_ros.lamp_map import Lamp, LampMap
+
+BEACON_MODES = ('packet', 'tone')
+SOLVERS = ('perspective', 'paper')
+RELIABILITIES = ('best_effort', 'reliable')
+IMAGE_TRANSPORTS = ('raw', 'compressed')
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One parameter: ``kind`` is string, string_array, number, number_array, integer or bool.
+
+    Numbers accept integers too (a params file may say ``radius: 1``).
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+
+
+PARAMETERS = (
+    ParameterSpec('map_frame', 'string', 'map', 'frame_id of the published poses'),
+    ParameterSpec('leds.names', 'string_array', [], 'names of the lamps in the map; each has leds.<name>.* fields'),
+    ParameterSpec('beacon.mode', 'string', 'packet', 'how lamps identify themselves: packet or tone'),
+    ParameterSpec('beacon.chip_rate', 'number', 8000.0, 'packet mode chip rate (Hz)'),
+    ParameterSpec('beacon.id_bits', 'integer', 8, 'packet mode data bits per ID'),
+    ParameterSpec('beacon.row_time', 'number', 1.5e-5, "camera's time between consecutive row exposure starts (s)"),
+    ParameterSpec('beacon.frequency_tolerance', 'number', 60.0, 'tone mode: largest accepted frequency error (Hz)'),
+    ParameterSpec('solver', 'string', 'perspective', 'pose solver: perspective (exact) or paper (weak perspective)'),
+    ParameterSpec('prior.up_in_camera', 'number_array', [],
+                  'fixed mount: where map +z points in the camera optical frame (3 numbers); empty = no prior'),
+    ParameterSpec('prior.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and the static prior'),
+    ParameterSpec('imu.enabled', 'bool', False, 'use gravity from the imu topic to tell pose candidates apart'),
+    ParameterSpec('imu.rotation', 'number_array', [0.0, 0.0, 0.0, 1.0],
+                  'quaternion (x, y, z, w) turning IMU-frame vectors into the camera optical frame'),
+    ParameterSpec('imu.max_age', 'number', 0.1, 'an IMU message older than this (s) at the image stamp is not used'),
+    ParameterSpec('imu.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and measured gravity'),
+    ParameterSpec('continuity.gate', 'number', 0.3, 'a candidate within this distance (m) of a recent pose continues it'),
+    ParameterSpec('continuity.max_age', 'number', 1.0, 'how long (s) a pose may vouch for the next; 0 disables'),
+    ParameterSpec('image_transport', 'string', 'raw', 'raw (image_raw) or compressed (image_raw/compressed)'),
+    ParameterSpec('qos.reliability', 'string', 'best_effort', 'image subscription reliability: best_effort or reliable'),
+    ParameterSpec('qos.depth', 'integer', 1, 'image subscription queue depth'),
+)
+LAMP_PARAMETERS = (
+    ParameterSpec('id', 'integer', None, 'beacon ID of the lamp'),
+    ParameterSpec('position', 'number_array', None, 'centre of the luminous disc in the map (x, y, z) (m)'),
+    ParameterSpec('radius', 'number', None, 'radius of the luminous disc (m)'),
+    ParameterSpec('marker_angle', 'number', 0.0, 'map direction of the red marker from the centre (rad, +x toward +y)'),
+    ParameterSpec('marker_distance', 'number', None, "marker centroid's distance from the centre (m); default the radius"),
+    ParameterSpec('frequency', 'number', None, 'tone mode: the lamp\'s square-wave frequency (Hz)'),
+)
+LAMP_FIELDS = tuple(spec.name for spec in LAMP_PARAMETERS)
+
+
+def default_parameters() -> dict[str, Any]:
+    return {spec.name: spec.default for spec in PARAMETERS}
+
+
+class ConfigError(ValueError):
+    """A parameter that cannot be used; the message starts with the parameter's name."""
+
+    def __init__(self, parameter: str, problem: str) -> None:
+        super().__init__(f'{parameter}: {problem}')
+        self.parameter = parameter
+
+
+@dataclass(frozen=True)
+class BeaconSettings:
+    mode: str
+    chip_rate: float
+    id_bits: int
+    row_time: float
+    frequency_tolerance: float
+
+
+@dataclass(frozen=True)
+class LocatorSettings:
+    map_frame: str
+    lamps: LampMap
+    beacon: BeaconSettings
+    solver: str
+    prior_up: np.ndarray | None
+    prior_tolerance: float
+    imu_enabled: bool
+    imu_rotation: np.ndarray
+    imu_max_age: float
+    imu_tolerance: float
+    continuity_gate: float
+    continuity_max_age: float
+    image_transport: str
+    qos_reliability: str
+    qos_depth: int
+
+
+def _number(values: Mapping[str, Any], name: str, *, positive: bool = False,
+            minimum: float | None = None) -> float:
+    value = values.get(name)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(name, f'expected a number, got {value!r}')
+    value = float(value)
+    if not np.isfinite(value):
+        raise ConfigError(name, f'must be finite, got {value}')
+    if positive and value <= 0.0:
+        raise ConfigError(name, f'must be positive, got {value}')
+    if minimum is not None and value < minimum:
+        raise ConfigError(name, f'must be at least {minimum}, got {value}')
+    return value
+
+
+def _integer(values: Mapping[str, Any], name: str, low: int, high: int) -> int:
+    value = values.get(name)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(name, f'expected an integer, got {value!r}')
+    if not low <= value <= high:
+        raise ConfigError(name, f'must be in [{low}, {high}], got {value}')
+    return value
+
+
+def _vector(values: Mapping[str, Any], name: str, length: int, *, allow_empty: bool = False) -> np.ndarray | None:
+    value = values.get(name)
+    if value is None or isinstance(value, (str, bytes)) or not hasattr(value, '__len__'):
+        raise ConfigError(name, f'expected a list of {length} numbers, got {value!r}')
+    if allow_empty and len(value) == 0:
+        return None
+    if len(value) != length or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
+        raise ConfigError(name, f'expected {length} numbers, got {list(value)!r}')
+    vector = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(vector)):
+        raise ConfigError(name, f'must be finite, got {list(value)!r}')
+    return vector
+
+
+def _choice(values: Mapping[str, Any], name: str, options: tuple[str, ...]) -> str:
+    value = values.get(name)
+    if value not in options:
+        raise ConfigError(name, f'must be one of {", ".join(options)}; got {value!r}')
+    return value
+
+
+def _unit(vector: np.ndarray, name: str) -> np.ndarray:
+    norm = np.linalg.norm(vector)
+    if norm < 1e-9:
+        raise ConfigError(name, 'must not be the zero vector')
+    return vector / norm
+
+
+def lamp_from_parameters(values: Mapping[str, Any], name: str, tone_mode: bool) -> Lamp:
+    prefix = f'leds.{name}.'
+    for field in ('id', 'position', 'radius'):
+        if values.get(prefix + field) is None:
+            raise ConfigError(prefix + field, f'missing: every lamp in leds.names needs {field}')
+    radius = _number(values, prefix + 'radius', positive=True)
+    marker_distance = None
+    if values.get(prefix + 'marker_distance') is not None:
+        marker_distance = _number(values, prefix + 'marker_distance', positive=True)
+    frequency = None
+    if values.get(prefix + 'frequency') is not None:
+        frequency = _number(values, prefix + 'frequency', positive=True)
+    elif tone_mode:
+        raise ConfigError(prefix + 'frequency', 'missing: beacon.mode is tone, so every lamp needs a frequency')
+    angle = _number(values, prefix + 'marker_angle') if values.get(prefix + 'marker_angle') is not None else 0.0
+    return Lamp(name=name, id=_integer(values, prefix + 'id', 0, 2 ** 31 - 1),
+                position=_vector(values, prefix + 'position', 3), radius=radius,
+                marker_angle=angle, marker_distance=marker_distance, frequency=frequency)
+
+
+def lamp_map_from_parameters(values: Mapping[str, Any], beacon: BeaconSettings) -> LampMap:
+    names = values.get('leds.names')
+    if not names:
+        raise ConfigError('leds.names', 'the lamp map is empty: list the lamp names')
+    if len(set(names)) != len(names):
+        duplicate = next(n for n in names if names.count(n) > 1)
+        raise ConfigError('leds.names', f'lamp name {duplicate!r} appears twice')
+    _reject_unlisted_lamps(values, names)
+    lamps = [lamp_from_parameters(values, name, beacon.mode == 'tone') for name in names]
+    seen: dict[int, str] = {}
+    for lamp in lamps:
+        if lamp.id in seen:
+            raise ConfigError(f'leds.{lamp.name}.id', f'id {lamp.id} is also the id of lamp {seen[lamp.id]!r}')
+        if beacon.mode == 'packet' and lamp.id >= 2 ** beacon.id_bits:
+            raise ConfigError(f'leds.{lamp.name}.id',
+                              f'id {lamp.id} does not fit in beacon.id_bits = {beacon.id_bits}')
+        seen[lamp.id] = lamp.name
+    _reject_indistinct_frequencies(lamps, beacon)
+    return LampMap(lamps)
+
+
+def _reject_unlisted_lamps(values: Mapping[str, Any], names: list[str]) -> None:
+    """A lamp whose name is misspelt in leds.names or in its own keys must not vanish silently."""
+    for key in values:
+        parts = key.split('.')
+        if parts[0] != 'leds' or key == 'leds.names':
+            continue
+        if len(parts) != 3 or parts[1] not in names:
+            raise ConfigError(key, f'lamp {parts[1]!r} is not in leds.names {list(names)} (a typo?)')
+        if parts[2] not in LAMP_FIELDS:
+            raise ConfigError(key, f'unknown lamp field {parts[2]!r} (known: {", ".join(LAMP_FIELDS)})')
+
+
+def _reject_indistinct_frequencies(lamps: list[Lamp], beacon: BeaconSettings) -> None:
+    if beacon.mode != 'tone':
+        return
+    ordered = sorted(lamps, key=lambda lamp: lamp.frequency)
+    for low, high in zip(ordered, ordered[1:]):
+        if high.frequency - low.frequency <= 2.0 * beacon.frequency_tolerance:
+            raise ConfigError(f'leds.{high.name}.frequency',
+                              f'{high.frequency} Hz is within 2 x beacon.frequency_tolerance of lamp '
+                              f'{low.name!r} ({low.frequency} Hz): the two could not be told apart')
+
+
+def beacon_from_parameters(values: Mapping[str, Any]) -> BeaconSettings:
+    return BeaconSettings(
+        mode=_choice(values, 'beacon.mode', BEACON_MODES),
+        chip_rate=_number(values, 'beacon.chip_rate', positive=True),
+        id_bits=_integer(values, 'beacon.id_bits', 1, 16),
+        row_time=_number(values, 'beacon.row_time', positive=True),
+        frequency_tolerance=_number(values, 'beacon.frequency_tolerance', positive=True))
+
+
+def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
+    """Typed, validated settings; raises ConfigError naming the first bad parameter."""
+    map_frame = values.get('map_frame')
+    if not isinstance(map_frame, str) or not map_frame:
+        raise ConfigError('map_frame', f'must be a non-empty frame name, got {map_frame!r}')
+    beacon = beacon_from_parameters(values)
+    prior_up = _vector(values, 'prior.up_in_camera', 3, allow_empty=True)
+    rotation = _unit(_vector(values, 'imu.rotation', 4), 'imu.rotation')
+    return LocatorSettings(
+        map_frame=map_frame,
+        lamps=lamp_map_from_parameters(values, beacon),
+        beacon=beacon,
+        solver=_choice(values, 'solver', SOLVERS),
+        prior_up=None if prior_up is None else _unit(prior_up, 'prior.up_in_camera'),
+        prior_tolerance=_number(values, 'prior.tolerance', positive=True),
+        imu_enabled=bool(values.get('imu.enabled')),
+        imu_rotation=rotation,
+        imu_max_age=_number(values, 'imu.max_age', positive=True),
+        imu_tolerance=_number(values, 'imu.tolerance', positive=True),
+        continuity_gate=_number(values, 'continuity.gate', positive=True),
+        continuity_max_age=_number(values, 'continuity.max_age', minimum=0.0),
+        image_transport=_choice(values, 'image_transport', IMAGE_TRANSPORTS),
+        qos_reliability=_choice(values, 'qos.reliability', RELIABILITIES),
+        qos_depth=_integer(values, 'qos.depth', 1, 1000))
