@@ -1,0 +1,1 @@
+"""Rolling-shutter frame simulator with exact ground truth, and rosbag2 recordings of it."""

@@ -1,0 +1,274 @@
+"""Rolling-shutter frames of modulated lamps, with the exact ground truth of what they show.
+
+Cost: one OpenCV noise pass over the frame, plus float work only inside each
+lamp's projected bounding box (plus the blur margin).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from vlp_ros.beacon.encoding import Waveform
+from vlp_ros.camera import CameraModel
+from vlp_ros.ellipse import ellipse_from_conic
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.pose import Pose
+from vlp_ros.sim.coverage import Circle, disc_coverage
+from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern
+
+RIM_SAMPLES = 180
+MARKER_RADIUS_FRACTION = 0.09
+
+
+@dataclass(frozen=True)
+class SimLamp:
+    """A lamp with the light it emits.
+
+    ``peak_dn`` is the expected DN of a pixel fully on the lamp at full level
+    (level 1 of the waveform) through a colour channel of weight 1. The marker is
+    a disc of ``marker_radius`` (default 9 % of the lamp radius) centred on
+    ``lamp.marker_position()``, lit by the lamp through a red filter.
+    """
+
+    lamp: Lamp
+    waveform: Waveform
+    peak_dn: float = 200.0
+    color_bgr: tuple[float, float, float] = (1.0, 0.97, 0.92)
+    marker_bgr: tuple[float, float, float] = (0.12, 0.16, 0.95)
+    marker_radius: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.marker_radius is None:
+            object.__setattr__(self, 'marker_radius', MARKER_RADIUS_FRACTION * self.lamp.radius)
+        if not self.marker_radius > 0.0:
+            raise ValueError(f'lamp {self.lamp.name!r}: marker radius must be positive')
+        if self.lamp.marker_distance + self.marker_radius > self.lamp.radius + 1e-12:
+            raise ValueError(
+                f'lamp {self.lamp.name!r}: marker disc (centre {self.lamp.marker_distance} m from the '
+                f'centre, radius {self.marker_radius} m) sticks out of the rim (radius {self.lamp.radius} m)')
+        if self.peak_dn < 0.0:
+            raise ValueError(f'lamp {self.lamp.name!r}: peak_dn must not be negative')
+
+
+@dataclass
+class LampTruth:
+    """What a lamp truly looks like in one frame (pixel coordinates of that frame's image).
+
+    ``ellipse`` (cx, cy, a, b, theta) is the exact image of the rim in undistorted
+    pixels (``CameraModel.undistort_pixels``), which are the raw pixels when D = 0.
+    ``marker_pixel``, ``center_pixel`` and ``rim_pixels`` are raw (distorted)
+    projections; NaN where the point is beyond the lens' valid field or behind the camera.
+    ``bbox`` = (x0, y0, x1, y1), ends exclusive, holds all its pixels (None if not visible).
+    """
+
+    lamp_id: int
+    name: str
+    visible: bool
+    fully_inside: bool
+    center_camera: np.ndarray
+    marker_pixel: np.ndarray
+    center_pixel: np.ndarray
+    ellipse: np.ndarray | None
+    rim_pixels: np.ndarray
+    bbox: tuple[int, int, int, int] | None
+
+
+@dataclass
+class RenderedFrame:
+    """An image with its ground truth.
+
+    ``camera`` models this image (for an ROI: same lens, principal point moved);
+    ``start_time`` is when its first row started exposing; ``roi`` = (x0, y0,
+    width, height) is where the image lies on the full sensor.
+    """
+
+    image: np.ndarray
+    encoding: str
+    camera: CameraModel
+    pose: Pose
+    start_time: float
+    roi: tuple[int, int, int, int]
+    lamps: list[LampTruth] = field(default_factory=list)
+
+    def truth(self, lamp_id: int) -> LampTruth:
+        for t in self.lamps:
+            if t.lamp_id == lamp_id:
+                return t
+        raise KeyError(f'no lamp with id {lamp_id} in this frame')
+
+
+def crop_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraModel:
+    """The camera model of the ``roi`` = (x0, y0, width, height) part of the sensor."""
+    x0, y0, width, height = roi
+    if width < 1 or height < 1 or x0 < 0 or y0 < 0 or x0 + width > camera.width or y0 + height > camera.height:
+        raise ValueError(f'roi {roi} does not lie on the {camera.width}x{camera.height} sensor')
+    K = camera.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return CameraModel(width, height, K, camera.D)
+
+
+def lamp_roi(camera: CameraModel, pose: Pose, lamp: Lamp, size: int) -> tuple[int, int, int, int]:
+    """A ``size`` x ``size`` roi centred on the lamp's image, kept on the sensor."""
+    if size > min(camera.width, camera.height):
+        raise ValueError(f'roi size {size} exceeds the {camera.width}x{camera.height} sensor')
+    centre = camera.project(pose.map_to_camera(lamp.position))[0]
+    x0 = int(np.clip(round(centre[0] - size / 2), 0, camera.width - size))
+    y0 = int(np.clip(round(centre[1] - size / 2), 0, camera.height - size))
+    return x0, y0, size, size
+
+
+def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: SensorModel,
+                 start_time: float, rng: np.random.Generator | None,
+                 roi: tuple[int, int, int, int] | None = None) -> RenderedFrame:
+    """Render what ``camera`` at ``pose`` records when its row 0 starts exposing at ``start_time``.
+
+    ``rng=None`` renders without noise. ``roi`` = (x0, y0, width, height) renders only
+    that part of the sensor (rows keep their full-sensor exposure times).
+    """
+    if roi is not None:
+        camera = crop_camera(camera, roi)
+    x0, y0 = (roi[0], roi[1]) if roi is not None else (0, 0)
+    first_row_time = start_time + y0 * sensor.row_time
+    field_limit = _field_limit(camera)
+    image = flat_field(camera.height, camera.width, sensor, rng, x0, y0)
+    pattern = None if sensor.bayer is None else shifted_pattern(sensor.bayer, x0, y0)
+
+    truths, drawn = [], []
+    for sim in lamps:
+        truth, bbox = _project(camera, pose, sim, field_limit)
+        truths.append(truth)
+        if bbox is not None:
+            drawn.append((sim, truth, bbox))
+    margin = sensor.blur_margin()
+    for region, members in _clusters(drawn, margin, camera):
+        rx0, ry0, rx1, ry1 = region
+        canvas = np.empty((ry1 - ry0, rx1 - rx0, 3), dtype=np.float32)
+        canvas[...] = np.asarray(sensor.ambient_bgr, dtype=np.float32)
+        for sim, truth, bbox in members:
+            truth.visible = _draw(canvas, region, camera, pose, sim, bbox, sensor, first_row_time)
+            truth.bbox = bbox if truth.visible else None
+        if sensor.blur_sigma > 0.0:
+            canvas = cv2.GaussianBlur(canvas, (0, 0), sensor.blur_sigma, borderType=cv2.BORDER_REPLICATE)
+        if pattern is not None:
+            canvas = mosaic(canvas, shifted_pattern(pattern, rx0, ry0))
+        image[ry0:ry1, rx0:rx1] = read_out(canvas, sensor, rng)
+    for truth in truths:
+        truth.fully_inside = truth.visible and truth.fully_inside
+    return RenderedFrame(image, encoding(pattern), camera, pose, first_row_time,
+                         (x0, y0, camera.width, camera.height), truths)
+
+
+def _field_limit(camera: CameraModel) -> float:
+    """Normalised radius beyond which the image is not modelled (distortion would fold back).
+
+    Rays farther out than this never reach the sensor; raises if the distortion
+    folds inside the image itself, where the model would be meaningless.
+    """
+    w, h = camera.width - 0.5, camera.height - 0.5
+    border = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h], [w / 2, -0.5], [w / 2, h], [-0.5, h / 2], [w, h / 2]])
+    if not camera.is_distorted:
+        return float(4.0 * np.max(np.linalg.norm(camera.normalize(border), axis=1)))
+    k1, k2, _, _, k3 = camera.D
+    # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6) = 0, as a polynomial in r^2.
+    roots = np.atleast_1d(np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]))
+    real = [r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0.0]
+    fold = np.sqrt(min(real)) if real else np.inf
+    distorted = (border - camera.K[:2, 2]) / np.diag(camera.K)[:2]
+    if np.isfinite(fold):
+        fold_radius = fold * (1.0 + k1 * fold ** 2 + k2 * fold ** 4 + k3 * fold ** 6)
+        if fold_radius <= np.max(np.linalg.norm(distorted, axis=1)):
+            raise ValueError(f'camera distortion {camera.D} folds back inside the image '
+                             f'(at normalised radius {fold:.3f})')
+    image_radius = np.max(np.linalg.norm(camera.normalize(border), axis=1))
+    return float(min(fold, 4.0 * image_radius))
+
+
+def _project(camera: CameraModel, pose: Pose, sim: SimLamp,
+             field_limit: float) -> tuple[LampTruth, tuple[int, int, int, int] | None]:
+    """Ground-truth geometry of a lamp and the pixel box its disc may cover (None if none)."""
+    lamp = sim.lamp
+    rim = pose.map_to_camera(lamp.rim_points(RIM_SAMPLES))
+    centre, marker = pose.map_to_camera(np.stack([lamp.position, lamp.marker_position()]))
+    nan2 = np.full(2, np.nan)
+    truth = LampTruth(lamp.id, lamp.name, False, False, centre, nan2, nan2.copy(), None,
+                      np.full((RIM_SAMPLES, 2), np.nan), None)
+    # The disc emits downwards only, and a disc crossing the image plane is never in a < 180 deg view.
+    if pose.position[2] >= lamp.position[2] or np.any(rim[:, 2] <= 0.0):
+        return truth, None
+    truth.ellipse = _rim_ellipse(camera, pose, lamp)
+    normalised = rim[:, :2] / rim[:, 2:]
+    radius = np.linalg.norm(normalised, axis=1)
+    in_field = radius < field_limit
+    clamped = normalised * np.minimum(1.0, field_limit / np.maximum(radius, 1e-300))[:, None]
+    pixels = camera.project(np.column_stack([clamped, np.ones(RIM_SAMPLES)]))
+    truth.rim_pixels = np.where(in_field[:, None], pixels, np.nan)
+    for point, attr in ((centre, 'center_pixel'), (marker, 'marker_pixel')):
+        if np.linalg.norm(point[:2] / point[2]) < field_limit:
+            setattr(truth, attr, camera.project(point)[0])
+    lo, hi = pixels.min(axis=0), pixels.max(axis=0)
+    truth.fully_inside = bool(in_field.all() and np.all(lo >= 0.0)
+                              and hi[0] <= camera.width - 1 and hi[1] <= camera.height - 1)
+    # The rim between samples bulges by < 0.02 px; one pixel of slack covers it.
+    bx0, by0 = max(int(np.floor(lo[0])) - 1, 0), max(int(np.floor(lo[1])) - 1, 0)
+    bx1, by1 = min(int(np.ceil(hi[0])) + 2, camera.width), min(int(np.ceil(hi[1])) + 2, camera.height)
+    if bx0 >= bx1 or by0 >= by1:
+        return truth, None
+    return truth, (bx0, by0, bx1, by1)
+
+
+def _rim_ellipse(camera: CameraModel, pose: Pose, lamp: Lamp) -> np.ndarray:
+    """Exact image of the rim circle in undistorted pixels: the circle's conic through the plane homography."""
+    to_camera = pose.rotation.T
+    H = camera.K @ np.column_stack([to_camera[:, 0], to_camera[:, 1], to_camera @ (lamp.position - pose.position)])
+    H_inv = np.linalg.inv(H)
+    return ellipse_from_conic(H_inv.T @ np.diag([1.0, 1.0, -lamp.radius ** 2]) @ H_inv)
+
+
+def _clusters(drawn: list, margin: int, camera: CameraModel) -> list[tuple[tuple[int, int, int, int], list]]:
+    """Group lamps whose blurred boxes overlap into regions rendered together, members far first."""
+    regions: list[tuple[tuple[int, int, int, int], list]] = []
+    for item in drawn:
+        x0, y0, x1, y1 = item[2]
+        box = (max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, camera.width), min(y1 + margin, camera.height))
+        members = [item]
+        # A merged box may reach regions the lamp's own box did not: absorb until none overlaps.
+        overlapping = [r for r in regions if _overlap(box, r[0])]
+        while overlapping:
+            for other in overlapping:
+                regions.remove(other)
+                box = (min(box[0], other[0][0]), min(box[1], other[0][1]),
+                       max(box[2], other[0][2]), max(box[3], other[0][3]))
+                members += other[1]
+            overlapping = [r for r in regions if _overlap(box, r[0])]
+        regions.append((box, members))
+    return [(box, sorted(members, key=lambda item: -np.linalg.norm(item[1].center_camera)))
+            for box, members in regions]
+
+
+def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def _draw(canvas: np.ndarray, region: tuple[int, int, int, int], camera: CameraModel, pose: Pose,
+          sim: SimLamp, bbox: tuple[int, int, int, int], sensor: SensorModel, first_row_time: float) -> bool:
+    """Paint one lamp over ``canvas`` (which covers ``region``); False if no pixel of it shows."""
+    lamp = sim.lamp
+    disc, marker = disc_coverage(
+        camera, pose, lamp.position[2],
+        [Circle(lamp.position[:2], lamp.radius), Circle(lamp.marker_position()[:2], sim.marker_radius)],
+        bbox, sensor.supersample)
+    if not disc.any():
+        return False
+    x0, y0, x1, y1 = bbox
+    # Row r integrates the light over [its start, its start + exposure].
+    level = sim.waveform.mean_brightness(sensor.row_start_times(first_row_time, y0, y1 - y0), sensor.exposure)
+    light = (np.asarray(sim.color_bgr, dtype=np.float32) * (disc - marker)[..., None]
+             + np.asarray(sim.marker_bgr, dtype=np.float32) * marker[..., None])
+    light *= (sim.peak_dn * level).astype(np.float32)[:, None, None]
+    view = canvas[y0 - region[1]:y1 - region[1], x0 - region[0]:x1 - region[0]]
+    view *= (1.0 - disc)[..., None]
+    view += light
+    return True

@@ -1,0 +1,132 @@
+"""How light becomes 8-bit pixel values: rolling-shutter timing, noise, saturation, Bayer mosaic.
+
+Pixel values before noise are "expected DN": the mean 8-bit value the pixel would
+read without noise. Electrons = DN / gain; shot noise is Poisson in electrons,
+read noise Gaussian in electrons, and the full well clips the electron count.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+BAYER_PATTERNS = ('rggb', 'bggr', 'grbg', 'gbrg')
+_BGR_INDEX = {'b': 0, 'g': 1, 'r': 2}
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """A rolling-shutter colour sensor.
+
+    Row ``r`` starts exposing ``r * row_time`` after row 0 and integrates for
+    ``exposure`` seconds. ``ambient_bgr`` is the expected DN of the unlit ceiling.
+    ``gain`` is DN per electron (default: the full well reads 255). ``bayer``
+    (e.g. ``'rggb'``) makes the output a raw mosaic instead of bgr8.
+    ``supersample`` is the samples per pixel side used on disc edges.
+    """
+
+    row_time: float
+    exposure: float
+    full_well: float = 4000.0
+    gain: float | None = None
+    read_noise: float = 3.0
+    ambient_bgr: tuple[float, float, float] = (10.0, 12.0, 12.0)
+    blur_sigma: float = 0.7
+    bayer: str | None = None
+    supersample: int = 8
+
+    def __post_init__(self) -> None:
+        if not self.row_time > 0.0:
+            raise ValueError(f'row_time must be positive, got {self.row_time}')
+        if not self.exposure > 0.0:
+            raise ValueError(f'exposure must be positive, got {self.exposure}')
+        if not self.full_well > 0.0 or (self.gain is not None and not self.gain > 0.0):
+            raise ValueError('full_well and gain must be positive')
+        if self.read_noise < 0.0 or self.blur_sigma < 0.0:
+            raise ValueError('read_noise and blur_sigma must not be negative')
+        if self.bayer is not None and self.bayer not in BAYER_PATTERNS:
+            raise ValueError(f'bayer must be one of {BAYER_PATTERNS}, got {self.bayer!r}')
+        if self.supersample < 1:
+            raise ValueError(f'supersample must be >= 1, got {self.supersample}')
+
+    @property
+    def dn_per_electron(self) -> float:
+        return self.gain if self.gain is not None else 255.0 / self.full_well
+
+    def row_start_times(self, start_time: float, first_row: int, rows: int) -> np.ndarray:
+        """When rows ``first_row .. first_row + rows - 1`` start exposing."""
+        return start_time + (first_row + np.arange(rows)) * self.row_time
+
+    def blur_margin(self) -> int:
+        """Pixels beyond an object that its blurred light can still reach."""
+        return int(np.ceil(4.0 * self.blur_sigma)) + 2
+
+
+def encoding(bayer: str | None) -> str:
+    """sensor_msgs/Image encoding of the sensor output."""
+    return 'bgr8' if bayer is None else f'bayer_{bayer}8'
+
+
+def shifted_pattern(pattern: str, x0: int, y0: int) -> str:
+    """The Bayer pattern seen by a crop whose top-left pixel is (x0, y0) of the full mosaic."""
+    rows = [pattern[:2], pattern[2:]]
+    if y0 % 2:
+        rows.reverse()
+    if x0 % 2:
+        rows = [r[::-1] for r in rows]
+    return ''.join(rows)
+
+
+def mosaic(bgr: np.ndarray, pattern: str) -> np.ndarray:
+    """Keep, at each pixel, only the channel its colour filter passes (H, W, 3) -> (H, W)."""
+    index = np.empty(bgr.shape[:2], dtype=np.intp)
+    for k, colour in enumerate(pattern):
+        index[k // 2::2, k % 2::2] = _BGR_INDEX[colour]
+    return np.take_along_axis(bgr, index[..., None], axis=2)[..., 0]
+
+
+def read_out(expected: np.ndarray, sensor: SensorModel, rng: np.random.Generator | None) -> np.ndarray:
+    """Noisy, saturated, quantised uint8 pixels from expected DN (any shape).
+
+    ``rng=None`` gives the noise-free readout (still clipped and rounded).
+    """
+    g = sensor.dn_per_electron
+    if rng is None:
+        return np.clip(np.rint(np.minimum(expected, sensor.full_well * g)), 0, 255).astype(np.uint8)
+    electrons = rng.poisson(np.maximum(expected, 0.0) / g).astype(np.float64)
+    electrons += rng.normal(0.0, sensor.read_noise, electrons.shape)
+    # A full pixel reads its full-well level: the read noise of a saturated pixel is never seen.
+    np.minimum(electrons, sensor.full_well, out=electrons)
+    return np.clip(np.rint(electrons * g), 0, 255).astype(np.uint8)
+
+
+def flat_field(height: int, width: int, sensor: SensorModel, rng: np.random.Generator | None,
+               x0: int = 0, y0: int = 0) -> np.ndarray:
+    """The read-out of the uniformly lit ceiling: (H, W, 3) bgr8, or (H, W) raw if Bayer.
+
+    Its shot noise uses the Gaussian limit of the Poisson law (hundreds of
+    electrons), drawn by OpenCV because a 4K frame of numpy Poisson draws takes seconds.
+    """
+    level = np.minimum(np.asarray(sensor.ambient_bgr, dtype=float), sensor.full_well * sensor.dn_per_electron)
+    g = sensor.dn_per_electron
+    sigma = np.sqrt(g * level + (g * sensor.read_noise) ** 2)
+    if sensor.bayer is None:
+        image = np.empty((height, width, 3), dtype=np.uint8)
+        return _fill(image, level, sigma, rng)
+    pattern = shifted_pattern(sensor.bayer, x0, y0)
+    sites = [_BGR_INDEX[c] for c in pattern]
+    quads = np.empty(((height + 1) // 2, (width + 1) // 2, 4), dtype=np.uint8)
+    _fill(quads, level[sites], sigma[sites], rng)
+    full = quads.reshape(quads.shape[0], quads.shape[1], 2, 2).transpose(0, 2, 1, 3)
+    return np.ascontiguousarray(full.reshape(2 * quads.shape[0], 2 * quads.shape[1])[:height, :width])
+
+
+def _fill(image: np.ndarray, mean: np.ndarray, sigma: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+    if rng is None:
+        image[...] = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
+        return image
+    # cv2.randn draws from OpenCV's own generator: seed it from rng for reproducibility.
+    cv2.setRNGSeed(int(rng.integers(2 ** 31)))
+    cv2.randn(image, tuple(float(m) for m in mean), tuple(float(s) for s in sigma))
+    return image
