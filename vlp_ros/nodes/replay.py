@@ -1,21 +1,285 @@
-"""The `replay` node: plays rosbag2 recordings into the ROS graph."""
+"""The `replay` node: plays rosbag2 recordings into the ROS graph, like `ros2 bag play`.
+
+    replay PATH [--topics T [T ...]] [--remap FROM:=TO] [--rate R] [--loop]
+                [--start-offset S] [--delay S] [--clock [HZ]]
+                [--deterministic [--answer-timeout S]] [--ros-args ...]
+
+Every option is also a ROS parameter of the same name (underscores, `bag` for
+PATH, `clock` in Hz with 0 for off); the command line wins. Messages go out as
+recorded bytes with the recorded QoS. In deterministic mode each camera frame
+waits for the locator's answer (same stamp on vlp/pose or vlp/processed) or
+`answer_timeout`, so results do not depend on machine speed.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+from collections.abc import Callable, Sequence
+
 import rclpy
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Header
+
+from vlp_ros.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, Timeline, playback_origin,
+                                   progress_line, select_topics)
+from vlp_ros.rosbag_reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
+
+DISCOVERY_WAIT_S = 1.0  # for subscribers to match before the first message
+FRAME_SUBSCRIBER_WAIT_S = 10.0  # deterministic mode: for the frame topics' first subscriber
+ACK_WAIT_S = 2.0  # at the end, for reliable subscribers to acknowledge the last messages
+PROGRESS_PERIOD_S = 1.0
+SPIN_SLICE_S = 0.05
+# Answers only need to arrive; best effort matches publishers of either reliability.
+ANSWER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)  # rclcpp::ClockQoS
+NUMBER_PARAMETERS = {'rate': 1.0, 'start_offset': 0.0, 'delay': 0.0, 'clock': 0.0, 'answer_timeout': 2.0}
+
+
+def command_line_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='replay', description='Play a rosbag2 directory into the ROS graph.',
+        epilog='Each option can also be set as a ROS parameter (--ros-args -p rate:=2.0); '
+               'the command line wins.')
+    parser.add_argument('bag', nargs='?', metavar='PATH', help='rosbag2 directory (sqlite3 or mcap)')
+    parser.add_argument('--topics', nargs='+', metavar='T', help='play only these topics')
+    parser.add_argument('--remap', action='append', metavar='FROM:=TO', help='publish topic FROM as TO')
+    parser.add_argument('--rate', type=float, metavar='R', help='playback speed factor (default 1)')
+    parser.add_argument('--loop', action='store_true', default=None, help='play again and again')
+    parser.add_argument('--start-offset', type=float, metavar='S', help='start S seconds into the bag')
+    parser.add_argument('--delay', type=float, metavar='S', help='wait S seconds before playing')
+    parser.add_argument('--clock', type=float, nargs='?', const=DEFAULT_CLOCK_HZ, metavar='HZ',
+                        help=f'publish /clock at HZ (default {DEFAULT_CLOCK_HZ:g})')
+    parser.add_argument('--deterministic', action='store_true', default=None,
+                        help='publish each camera frame only after the previous one was answered')
+    parser.add_argument('--answer-timeout', type=float, metavar='S',
+                        help='deterministic mode: give up waiting for an answer after S seconds (default 2)')
+    return parser
+
+
+def message_class(msgtype: str) -> type | None:
+    """The installed Python class of a ROS message type name such as 'sensor_msgs/msg/Image'."""
+    parts = msgtype.split('/')
+    if len(parts) == 2:  # pre-Dashing spelling 'pkg/Type'
+        parts.insert(1, 'msg')
+    if len(parts) != 3:
+        return None
+    package, kind, name = parts
+    try:
+        module = importlib.import_module(f'{package}.{kind}')
+    except ImportError:
+        return None
+    cls = getattr(module, name, None)
+    return cls if hasattr(cls, 'get_fields_and_field_types') else None
+
+
+def offered_qos_profile(topic: BagTopic) -> QoSProfile:
+    return QoSProfile(depth=topic.qos.depth,
+                      reliability=ReliabilityPolicy[topic.qos.reliability],
+                      durability=DurabilityPolicy[topic.qos.durability])
 
 
 class Replay(Node):
-    def __init__(self) -> None:
+    def __init__(self, command_line: argparse.Namespace) -> None:
         super().__init__('vlp_replay')
-        self.declare_parameter('bag', '')
+        self.options = self._options(command_line)
+        self._executor = SingleThreadedExecutor(context=self.context)
+        self._executor.add_node(self)
+        self._bag_publishers: dict[str, Publisher] = {}
+        self._published = 0
+        self._total = 0
+        self._answered = 0
+        self._unanswered = 0
+        self._pending_stamp: tuple[int, int] | None = None
+        self._last_bag_ns = 0
+        self._timeline: Timeline | None = None
+        self._loop_start = 0.0
+
+    def _options(self, command_line: argparse.Namespace) -> PlaybackOptions:
+        values = {
+            'bag': self.declare_parameter('bag', '').value,
+            'topics': self.declare_parameter('topics', Parameter.Type.STRING_ARRAY).value or (),
+            'remap': self.declare_parameter('remap', Parameter.Type.STRING_ARRAY).value or (),
+            'loop': self.declare_parameter('loop', False).value,
+            'deterministic': self.declare_parameter('deterministic', False).value,
+        }
+        for name, default in NUMBER_PARAMETERS.items():
+            values[name] = self._number_parameter(name, default)
+        for name in values:
+            given = getattr(command_line, name)
+            if given is not None:
+                values[name] = given
+        return PlaybackOptions(**{**values, 'topics': tuple(values['topics']),
+                                  'remap': tuple(values['remap'])})
+
+    def _number_parameter(self, name: str, default: float) -> float:
+        # Dynamic typing so that `-p rate:=2` (an integer) is accepted as well as 2.0.
+        value = self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f'parameter {name!r} must be a number, got {value!r}')
+        return float(value)
+
+    def play(self) -> int:
+        """Play the bag as the options say; the exit status. Raises ValueError (BagError) for unplayable bags."""
+        with Bag(self.options.bag) as bag:
+            selected, missing = select_topics(bag.topics, self.options.topics)
+            for name in missing:
+                self.get_logger().warning(f'topic {name} is not in the bag')
+            origin = playback_origin(bag.start_ns, bag.end_ns, self.options.start_offset)
+            self._create_publishers(selected)
+            names = list(self._bag_publishers)
+            self._total = sum(bag.topics[name].message_count for name in names)
+            self._last_bag_ns = origin
+            print(f'replay: playing {bag.path}: {self._total} messages on {len(names)} topics, '
+                  f'{(bag.end_ns - origin) / 1e9:.1f} s at rate {self.options.rate:g}'
+                  f'{" (deterministic)" if self.options.deterministic else ""}', file=sys.stderr, flush=True)
+            self.create_timer(PROGRESS_PERIOD_S,
+                              lambda: self._print(progress_line(self._published, self._total, self._bag_now_ns(),
+                                                                origin, bag.end_ns)))
+            if self.options.clock > 0:
+                clock = self.create_publisher(Clock, '/clock', CLOCK_QOS)
+                self.create_timer(1.0 / self.options.clock,
+                                  lambda: clock.publish(Clock(clock=Time(nanoseconds=self._bag_now_ns()).to_msg())))
+            if self.options.deterministic:
+                self._prepare_answers(bag, names)
+            self._wait_for_subscribers()
+            started = time.monotonic()
+            while True:
+                self._play_pass(bag, names, origin)
+                if not self.options.loop:
+                    break
+            self._wait_for_acknowledgements()
+        self._print(self._summary(time.monotonic() - started))
+        return 0
+
+    def _create_publishers(self, topics: Sequence[BagTopic]) -> None:
+        remaps = self.options.remappings()
+        unavailable: dict[str, list[str]] = {}
+        for topic in topics:
+            cls = message_class(topic.msgtype)
+            if cls is None:
+                unavailable.setdefault(topic.msgtype, []).append(topic.name)
+                continue
+            if not topic.qos_consistent:
+                self.get_logger().warning(f'{topic.name} was recorded from publishers with different QoS; '
+                                          'offering reliable, volatile')
+            self._bag_publishers[topic.name] = self.create_publisher(cls, remaps.get(topic.name, topic.name),
+                                                                 offered_qos_profile(topic))
+        for msgtype, names in unavailable.items():
+            self.get_logger().warning(f'skipping {", ".join(names)}: message type {msgtype} is not installed')
+        if not self._bag_publishers:
+            raise ValueError(f'no selected topic has an installed message type (missing: {sorted(unavailable)})')
+
+    def _prepare_answers(self, bag: Bag, names: Sequence[str]) -> None:
+        self.create_subscription(PoseStamped, 'vlp/pose', lambda msg: self._answer(msg.header.stamp), ANSWER_QOS)
+        self.create_subscription(Header, 'vlp/processed', lambda msg: self._answer(msg.stamp), ANSWER_QOS)
+        frames = [self._bag_publishers[name] for name in names if bag.topics[name].msgtype in FRAME_TYPES]
+        if not self._spin_while(lambda: any(p.get_subscription_count() == 0 for p in frames),
+                                FRAME_SUBSCRIBER_WAIT_S):
+            return
+        self.get_logger().warning('deterministic mode: no subscriber on '
+                                  f'{[p.topic_name for p in frames if p.get_subscription_count() == 0]} '
+                                  f'after {FRAME_SUBSCRIBER_WAIT_S:g} s; their frames wait for no answer')
+
+    def _answer(self, stamp) -> None:
+        if (stamp.sec, stamp.nanosec) == self._pending_stamp:
+            self._pending_stamp = None
+
+    def _wait_for_subscribers(self) -> None:
+        self._spin_while(lambda: any(p.get_subscription_count() == 0 for p in self._bag_publishers.values()),
+                         DISCOVERY_WAIT_S)
+
+    def _play_pass(self, bag: Bag, names: Sequence[str], origin: int) -> None:
+        self._timeline = None
+        self._last_bag_ns = origin
+        self._spin_for(self.options.delay)
+        self._timeline = Timeline(origin, self.options.rate)
+        self._loop_start = time.monotonic()
+        for message in bag.messages(names, origin):
+            if self.options.deterministic:
+                self._executor.spin_once(timeout_sec=0.0)
+            else:
+                self._spin_for(self._loop_start + self._timeline.due_s(message.timestamp_ns) - time.monotonic())
+            publisher = self._bag_publishers[message.topic]
+            publisher.publish(message.data)
+            self._published += 1
+            self._last_bag_ns = message.timestamp_ns
+            if self.options.deterministic and message.msgtype in FRAME_TYPES:
+                self._await_answer(message, publisher)
+
+    def _await_answer(self, message: BagMessage, publisher: Publisher) -> None:
+        if publisher.get_subscription_count() == 0:
+            return  # nobody to answer
+        self._pending_stamp = header_stamp(message.data)
+        self._spin_while(lambda: self._pending_stamp is not None, self.options.answer_timeout)
+        if self._pending_stamp is None:
+            self._answered += 1
+        else:
+            self._unanswered += 1
+            self._pending_stamp = None
+
+    def _spin_while(self, condition: Callable[[], bool], timeout: float) -> bool:
+        """Serve callbacks (timers, answers) while ``condition()`` holds, at most ``timeout`` s; whether it still holds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            self._executor.spin_once(timeout_sec=min(max(remaining, 0.0), SPIN_SLICE_S))
+            if not condition() or remaining <= 0:
+                return condition()
+
+    def _spin_for(self, seconds: float) -> None:
+        self._spin_while(lambda: True, seconds)
+
+    def _bag_now_ns(self) -> int:
+        """Bag time being played: the clock in timed playback, the last message in deterministic mode."""
+        if self.options.deterministic or self._timeline is None:
+            return self._last_bag_ns
+        return max(self._last_bag_ns, self._timeline.bag_time_ns(time.monotonic() - self._loop_start))
+
+    def _wait_for_acknowledgements(self) -> None:
+        deadline = time.monotonic() + ACK_WAIT_S
+        for publisher in self._bag_publishers.values():
+            publisher.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
+
+    def _summary(self, elapsed_s: float) -> str:
+        line = f'replay: done: published {self._published} messages in {elapsed_s:.1f} s'
+        if self.options.deterministic:
+            line += f'; frames answered: {self._answered}, unanswered: {self._unanswered}'
+        return line
+
+    @staticmethod
+    def _print(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
 
 
-def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = Replay()
+def main(args: list[str] | None = None) -> int:
+    argv = list(sys.argv if args is None else args)
+    parser = command_line_parser()
+    command_line = parser.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
+        node = Replay(command_line)
+    except (ValueError, ParameterException) as err:
+        rclpy.try_shutdown()
+        parser.error(str(err))
+    try:
+        return node.play()
+    except ValueError as err:
+        print(f'replay: error: {err}', file=sys.stderr, flush=True)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

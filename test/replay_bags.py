@@ -1,0 +1,154 @@
+"""Synthetic rosbag2 directories for the replay tests, written with rosbags (ROS-free)."""
+from __future__ import annotations
+
+import shutil
+import sqlite3
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+SHARED_BAGS = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'rosbag2'
+TYPESTORE = get_typestore(Stores.ROS2_KILTED)
+T0_NS = 1_700_000_000_000_000_000
+STRING = 'std_msgs/msg/String'
+IMAGE = 'sensor_msgs/msg/Image'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+
+
+@dataclass(frozen=True)
+class Recorded:
+    topic: str
+    msgtype: str
+    timestamp_ns: int
+    data: bytes
+
+
+def offer(reliability: QosReliability = QosReliability.RELIABLE,
+          durability: QosDurability = QosDurability.VOLATILE) -> Qos:
+    infinite = QosTime(2147483647, 4294967295)
+    return Qos(QosHistory.KEEP_LAST, 10, reliability, durability, infinite, infinite,
+               QosLiveliness.AUTOMATIC, infinite, False)
+
+
+def _serialize(message: object, msgtype: str) -> bytes:
+    return bytes(TYPESTORE.serialize_cdr(message, msgtype))
+
+
+def _header(stamp_ns: int, frame_id: str) -> object:
+    types = TYPESTORE.types
+    stamp = types['builtin_interfaces/msg/Time'](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    return types['std_msgs/msg/Header'](stamp=stamp, frame_id=frame_id)
+
+
+def string_data(text: str) -> bytes:
+    return _serialize(TYPESTORE.types[STRING](data=text), STRING)
+
+
+def image_data(stamp_ns: int, frame_id: str = 'camera') -> bytes:
+    image = TYPESTORE.types[IMAGE](header=_header(stamp_ns, frame_id), height=2, width=3, encoding='mono8',
+                                   is_bigendian=0, step=3, data=np.arange(6, dtype=np.uint8))
+    return _serialize(image, IMAGE)
+
+
+def camera_info_data(stamp_ns: int) -> bytes:
+    info = TYPESTORE.types[CAMERA_INFO](
+        header=_header(stamp_ns, 'camera'), height=2, width=3, distortion_model='plumb_bob',
+        d=np.zeros(5), k=np.eye(3).ravel(), r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0, binning_y=0,
+        roi=TYPESTORE.types['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
+                                                               do_rectify=False))
+    return _serialize(info, CAMERA_INFO)
+
+
+def chatter(count: int, period_s: float, topic: str = '/chatter') -> list[Recorded]:
+    """``count`` String messages 'hello k', ``period_s`` apart."""
+    return [Recorded(topic, STRING, T0_NS + round(k * period_s * 1e9), string_data(f'hello {k}'))
+            for k in range(count)]
+
+
+def write_bag(path: Path, messages: list[Recorded], *, storage: str = 'sqlite3', version: int = 9,
+              compression: str | None = None, qos: dict[str, list[Qos]] | None = None) -> Path:
+    """A bag as rosbags writes it; ``compression`` is a zstd mode name: 'file', 'message' or 'storage'."""
+    writer = Writer(path, version=version, storage_plugin=StoragePlugin[storage.upper()])
+    if compression:
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with writer:
+        connections = {}
+        for message in messages:
+            if message.topic not in connections:
+                offers = (qos or {}).get(message.topic, [offer()])
+                connections[message.topic] = writer.add_connection(
+                    message.topic, message.msgtype, typestore=TYPESTORE, offered_qos_profiles=offers)
+            writer.write(connections[message.topic], message.timestamp_ns, message.data)
+    return path
+
+
+def write_split_bag(path: Path, messages: list[Recorded], parts: int, *, storage: str = 'sqlite3') -> Path:
+    """One bag split over ``parts`` storage files, as `ros2 bag record --max-bag-size` leaves it."""
+    chunks = [list(chunk) for chunk in np.array_split(np.array(messages, dtype=object), parts)]
+    pieces = [write_bag(path.parent / f'{path.name}_part{k}', chunk, storage=storage)
+              for k, chunk in enumerate(chunks)]
+    path.mkdir()
+    metadata = [_metadata(piece) for piece in pieces]
+    files = []
+    for k, (piece, info) in enumerate(zip(pieces, metadata)):
+        source = piece / info['relative_file_paths'][0]
+        target = path / f'{path.name}_{k}{source.suffix}'
+        shutil.move(source, target)
+        files.append(target.name)
+        shutil.rmtree(piece)
+    merged = metadata[0]
+    merged['relative_file_paths'] = files
+    merged['message_count'] = len(messages)
+    merged['duration']['nanoseconds'] = messages[-1].timestamp_ns - messages[0].timestamp_ns
+    counts: dict[str, int] = {}
+    for message in messages:
+        counts[message.topic] = counts.get(message.topic, 0) + 1
+    merged['topics_with_message_count'] = [
+        {**entry, 'message_count': counts[entry['topic_metadata']['name']]}
+        for entry in merged['topics_with_message_count']]
+    merged['files'] = [{**file_info, 'path': name}
+                       for info, name in zip(metadata, files) for file_info in info['files']]
+    _write_metadata(path, merged)
+    return path
+
+
+def _metadata(path: Path) -> dict:
+    return yaml.safe_load((path / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+
+
+def _write_metadata(path: Path, info: dict) -> None:
+    (path / 'metadata.yaml').write_text(yaml.safe_dump({'rosbag2_bagfile_information': info}))
+
+
+def set_metadata_version(path: Path, version: int) -> Path:
+    info = _metadata(path)
+    info['version'] = version
+    _write_metadata(path, info)
+    return path
+
+
+def copy_bag(source: Path, target: Path) -> Path:
+    """A writable copy (the shared recordings are read-only)."""
+    shutil.copytree(source, target)
+    for item in target.iterdir():
+        item.chmod(0o644)
+    return target
+
+
+def storage_file(path: Path) -> Path:
+    return path / _metadata(path)['relative_file_paths'][0]
+
+
+def sqlite3_topic_data(database: Path, topic: str) -> list[bytes]:
+    """The raw messages of ``topic`` in time order, read with plain sqlite3: an oracle independent of rosbags."""
+    with closing(sqlite3.connect(f'file:{database}?mode=ro', uri=True)) as connection:
+        rows = connection.execute(
+            'SELECT data FROM messages JOIN topics ON messages.topic_id = topics.id '
+            'WHERE topics.name = ? ORDER BY timestamp', (topic,))
+        return [bytes(data) for (data,) in rows]
