@@ -4,6 +4,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
+
 from vlp_ros.pose import Pose
 
 
@@ -25,8 +27,7 @@ class Reason(str, Enum):
     """Why a pose was, or was not, chosen. ``str`` so it logs and serialises as its value."""
 
     UNIQUE = 'unique'                          # a single candidate (or both coincide)
-    STATIC_PRIOR = 'static_prior'              # decided by the configured up direction
-    GRAVITY = 'gravity'                        # decided by the IMU's up direction
+    UP_DIRECTION = 'up_direction'              # decided by a known up direction (prior or IMU)
     CONTINUITY = 'continuity'                  # decided by a recent pose of this camera
     MULTI_LAMP = 'multi_lamp'                  # decided by other lamps in the same frame
     COST = 'cost'                              # one candidate's fit is overwhelmingly better
@@ -48,3 +49,27 @@ class Choice:
     @property
     def ok(self) -> bool:
         return self.pose is not None
+
+
+# Candidates closer than this (squared Mahalanobis distance under the better
+# one's covariance, i.e. within one sigma) are the same pose for any purpose:
+# picking either costs less than the noise already does.
+COINCIDENT_MAHALANOBIS2 = 1.0
+
+
+def coincide(better: PoseCandidate, other: PoseCandidate) -> bool:
+    """Whether two candidates are the same pose within ``better``'s uncertainty
+    (exactly equal when either has no covariance)."""
+    error = other.pose.error_vector(better.pose)
+    if better.pose.covariance is None or other.pose.covariance is None:
+        return bool(np.all(np.abs(error) < 1e-12))
+    return float(error @ np.linalg.solve(better.pose.covariance, error)) <= COINCIDENT_MAHALANOBIS2
+
+
+def distinct(candidates: list[PoseCandidate]) -> list[PoseCandidate]:
+    """Candidates by increasing cost, each kept only if it differs from every cheaper one kept."""
+    kept: list[PoseCandidate] = []
+    for candidate in sorted(candidates, key=lambda c: c.cost):
+        if not any(coincide(k, candidate) for k in kept):
+            kept.append(candidate)
+    return kept

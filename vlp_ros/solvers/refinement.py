@@ -1,0 +1,70 @@
+"""Maximum-likelihood camera pose: least squares over all six DoF and all lamp measurements.
+
+A small Levenberg-Marquardt loop on the analytic Jacobians of ``measurement``
+rather than scipy.optimize.least_squares: the starts are close, so a solve
+takes 3-6 iterations of ~0.1 ms, while least_squares' per-call overhead alone
+is over 1 ms (see the report of benchmarks/solver_timing.py).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.candidates import PoseCandidate
+from vlp_ros.solvers.covariance import covariance_from_jacobian, perturbed
+from vlp_ros.solvers.measurement import LampMeasurement
+
+# Stop when a step lowers the chi-square by less than this: far below the
+# ~1 unit that noise moves it, so stopping adds no error.
+_COST_TOLERANCE = 1e-9
+_MAX_ITERATIONS = 50
+_INITIAL_DAMPING = 1e-4
+
+
+def linearize(measurements: Sequence[LampMeasurement], pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked whitened residuals (M,) and their Jacobian (M, 6) of all measurements at ``pose``."""
+    parts = [m.linearize(pose.rotation, pose.position) for m in measurements]
+    return np.concatenate([r for r, _ in parts]), np.vstack([j for _, j in parts])
+
+
+def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement]) -> PoseCandidate | None:
+    """The least-squares pose nearest ``initial``, with its covariance; None if the fit breaks
+    down (the optical centre in a lamp's plane, a lamp behind the camera, a pose direction
+    the measurements leave free, or no convergence)."""
+    count = sum(m.residual_count for m in measurements)
+    if count <= 6:
+        raise ValueError(f'{count} residuals cannot determine a 6-DoF pose')
+    try:
+        pose, residuals, jacobian = _levenberg_marquardt(initial, measurements)
+        covariance = covariance_from_jacobian(jacobian)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    if not all(m.lamp_center_in_camera(pose.rotation, pose.position)[2] > 0.0 for m in measurements):
+        return None
+    pose.covariance = covariance
+    return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=count)
+
+
+def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement]
+                         ) -> tuple[Pose, np.ndarray, np.ndarray]:
+    residuals, jacobian = linearize(measurements, pose)
+    cost = residuals @ residuals
+    damping = _INITIAL_DAMPING
+    for _ in range(_MAX_ITERATIONS):
+        information = jacobian.T @ jacobian
+        gradient = jacobian.T @ residuals
+        step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
+        trial = Pose(*perturbed(pose, step))
+        trial_residuals, trial_jacobian = linearize(measurements, trial)
+        trial_cost = trial_residuals @ trial_residuals
+        if not np.isfinite(trial_cost) or trial_cost > cost:
+            damping *= 10.0
+            continue
+        converged = cost - trial_cost < _COST_TOLERANCE * max(cost, 1.0)
+        pose, residuals, jacobian, cost = trial, trial_residuals, trial_jacobian, trial_cost
+        damping = max(damping / 10.0, 1e-12)
+        if converged:
+            return pose, residuals, jacobian
+    raise ValueError('pose refinement did not converge')
