@@ -1,0 +1,113 @@
+"""Choosing between the two single-lamp candidates only on real information."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from solver_scenes import camera_4k, looking_up, observe, small_lamp
+from vlp_ros.solvers.ambiguity import COST_GAP, DisambiguationHints, choose_candidate
+from vlp_ros.solvers.candidates import Reason
+from vlp_ros.solvers.perspective import solve_lamp
+
+TRUTH = looking_up((0.6, -0.4, 0.2), (-0.25, -0.3, 0.4))
+
+
+@pytest.fixture(scope='module')
+def pair():
+    """(true candidate, twin) from one noisy oblique view."""
+    lamp = small_lamp()
+    observation = observe(lamp, TRUTH, camera_4k(), rng=np.random.default_rng(11))
+    candidates = solve_lamp(observation, lamp, camera_4k())
+    assert len(candidates) == 2
+    right = min(candidates, key=lambda c: c.pose.position_error(TRUTH))
+    twin = max(candidates, key=lambda c: c.pose.position_error(TRUTH))
+    assert right.pose.position_error(TRUTH) < 0.05 < twin.pose.position_error(TRUTH)
+    return right, twin
+
+
+def _angle(a, b) -> float:
+    return float(np.arccos(np.clip(a @ b, -1.0, 1.0)))
+
+
+def test_without_hints_the_pair_is_ambiguous(pair) -> None:
+    choice = choose_candidate(list(pair), DisambiguationHints())
+    assert choice.pose is None and choice.reason is Reason.AMBIGUOUS
+
+
+def test_gravity_picks_the_candidate_whose_up_agrees(pair) -> None:
+    right, twin = pair
+    up = TRUTH.up_in_camera()
+    assert _angle(twin.pose.up_in_camera(), up) > np.radians(10.0)
+    choice = choose_candidate([twin, right], DisambiguationHints(up_in_camera=[(9.81 * up, np.radians(5.0))]))
+    assert choice.pose is right.pose and choice.reason is Reason.UP_DIRECTION
+
+
+def test_a_hint_both_candidates_satisfy_does_not_decide(pair) -> None:
+    hints = DisambiguationHints(up_in_camera=[(TRUTH.up_in_camera(), np.radians(80.0))])
+    assert choose_candidate(list(pair), hints).reason is Reason.AMBIGUOUS
+
+
+def test_a_hint_no_candidate_satisfies_gives_no_pose(pair) -> None:
+    hints = DisambiguationHints(up_in_camera=[(-TRUTH.up_in_camera(), np.radians(20.0))])
+    choice = choose_candidate(list(pair), hints)
+    assert choice.pose is None and choice.reason is Reason.NO_CANDIDATE_AGREES
+
+
+def test_hints_pointing_at_different_candidates_conflict(pair) -> None:
+    right, twin = pair
+    hints = DisambiguationHints(up_in_camera=[(TRUTH.up_in_camera(), np.radians(5.0))],
+                                recent_pose=twin.pose, recent_gate_m=0.05)
+    choice = choose_candidate(list(pair), hints)
+    assert choice.pose is None and choice.reason is Reason.CONFLICTING_HINTS
+
+
+def test_continuity_decides_within_its_gates(pair) -> None:
+    right, _ = pair
+    recent = looking_up(TRUTH.position + [0.03, 0.0, 0.0])
+    hints = DisambiguationHints(recent_pose=recent, recent_gate_m=0.1, recent_age=0.2, recent_max_age=0.5)
+    choice = choose_candidate(list(pair), hints)
+    assert choice.pose is right.pose and choice.reason is Reason.CONTINUITY
+    stale = replace(hints, recent_age=2.0)
+    assert choose_candidate(list(pair), stale).reason is Reason.AMBIGUOUS
+
+
+def test_only_an_overwhelming_cost_gap_decides(pair) -> None:
+    right, twin = pair
+    n = right.residual_count
+    fit = replace(right, cost=float(n - 6))
+    decisive = replace(twin, cost=fit.cost + COST_GAP + 1.0)
+    choice = choose_candidate([decisive, fit], DisambiguationHints())
+    assert choice.pose is fit.pose and choice.reason is Reason.COST
+    close = replace(twin, cost=fit.cost + COST_GAP - 1.0)
+    assert choose_candidate([close, fit], DisambiguationHints()).reason is Reason.AMBIGUOUS
+    # Noise three times its stated variance shrinks the same gap below the threshold.
+    noisy = replace(right, cost=3.0 * (n - 6))
+    assert choose_candidate([noisy, replace(twin, cost=noisy.cost + COST_GAP + 1.0)],
+                            DisambiguationHints()).reason is Reason.AMBIGUOUS
+
+
+def test_a_cost_gap_against_the_hints_is_a_conflict(pair) -> None:
+    right, twin = pair
+    favoured_twin = replace(twin, cost=10.0)
+    penalised_right = replace(right, cost=10.0 + 10 * COST_GAP)
+    hints = DisambiguationHints(up_in_camera=[(TRUTH.up_in_camera(), np.radians(5.0))])
+    assert choose_candidate([favoured_twin, penalised_right], hints).reason is Reason.CONFLICTING_HINTS
+
+
+def test_single_and_coincident_candidates_need_no_hint(pair) -> None:
+    right, _ = pair
+    assert choose_candidate([right], DisambiguationHints()).reason is Reason.UNIQUE
+    duplicate = replace(right, cost=right.cost + 0.5)
+    assert choose_candidate([right, duplicate], DisambiguationHints()).reason is Reason.UNIQUE
+    wrong_up = DisambiguationHints(up_in_camera=[(-TRUTH.up_in_camera(), np.radians(20.0))])
+    assert choose_candidate([right], wrong_up).reason is Reason.NO_CANDIDATE_AGREES
+    assert choose_candidate([], DisambiguationHints()).reason is Reason.NO_CANDIDATES
+
+
+def test_bad_hints_raise() -> None:
+    with pytest.raises(ValueError):
+        DisambiguationHints(up_in_camera=[(np.zeros(3), 0.1)])
+    with pytest.raises(ValueError):
+        DisambiguationHints(up_in_camera=[(np.array([0.0, 0.0, 1.0]), 0.0)])
+    with pytest.raises(ValueError):
+        DisambiguationHints(recent_gate_m=-1.0)
