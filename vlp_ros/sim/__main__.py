@@ -1,0 +1,106 @@
+"""Command line: python -m vlp_ros.sim --scenario paper|robot --out DIR [options].
+
+Writes DIR/<scenario> (a rosbag2 recording) and DIR/params.yaml (the locator's
+parameters for it), shows a progress bar on stderr and prints a one-line summary.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vlp_ros.sim.bag_writer import STORAGES
+from vlp_ros.sim.recording import record, write_params
+from vlp_ros.sim.scenarios import PAPER_CAMERAS, Scenario, paper_scenario, robot_scenario
+from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
+
+PAPER_ONLY = ('points', 'postures', 'camera')
+
+
+class UsageError(Exception):
+    """A bad option or an output that would be overwritten: reported in one line, exit status 2."""
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim', description=__doc__.splitlines()[0])
+    parser.add_argument('--scenario', required=True, choices=('paper', 'robot'))
+    parser.add_argument('--out', required=True, type=Path, help='output directory')
+    parser.add_argument('--storage', default='sqlite3', choices=tuple(STORAGES))
+    parser.add_argument('--frames', type=int, help='write only the first N frames')
+    parser.add_argument('--points', type=int, help='paper: grid points per side (default 7)')
+    parser.add_argument('--postures', type=int, help='paper: photos per grid point (default 3)')
+    parser.add_argument('--camera', choices=tuple(PAPER_CAMERAS), help='paper: output resolution (default 4k)')
+    parser.add_argument('--height', type=float, help='lamp height above the camera in m (paper 2.0, robot 2.15)')
+    parser.add_argument('--depth', type=float, default=0.75, help='beacon modulation depth (0..1]')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--bayer', choices=BAYER_PATTERNS, help='record a raw Bayer mosaic instead of bgr8')
+    parser.add_argument('--imu', action='store_true', help='record /imu and enable it in params.yaml')
+    return parser.parse_args(argv)
+
+
+def build_scenario(args: argparse.Namespace) -> Scenario:
+    if not 0.0 < args.depth <= 1.0:
+        raise UsageError(f'--depth must be in (0, 1], got {args.depth}')
+    if args.frames is not None and args.frames < 1:
+        raise UsageError(f'--frames must be at least 1, got {args.frames}')
+    if args.height is not None and not args.height > 0.0:
+        raise UsageError(f'--height must be positive, got {args.height}')
+    common = dict(seed=args.seed, depth=args.depth, bayer=args.bayer)
+    if args.height is not None:
+        common['height'] = args.height
+    try:
+        if args.scenario == 'paper':
+            for name in ('points', 'postures'):
+                if getattr(args, name) is not None and getattr(args, name) < 1:
+                    raise UsageError(f'--{name} must be at least 1, got {getattr(args, name)}')
+            scenario = paper_scenario(camera_kind=args.camera or '4k', points=args.points or 7,
+                                      postures=args.postures or 3, **common)
+        else:
+            given = [f'--{name}' for name in PAPER_ONLY if getattr(args, name) is not None]
+            if given:
+                raise UsageError(f'{", ".join(given)}: only valid with --scenario paper')
+            scenario = robot_scenario(**common)
+    except ValueError as error:
+        raise UsageError(str(error)) from error
+    return scenario.truncated(args.frames) if args.frames is not None else scenario
+
+
+def progress_bar(done: int, total: int, width: int = 40) -> None:
+    filled = width * done // total
+    sys.stderr.write(f'\r[{"#" * filled}{"." * (width - filled)}] {done}/{total} frames')
+    if done == total:
+        sys.stderr.write('\n')
+    sys.stderr.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        scenario = build_scenario(args)
+        bag_path, params_path = args.out / scenario.name, args.out / 'params.yaml'
+        for path in (bag_path, params_path):
+            if path.exists():
+                raise UsageError(f'{path} exists already; remove it or choose another --out')
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise UsageError(f'cannot create {args.out}: {error.strerror}') from error
+    except UsageError as error:
+        print(f'python -m vlp_ros.sim: error: {error}', file=sys.stderr)
+        return 2
+    started = time.perf_counter()
+    frames = record(scenario, bag_path, args.storage, args.imu, np.random.default_rng([args.seed, 1]), progress_bar)
+    write_params(params_path, scenario, args.imu)
+    camera = scenario.camera
+    print(f'wrote {bag_path} ({args.storage}): {frames} frames {camera.width}x{camera.height} '
+          f'{encoding(scenario.sensor.bayer)}, {len(scenario.lamps)} lamps, chip rate {scenario.beacon.chip_rate:.0f} Hz, '
+          f'{scenario.beacon.id_bits} id bits{", imu" if args.imu else ""}; params {params_path}; '
+          f'{time.perf_counter() - started:.1f} s')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""rosbag2 recordings of simulated frames: image, camera info, IMU and ground-truth pose.
+
+Every message of a frame carries the frame's stamp (when its row 0 started
+exposing) in its header and as its log time.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from vlp_ros.camera import CameraModel
+from vlp_ros.pose import Pose
+from vlp_ros.sim.render import RenderedFrame
+
+TYPESTORE = get_typestore(Stores.ROS2_LYRICAL)
+STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
+CAMERA_FRAME = 'camera_optical_frame'
+MAP_FRAME = 'map'
+IMAGE_TOPIC = '/image_raw'
+CAMERA_INFO_TOPIC = '/camera_info'
+IMU_TOPIC = '/imu'
+GROUND_TRUTH_TOPIC = '/ground_truth/pose'
+
+
+def _qos(reliability: QosReliability, depth: int) -> Qos:
+    unset = QosTime(sec=0, nsec=0)
+    return Qos(QosHistory.KEEP_LAST, depth, reliability, QosDurability.VOLATILE, unset, unset,
+               QosLiveliness.AUTOMATIC, unset, False)
+
+
+# What a camera driver offers: sensor-data QoS for the streams, reliable for calibration and truth.
+TOPICS = {
+    IMAGE_TOPIC: ('sensor_msgs/msg/Image', _qos(QosReliability.BEST_EFFORT, 5)),
+    CAMERA_INFO_TOPIC: ('sensor_msgs/msg/CameraInfo', _qos(QosReliability.RELIABLE, 10)),
+    IMU_TOPIC: ('sensor_msgs/msg/Imu', _qos(QosReliability.BEST_EFFORT, 50)),
+    GROUND_TRUTH_TOPIC: ('geometry_msgs/msg/PoseStamped', _qos(QosReliability.RELIABLE, 10)),
+}
+
+
+class SimBagWriter:
+    """Writes frames to a new rosbag2 directory (``storage``: sqlite3 or mcap). Use as a context manager."""
+
+    def __init__(self, path: Path | str, storage: str = 'sqlite3', imu: bool = False) -> None:
+        if storage not in STORAGES:
+            raise ValueError(f'storage must be one of {", ".join(STORAGES)}, got {storage!r}')
+        path = Path(path)
+        if path.exists():
+            raise ValueError(f'{path} exists already; choose a new output path')
+        self._writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
+        self._writer.open()
+        self._connections = {}
+        for topic, (msgtype, qos) in TOPICS.items():
+            if topic == IMU_TOPIC and not imu:
+                continue
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=[qos])
+        self.frames = 0
+
+    def write_frame(self, frame: RenderedFrame, stamp_ns: int, specific_force: np.ndarray | None = None,
+                    imu_noise: float = 0.0) -> None:
+        """Image, camera info, ground truth and (if the bag has an IMU topic) ``specific_force``."""
+        if (IMU_TOPIC in self._connections) != (specific_force is not None):
+            raise ValueError('give specific_force exactly when the bag was opened with imu=True')
+        header = _header(stamp_ns, CAMERA_FRAME)
+        self._write(IMAGE_TOPIC, stamp_ns, image_message(frame.image, frame.encoding, header))
+        self._write(CAMERA_INFO_TOPIC, stamp_ns, camera_info_message(frame.camera, header))
+        self._write(GROUND_TRUTH_TOPIC, stamp_ns, pose_message(frame.pose, _header(stamp_ns, MAP_FRAME)))
+        if specific_force is not None:
+            self._write(IMU_TOPIC, stamp_ns, imu_message(specific_force, imu_noise, header))
+        self.frames += 1
+
+    def _write(self, topic: str, stamp_ns: int, message: object) -> None:
+        self._writer.write(self._connections[topic], stamp_ns,
+                           TYPESTORE.serialize_cdr(message, TOPICS[topic][0]))
+
+    def close(self) -> None:
+        self._writer.close()
+
+    def __enter__(self) -> SimBagWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def _header(stamp_ns: int, frame_id: str) -> object:
+    Time = TYPESTORE.types['builtin_interfaces/msg/Time']
+    Header = TYPESTORE.types['std_msgs/msg/Header']
+    return Header(stamp=Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000)),
+                  frame_id=frame_id)
+
+
+def image_message(image: np.ndarray, encoding: str, header: object) -> object:
+    Image = TYPESTORE.types['sensor_msgs/msg/Image']
+    height, width = image.shape[:2]
+    return Image(header=header, height=height, width=width, encoding=encoding, is_bigendian=0,
+                 step=image.strides[0], data=np.ascontiguousarray(image).reshape(-1))
+
+
+def camera_info_message(camera: CameraModel, header: object) -> object:
+    CameraInfo = TYPESTORE.types['sensor_msgs/msg/CameraInfo']
+    RegionOfInterest = TYPESTORE.types['sensor_msgs/msg/RegionOfInterest']
+    projection = np.hstack([camera.K, np.zeros((3, 1))])
+    return CameraInfo(header=header, height=camera.height, width=camera.width, distortion_model='plumb_bob',
+                      d=camera.D.astype(float), k=camera.K.reshape(-1), r=np.eye(3).reshape(-1),
+                      p=projection.reshape(-1), binning_x=0, binning_y=0,
+                      roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+
+
+def pose_message(pose: Pose, header: object) -> object:
+    types = TYPESTORE.types
+    q = pose.quaternion_xyzw()
+    return types['geometry_msgs/msg/PoseStamped'](
+        header=header,
+        pose=types['geometry_msgs/msg/Pose'](
+            position=types['geometry_msgs/msg/Point'](x=float(pose.position[0]), y=float(pose.position[1]),
+                                                      z=float(pose.position[2])),
+            orientation=types['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                              w=float(q[3]))))
+
+
+def imu_message(specific_force: np.ndarray, noise_std: float, header: object) -> object:
+    """Accelerometer only: orientation and angular velocity are marked absent (covariance[0] = -1)."""
+    types = TYPESTORE.types
+    Vector3 = types['geometry_msgs/msg/Vector3']
+    absent = np.zeros(9)
+    absent[0] = -1.0
+    return types['sensor_msgs/msg/Imu'](
+        header=header,
+        orientation=types['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=absent.copy(),
+        angular_velocity=Vector3(x=0.0, y=0.0, z=0.0),
+        angular_velocity_covariance=absent.copy(),
+        linear_acceleration=Vector3(x=float(specific_force[0]), y=float(specific_force[1]),
+                                    z=float(specific_force[2])),
+        linear_acceleration_covariance=(np.eye(3) * noise_std ** 2).reshape(-1))

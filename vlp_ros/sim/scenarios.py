@@ -1,0 +1,218 @@
+"""Simulated recordings: lamps, camera, sensor, the camera's path, and the matching locator parameters.
+
+``paper_scenario`` is the seed paper's experiment (one lamp above a 3 m x 3 m
+grid, hand-held phone postures); ``robot_scenario`` a robot with an upward
+wide-angle camera driving under a row of ceiling lamps.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vlp_ros.beacon.encoding import packet_length, packet_waveform
+from vlp_ros.camera import CameraModel
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.pose import Pose
+from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, SimLamp
+from vlp_ros.sim.sensor import SensorModel
+
+# Nokia Lumia 1020: f = 7.25 mm, 1.12 um pixels, 7712 px wide; scaled to the output width.
+LUMIA_FOCAL_PX_FULL = 7.25e-3 / 1.12e-6
+LUMIA_FULL_WIDTH = 7712
+PAPER_CAMERAS = {'4k': (3840, 2160), '1080p': (1920, 1080)}
+FRAME_RATE = 30.0
+# The paper scenario's beacon is sized for the lamp at this distance.
+PAPER_DESIGN_DISTANCE = 2.0
+# The marker disc sits just inside the rim: this much of the radius stays between them.
+MARKER_RIM_GAP_FRACTION = 0.03
+# Camera axes in the robot base frame (x forward, y left, z up): image x to the left, looking up.
+ROBOT_CAMERA_MOUNT = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class BeaconDesign:
+    """Packet-mode beacon settings shared by all lamps of a scenario."""
+
+    chip_rate: float
+    id_bits: int
+    depth: float
+
+
+@dataclass
+class Scenario:
+    """Everything needed to render a recording and to configure the locator for it.
+
+    ``accelerations`` (map frame, m/s^2) are the camera's own, per frame, for the
+    IMU. ``prior_up`` is where map up points in the camera when the mount makes
+    that a valid static prior (None otherwise). ``independent_frames``: frames are
+    separate photos, so no pose vouches for the next.
+    """
+
+    name: str
+    camera: CameraModel
+    sensor: SensorModel
+    lamps: list[SimLamp]
+    poses: list[Pose]
+    accelerations: list[np.ndarray]
+    beacon: BeaconDesign
+    frame_rate: float = FRAME_RATE
+    prior_up: np.ndarray | None = None
+    prior_tolerance: float = 0.35
+    imu_noise: float = 0.02
+    independent_frames: bool = False
+
+    def frame_times(self) -> np.ndarray:
+        """When each frame's row 0 starts exposing (s since the recording start)."""
+        return np.arange(len(self.poses)) / self.frame_rate
+
+    def truncated(self, frames: int) -> Scenario:
+        if frames < 1:
+            raise ValueError(f'frames must be at least 1, got {frames}')
+        return Scenario(self.name, self.camera, self.sensor, self.lamps, self.poses[:frames],
+                        self.accelerations[:frames], self.beacon, self.frame_rate, self.prior_up,
+                        self.prior_tolerance, self.imu_noise, self.independent_frames)
+
+    def locator_parameters(self, imu: bool) -> dict[str, Any]:
+        """The locator's ``ros__parameters`` (nested as in a params file) for this scenario."""
+        leds: dict[str, Any] = {'names': [s.lamp.name for s in self.lamps]}
+        for sim in self.lamps:
+            lamp = sim.lamp
+            leds[lamp.name] = {'id': int(lamp.id), 'position': [round(float(v), 9) for v in lamp.position],
+                               'radius': float(lamp.radius), 'marker_angle': float(lamp.marker_angle),
+                               'marker_distance': float(lamp.marker_distance)}
+        params: dict[str, Any] = {
+            'map_frame': 'map',
+            'leds': leds,
+            'beacon': {'mode': 'packet', 'chip_rate': float(self.beacon.chip_rate),
+                       'id_bits': int(self.beacon.id_bits), 'row_time': float(self.sensor.row_time)},
+        }
+        if self.prior_up is not None:
+            params['prior'] = {'up_in_camera': [float(v) for v in self.prior_up],
+                               'tolerance': float(self.prior_tolerance)}
+        if imu:
+            params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0]}
+        if self.independent_frames:
+            params['continuity'] = {'max_age': 0.0}
+        return params
+
+
+def design_beacon(span_rows: float, row_time: float, max_id: int, depth: float,
+                  min_packets: float = 1.3, min_rows_per_chip: float = 4.0, max_bits: int = 8) -> BeaconDesign:
+    """Most ID bits (<= ``max_bits``) and the chip rate at which a lamp spanning
+    ``span_rows`` rows holds ``min_packets`` packets, each chip at least ``min_rows_per_chip`` rows.
+    """
+    for bits in range(max_bits, max(int(max_id).bit_length(), 1) - 1, -1):
+        rows_per_chip = span_rows / (min_packets * packet_length(bits))
+        if rows_per_chip >= min_rows_per_chip:
+            return BeaconDesign(float(round(1.0 / (rows_per_chip * row_time))), bits, depth)
+    raise ValueError(f'a lamp spanning {span_rows:.0f} rows cannot hold {min_packets} packets of id {max_id} '
+                     f'at {min_rows_per_chip} rows per chip')
+
+
+def paper_camera(kind: str) -> CameraModel:
+    """The Lumia 1020's field of view at 4K or 1080p output, principal point at the centre."""
+    if kind not in PAPER_CAMERAS:
+        raise ValueError(f'camera must be one of {", ".join(PAPER_CAMERAS)}, got {kind!r}')
+    width, height = PAPER_CAMERAS[kind]
+    f = LUMIA_FOCAL_PX_FULL * width / LUMIA_FULL_WIDTH
+    return CameraModel(width, height, [[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def make_lamp(name: str, lamp_id: int, position: np.ndarray, radius: float, marker_angle: float,
+              beacon: BeaconDesign, rng: np.random.Generator, peak_dn: float) -> SimLamp:
+    """A lamp with its marker just inside the rim and an unsynchronised beacon clock."""
+    marker_distance = radius * (1.0 - MARKER_RADIUS_FRACTION - MARKER_RIM_GAP_FRACTION)
+    lamp = Lamp(name, lamp_id, position, radius, marker_angle=marker_angle, marker_distance=marker_distance)
+    period = packet_length(beacon.id_bits) / beacon.chip_rate
+    waveform = packet_waveform(lamp_id, beacon.chip_rate, beacon.depth, beacon.id_bits,
+                               offset=float(rng.uniform(0.0, period)))
+    return SimLamp(lamp, waveform, peak_dn=peak_dn)
+
+
+def paper_scenario(camera_kind: str = '4k', height: float = 2.0, points: int = 7, postures: int = 3,
+                   seed: int = 0, depth: float = 0.75, max_tilt_deg: float = 30.0,
+                   area: float = 3.0, bayer: str | None = None) -> Scenario:
+    """One 11 cm lamp ``height`` m above a ``points`` x ``points`` grid over ``area`` x ``area`` m.
+
+    At each grid point the phone takes ``postures`` photos: optical axis uniformly
+    random within ``max_tilt_deg`` of straight up (widened to reach the lamp at
+    grid points from where it is farther off), random roll about the axis, kept
+    only if the whole lamp is at least 20 px inside the image. The beacon is
+    designed for >= 1.3 packets at >= 4 rows per chip with the lamp 2 m away.
+    """
+    if not height > 0.0:
+        raise ValueError(f'height must be positive, got {height}')
+    if points < 1 or postures < 1:
+        raise ValueError('points and postures must be at least 1')
+    rng = np.random.default_rng(seed)
+    camera = paper_camera(camera_kind)
+    sensor = SensorModel(row_time=1.0 / (FRAME_RATE * camera.height), exposure=50e-6, bayer=bayer)
+    radius, lamp_id = 0.055, 11
+    beacon = design_beacon(camera.focal * 2.0 * radius / PAPER_DESIGN_DISTANCE, sensor.row_time, lamp_id, depth)
+    sim = make_lamp('lamp', lamp_id, [0.0, 0.0, height], radius, 0.6, beacon, rng, peak_dn=210.0)
+    grid = np.linspace(-area / 2, area / 2, points) if points > 1 else np.zeros(1)
+    poses = []
+    for x in grid:
+        for y in grid:
+            position = np.array([x, y, 0.0])
+            poses.extend(_hand_held_pose(camera, position, sim.lamp, max_tilt_deg, rng) for _ in range(postures))
+    return Scenario(f'paper_{camera_kind}', camera, sensor, [sim], poses, [np.zeros(3)] * len(poses), beacon,
+                    independent_frames=True)
+
+
+def _hand_held_pose(camera: CameraModel, position: np.ndarray, lamp: Lamp, max_tilt_deg: float,
+                    rng: np.random.Generator, margin: float = 20.0) -> Pose:
+    to_lamp = lamp.position - position
+    lamp_zenith = np.degrees(np.arccos(to_lamp[2] / np.linalg.norm(to_lamp)))
+    half_fov = np.degrees(np.arctan(0.5 * min(camera.width, camera.height) / camera.focal))
+    limit = np.radians(max(max_tilt_deg, lamp_zenith + half_fov))
+    for _ in range(10000):
+        tilt = np.arccos(rng.uniform(np.cos(limit), 1.0))
+        rotation = Rotation.from_euler('zyz', [rng.uniform(0, 2 * np.pi), tilt, rng.uniform(0, 2 * np.pi)])
+        pose = Pose(rotation.as_matrix(), position)
+        rim = pose.map_to_camera(lamp.rim_points(32))
+        if np.all(rim[:, 2] > 0.0):
+            pixels = camera.project(rim)
+            if (np.all(pixels >= margin) and np.all(pixels[:, 0] <= camera.width - 1 - margin)
+                    and np.all(pixels[:, 1] <= camera.height - 1 - margin)):
+                return pose
+    raise ValueError(f'no posture at {position[:2]} sees the whole lamp')
+
+
+def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.15, camera_height: float = 0.45,
+                   speed: float = 0.4, seed: int = 0, depth: float = 0.75, bayer: str | None = None) -> Scenario:
+    """A robot with a 100 deg HFOV 1080p camera ``camera_height`` m up, looking up, driving
+    under a row of ``lamp_count`` 15 cm lamps ``spacing`` m apart and ``height`` m above the camera.
+
+    The robot sways sideways along the row and its chassis rocks by < 1 deg, so the
+    static prior (map up along camera +z) holds within a small tolerance.
+    """
+    if lamp_count < 1 or not spacing > 0.0 or not height > 0.0 or not speed > 0.0:
+        raise ValueError('lamp_count, spacing, height and speed must be positive')
+    rng = np.random.default_rng(seed)
+    camera = CameraModel.from_horizontal_fov(1920, 1080, np.radians(100.0), D=np.array([-0.05, 0.004, 0.0, 0.0, 0.0]))
+    sensor = SensorModel(row_time=1.0 / (FRAME_RATE * camera.height), exposure=20e-6, blur_sigma=0.8, bayer=bayer)
+    radius = 0.075
+    beacon = design_beacon(camera.focal * 2.0 * radius / height, sensor.row_time, lamp_count, depth,
+                           min_rows_per_chip=3.0)
+    lamps = [make_lamp(f'lamp_{k}', k, [(k - 1) * spacing, 0.0, camera_height + height], radius,
+                       float(rng.uniform(-np.pi, np.pi)), beacon, rng, peak_dn=190.0)
+             for k in range(1, lamp_count + 1)]
+    start, end = -spacing, lamp_count * spacing
+    times = np.arange(0.0, (end - start) / speed, 1.0 / FRAME_RATE)
+    sway, sway_period = 0.25, 8.0
+    omega = 2.0 * np.pi / sway_period
+    phases = rng.uniform(0.0, 2.0 * np.pi, 2)
+    poses, accelerations = [], []
+    for t in times:
+        position = np.array([start + speed * t, sway * np.sin(omega * t), camera_height])
+        heading = np.arctan2(sway * omega * np.cos(omega * t), speed)
+        rock = np.radians(0.7) * np.sin(np.array([2.1, 2.9]) * t + phases)
+        rotation = Rotation.from_euler('zyx', [heading, rock[0], rock[1]]).as_matrix() @ ROBOT_CAMERA_MOUNT
+        poses.append(Pose(rotation, position))
+        accelerations.append(np.array([0.0, -sway * omega ** 2 * np.sin(omega * t), 0.0]))
+    return Scenario('robot', camera, sensor, lamps, poses, accelerations, beacon,
+                    prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1)
