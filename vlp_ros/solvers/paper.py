@@ -30,15 +30,19 @@ so ``Z = r / a`` and the lamp centre in the camera frame is ``(u_c, 1) * Z``
 (eq. 14); lens distortion is removed before the ellipse is refitted, so it is
 not counted against the method.
 
-Candidates. ``cos(alpha) < 0`` would put the camera above the lamp's lit face and
-is excluded. The two signs of ``alpha`` leave M unchanged, so they predict the
-same weak-perspective image of every point of the lamp plane, marker included:
-this is the reflection ambiguity of weak perspective, and none of the paper's
-quantities separates the two. Both are returned, sorted by the chi-square of
-the full perspective reprojection of the rim and the marker, so that the first
-is the one the image favours and the caller's disambiguation (cost gap, gravity,
-continuity) treats this solver like any other. Neither pose is refined: the
-poses are exactly the paper's; only their ranking uses perspective.
+Candidates (Appendix B as reconstructed). ``cos(alpha) = -b / a`` would put the
+camera above the lamp's lit face and is excluded; the marker settles the
+half-turn ambiguity of the ellipse axis. That leaves the two signs of
+``alpha``: they share M, so they predict the same weak-perspective image of
+every point of the lamp plane, marker included (the reflection ambiguity of
+weak perspective), and no constraint on the paper's quantities can pick one.
+Both are returned, sorted by ``cost``, the chi-square of their full
+perspective reprojection, so the pipeline's disambiguation (cost gap, up
+direction, continuity) treats this solver like any other. Near the optical
+axis the two costs differ by less than the weak-perspective misfit itself, so
+the order there is a coin flip: only an up direction or continuity can decide.
+The poses are exactly the paper's (unrefined); only their order uses
+perspective.
 """
 from __future__ import annotations
 
@@ -46,11 +50,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.camera import CameraModel
-from vlp_ros.ellipse import ellipse_from_conic, fit_ellipse, geometric_distances
+from vlp_ros.ellipse import fit_ellipse
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
+from vlp_ros.solvers.measurement import LampMeasurement
 
 # Below this b / a the lamp is seen nearly edge-on and 1 / cos(alpha) amplifies
 # any marker error without bound.
@@ -59,19 +64,23 @@ MIN_AXIS_RATIO = 0.05
 
 def solve_lamp_paper(observation: LampObservation, lamp: Lamp,
                      camera: CameraModel) -> list[PoseCandidate]:
-    """The paper's two weak-perspective poses of the camera, the better-fitting one first."""
+    """The paper's two weak-perspective poses of the camera, the better-fitting one first.
+
+    ``cost`` is the chi-square of ``LampMeasurement`` (full perspective, pixels),
+    as for every solver; ``covariance`` is None: the paper gives none.
+    """
     if observation.marker is None:
         raise ValueError("the paper's solver needs the marker to fix the rotation about the lamp axis")
-    if not (observation.rim_sigma > 0.0 and observation.marker_sigma > 0.0):
-        raise ValueError(f'rim_sigma ({observation.rim_sigma}) and marker_sigma '
-                         f'({observation.marker_sigma}) must be positive')
     if not lamp.marker_distance > 0.0:
         raise ValueError(f'lamp {lamp.name!r} has its marker at the centre: no azimuth to read')
-    rim = camera.normalize(observation.rim_points)
-    marker = camera.normalize(observation.marker)[0]
-    ellipse = fit_ellipse(rim)
-    poses = [_weak_perspective_pose(ellipse, marker, lamp, sign) for sign in (1.0, -1.0)]
-    candidates = [_scored(pose, rim, marker, observation, lamp, camera) for pose in poses]
+    measurement = LampMeasurement.from_observation(observation, lamp, camera)
+    ellipse = fit_ellipse(measurement.rim_rays[:, :2])
+    marker = camera.normalize(np.asarray(observation.marker, dtype=float))[0]
+    candidates = []
+    for tilt_sign in (1.0, -1.0):
+        pose = _weak_perspective_pose(ellipse, marker, lamp, tilt_sign)
+        residuals, _ = measurement.linearize(pose.rotation, pose.position)
+        candidates.append(PoseCandidate(pose, float(residuals @ residuals), measurement.residual_count))
     return sorted(candidates, key=lambda candidate: candidate.cost)
 
 
@@ -93,22 +102,3 @@ def _weak_perspective_pose(ellipse: np.ndarray, marker: np.ndarray, lamp: Lamp,
     lamp_in_camera = np.array([cx, cy, 1.0]) / scale
     rotation = map_to_camera.T
     return Pose(rotation, lamp.position - rotation @ lamp_in_camera)
-
-
-def _scored(pose: Pose, rim: np.ndarray, marker: np.ndarray, observation: LampObservation,
-            lamp: Lamp, camera: CameraModel) -> PoseCandidate:
-    """The pose with the chi-square of its full perspective reprojection of rim and marker.
-
-    Residuals are computed in normalised coordinates and scaled by the focal
-    length to pixels, where the sigmas are stated.
-    """
-    map_to_camera = pose.rotation.T
-    centre = pose.map_to_camera(lamp.position)[0]
-    # Lamp-plane coordinates (x, y, 1) -> homogeneous normalised image point.
-    homography_inv = np.linalg.inv(np.column_stack([map_to_camera[:, 0], map_to_camera[:, 1], centre]))
-    conic = homography_inv.T @ np.diag([1.0, 1.0, -lamp.radius ** 2]) @ homography_inv
-    rim_residuals = geometric_distances(ellipse_from_conic(conic), rim) * camera.focal / observation.rim_sigma
-    marker_camera = pose.map_to_camera(lamp.marker_position())[0]
-    marker_residual = (marker_camera[:2] / marker_camera[2] - marker) * camera.focal / observation.marker_sigma
-    cost = float(np.sum(rim_residuals ** 2) + np.sum(marker_residual ** 2))
-    return PoseCandidate(pose, cost, residual_count=len(rim) + 2)
