@@ -8,6 +8,7 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.ellipse import fit_ellipse, geometric_distances
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
+from vlp_ros.sim.coverage import Circle, disc_coverage, plane_points
 from vlp_ros.sim.render import SimLamp, crop_camera, lamp_roi, render_frame
 from vlp_ros.sim.sensor import SensorModel
 
@@ -69,6 +70,31 @@ def test_disc_area_and_centroid_match_the_true_ellipse():
     # The image of a disc is the interior of the projected rim ellipse, whose centroid is its centre.
     assert (weight * xs).sum() / weight.sum() == pytest.approx(cx, abs=0.01)
     assert (weight * ys).sum() / weight.sum() == pytest.approx(cy, abs=0.01)
+
+
+@pytest.mark.parametrize('radius', [0.1, 0.01])
+def test_edge_coverage_matches_dense_sampling(radius):
+    camera, pose = small_camera(DISTORTION), tilted_pose(degrees=25.0)
+    x, y = in_view(pose, (0.08, 0.05))
+    circle = Circle(np.array([x, y]), radius)
+    centre = camera.project(pose.map_to_camera([x, y, 1.0]))[0].astype(int)
+    half = int(900 * radius) + 3
+    bbox = (centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half)
+    coverage = disc_coverage(camera, pose, 1.0, [circle], bbox)[0]
+    ys, xs = np.mgrid[bbox[1]:bbox[3], bbox[0]:bbox[2]]
+    # Dense 20 x 20 sampling of every pixel that is not plainly inside or outside.
+    dense = coverage.astype(float)
+    centres = plane_points(camera, pose, np.stack([xs.ravel(), ys.ravel()], axis=1), 1.0)
+    near = np.abs(np.linalg.norm(centres - circle.center_xy, axis=1) - radius).reshape(xs.shape) < 3.0 / 600.0
+    offsets = (np.arange(20) + 0.5) / 20 - 0.5
+    ox, oy = (v.ravel() for v in np.meshgrid(offsets, offsets))
+    samples = np.stack([(xs[near][:, None] + ox).ravel(), (ys[near][:, None] + oy).ravel()], axis=1)
+    inside = np.linalg.norm(plane_points(camera, pose, samples, 1.0) - circle.center_xy, axis=1) < radius
+    dense[near] = inside.reshape(-1, ox.size).mean(axis=1)
+    assert np.count_nonzero((dense > 0) & (dense < 1)) > 20
+    assert np.abs(coverage - dense).max() < 0.04
+    for axis in (xs, ys):
+        assert (coverage * axis).sum() / coverage.sum() == pytest.approx((dense * axis).sum() / dense.sum(), abs=0.01)
 
 
 def test_distortion_moves_the_disc_where_the_model_says():

@@ -259,7 +259,7 @@ def _draw(canvas: np.ndarray, region: tuple[int, int, int, int], camera: CameraM
     disc, marker = disc_coverage(
         camera, pose, lamp.position[2],
         [Circle(lamp.position[:2], lamp.radius), Circle(lamp.marker_position()[:2], sim.marker_radius)],
-        bbox, sensor.supersample)
+        bbox)
     if not disc.any():
         return False
     x0, y0, x1, y1 = bbox

@@ -23,7 +23,6 @@ class SensorModel:
     ``exposure`` seconds. ``ambient_bgr`` is the expected DN of the unlit ceiling.
     ``gain`` is DN per electron (default: the full well reads 255). ``bayer``
     (e.g. ``'rggb'``) makes the output a raw mosaic instead of bgr8.
-    ``supersample`` is the samples per pixel side used on disc edges.
     """
 
     row_time: float
@@ -34,7 +33,6 @@ class SensorModel:
     ambient_bgr: tuple[float, float, float] = (10.0, 12.0, 12.0)
     blur_sigma: float = 0.7
     bayer: str | None = None
-    supersample: int = 8
 
     def __post_init__(self) -> None:
         if not self.row_time > 0.0:
@@ -47,8 +45,6 @@ class SensorModel:
             raise ValueError('read_noise and blur_sigma must not be negative')
         if self.bayer is not None and self.bayer not in BAYER_PATTERNS:
             raise ValueError(f'bayer must be one of {BAYER_PATTERNS}, got {self.bayer!r}')
-        if self.supersample < 1:
-            raise ValueError(f'supersample must be >= 1, got {self.supersample}')
 
     @property
     def dn_per_electron(self) -> float:
