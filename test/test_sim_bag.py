@@ -116,8 +116,11 @@ def test_command_line_writes_bag_and_params(tmp_path, capsys):
     with Reader(out / 'paper_1080p') as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
     assert counts == {topic: 4 for topic in TOPICS}
-    params = yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']
-    assert params['imu']['enabled'] and 'prior' not in params
+    values = default_parameters()
+    values.update(flatten(yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
+    settings = settings_from_parameters(values)
+    assert settings.imu_enabled and settings.prior_up is None and settings.continuity_max_age == 0.0
+    assert settings.lamps.ids == [11] and settings.beacon.id_bits == 4
     assert cli.main(['--scenario', 'paper', '--out', str(out)]) == 2
     assert 'exists already' in capsys.readouterr().err
 
