@@ -13,7 +13,7 @@ Marker residual: the pixel offset of the observed centroid from
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -67,6 +67,11 @@ class LampMeasurement:
                    rim_sigma=float(observation.rim_sigma), marker_pixel=marker,
                    marker_sigma=float(observation.marker_sigma))
 
+    def thinned(self, max_rim_points: int) -> LampMeasurement:
+        """The same measurement on every k-th rim point, at most ``max_rim_points`` of them."""
+        step = -(-len(self.rim_rays) // max_rim_points)
+        return replace(self, rim_rays=self.rim_rays[::step], rim_pixel_jacobian=self.rim_pixel_jacobian[::step])
+
     @property
     def residual_count(self) -> int:
         return len(self.rim_rays) + (0 if self.marker_pixel is None else 2)
@@ -86,28 +91,44 @@ class LampMeasurement:
         return (self.lamp.position - position) @ rotation
 
     def _rim(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # H = R^T A maps lamp-plane (x, y, 1) to rays; A's columns are the lamp's map
-        # x and y axes and its centre relative to the camera.
-        plane_axes = np.column_stack([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], self.lamp.position - position])
+        # H = R^T A maps lamp-plane (x, y, 1) to rays, A's columns being the lamp's map x
+        # and y axes and its centre relative to the camera. For a ray h: w = H^-1 h,
+        # value v = w^T Q w, half gradient g = H^-T Q w, pixel gradient / 2 P = G^T g_xy
+        # with G = d normalised / d pixel, residual s = v / (2 |P|).
+        plane_axes = np.eye(3)
+        plane_axes[:, 2] = self.lamp.position - position
         image_to_plane = np.linalg.inv(rotation.T @ plane_axes)
-        plane = self.rim_rays @ image_to_plane.T
-        radius2 = self.lamp.radius ** 2
-        value = plane[:, 0] ** 2 + plane[:, 1] ** 2 - radius2 * plane[:, 2] ** 2
-        # Half the gradient of the value with respect to the ray, per point.
-        half_gradient = (plane * np.array([1.0, 1.0, -radius2])) @ image_to_plane
-        pixel_gradient = np.einsum('nji,nj->ni', self.rim_pixel_jacobian, half_gradient[:, :2])
-        scale = 0.5 / np.hypot(pixel_gradient[:, 0], pixel_gradient[:, 1])
-        # d value = -2 g^T dH w, dH w = R^T (q x dtheta - w3 dp), q = A w, g = half_gradient.
-        m = half_gradient @ rotation.T
-        q = plane @ plane_axes.T
-        jacobian = np.empty((len(plane), 6))
-        jacobian[:, :3] = 2.0 * plane[:, 2:3] * m
-        jacobian[:, 3] = 2.0 * (m[:, 2] * q[:, 1] - m[:, 1] * q[:, 2])
-        jacobian[:, 4] = 2.0 * (m[:, 0] * q[:, 2] - m[:, 2] * q[:, 0])
-        jacobian[:, 5] = 2.0 * (m[:, 1] * q[:, 0] - m[:, 0] * q[:, 1])
-        # The derivative of the normaliser is left out: it multiplies the value, which is
-        # zero for noise-free data, so this is the Jacobian the Fisher information needs.
-        return value * scale, jacobian * scale[:, None]
+        q_diagonal = np.array([1.0, 1.0, -self.lamp.radius ** 2])
+        w = self.rim_rays @ image_to_plane.T
+        value = (w * w) @ q_diagonal
+        g = (w * q_diagonal) @ image_to_plane
+        pixel = self._to_pixel_gradient(g)
+        norm2 = pixel[:, 0] ** 2 + pixel[:, 1] ** 2
+        norm = np.sqrt(norm2)
+        residual = 0.5 * value / norm
+        # Exact derivatives along the six perturbations dH of H: dv = -2 g.(dH w),
+        # dg = -H^-T (dH^T g + Q H^-1 dH w). Exactness matters far from the minimum,
+        # where the value is large (starts from a wrong candidate).
+        map_gradient = g @ rotation.T
+        in_map = w @ plane_axes.T
+        count = len(w)
+        dh_w = np.empty((6, count, 3))
+        dh_t_g = np.zeros((6, count, 3))
+        dh_w[:3] = -w[None, :, 2:3] * rotation[:, None, :]
+        dh_t_g[:3, :, 2] = -map_gradient.T
+        dh_w[3:] = -(_axis_crosses(in_map) @ rotation)
+        dh_t_g[3:] = _axis_crosses(map_gradient) @ plane_axes
+        d_value = -2.0 * np.einsum('knj,nj->kn', dh_w, g)
+        d_g = -(dh_t_g + (dh_w @ image_to_plane.T) * q_diagonal) @ image_to_plane[:, :2]
+        # P . dP = dg_xy . (G P): the pixel gradient's change is only needed along itself.
+        along = np.sum(self.rim_pixel_jacobian * pixel[:, None, :], axis=2)
+        d_norm_term = d_g[..., 0] * along[:, 0] + d_g[..., 1] * along[:, 1]
+        jacobian = 0.5 * d_value / norm - residual * d_norm_term / norm2
+        return residual, jacobian.T
+
+    def _to_pixel_gradient(self, ray_gradient: np.ndarray) -> np.ndarray:
+        jacobian = self.rim_pixel_jacobian
+        return ray_gradient[:, 0:1] * jacobian[:, 0, :] + ray_gradient[:, 1:2] * jacobian[:, 1, :]
 
     def _marker(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         offset = self.lamp.marker_position() - position
@@ -118,6 +139,15 @@ class LampMeasurement:
         to_pixel = lens[:, 3:6] @ rotation.T
         jacobian = np.hstack([-to_pixel, to_pixel @ _cross_matrix(offset)])
         return pixel.reshape(2) - self.marker_pixel, jacobian
+
+
+def _axis_crosses(v: np.ndarray) -> np.ndarray:
+    """e_j x v (3, N, 3) for j = 0, 1, 2 and rows v (N, 3)."""
+    out = np.zeros((3,) + v.shape)
+    out[0, :, 1], out[0, :, 2] = -v[:, 2], v[:, 1]
+    out[1, :, 0], out[1, :, 2] = v[:, 2], -v[:, 0]
+    out[2, :, 0], out[2, :, 1] = -v[:, 1], v[:, 0]
+    return out
 
 
 def _cross_matrix(v: np.ndarray) -> np.ndarray:

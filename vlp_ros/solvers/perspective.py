@@ -37,20 +37,21 @@ _MAP_UP = np.array([0.0, 0.0, 1.0])
 FRONTAL_SEPARATION_M2 = 25000.0
 
 
-def pose_from_circle(circle: CirclePose, marker_ray: np.ndarray, lamp: Lamp) -> Pose | None:
-    """Camera pose from the lamp's circle in the camera frame and the marker's ray
-    (normalised homogeneous); None if the ray misses the lamp plane."""
+def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np.ndarray) -> Pose | None:
+    """Camera pose from the lamp's circle in the camera frame and the ray (normalised,
+    homogeneous) towards a map point ``target`` off the lamp's vertical axis: its marker,
+    or another lamp's centre. None if the ray cannot reach the target's height."""
     up = circle.normal
-    along_ray = up @ marker_ray
-    if not along_ray > 0.0:
+    height = up @ circle.center + (target[2] - lamp.position[2])
+    along_ray = up @ ray
+    if not (along_ray > 0.0 and height > 0.0):
         return None
-    marker = marker_ray * (up @ circle.center) / along_ray
-    offset = marker - circle.center
+    offset = ray * (height / along_ray) - circle.center
     offset -= (offset @ up) * up
-    if not np.linalg.norm(offset) > 0.0:
+    heading_map = np.array([target[0] - lamp.position[0], target[1] - lamp.position[1], 0.0])
+    if not (np.linalg.norm(offset) > 0.0 and np.linalg.norm(heading_map) > 0.0):
         return None
     heading_camera = offset / np.linalg.norm(offset)
-    heading_map = lamp.marker_position() - lamp.position
     heading_map /= np.linalg.norm(heading_map)
     camera_basis = np.column_stack([heading_camera, np.cross(up, heading_camera), up])
     map_basis = np.column_stack([heading_map, np.cross(_MAP_UP, heading_map), _MAP_UP])
@@ -65,7 +66,7 @@ def closed_form_poses(observation: LampObservation, lamp: Lamp, camera: CameraMo
     _check_marker_offset(lamp)
     marker_ray = np.append(camera.normalize(np.asarray(observation.marker, dtype=float))[0], 1.0)
     circles = circle_poses(normalized_conic(observation.rim_points, camera), lamp.radius)
-    poses = (pose_from_circle(circle, marker_ray, lamp) for circle in circles)
+    poses = (pose_from_circle(circle, lamp, marker_ray, lamp.marker_position()) for circle in circles)
     return [pose for pose in poses if pose is not None]
 
 

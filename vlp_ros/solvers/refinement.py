@@ -37,9 +37,11 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement]) -> PoseC
     if count <= 6:
         raise ValueError(f'{count} residuals cannot determine a 6-DoF pose')
     try:
-        pose, residuals, jacobian = _levenberg_marquardt(initial, measurements)
+        pose, residuals, jacobian, converged = _levenberg_marquardt(initial, measurements, _MAX_ITERATIONS)
         covariance = covariance_from_jacobian(jacobian)
     except (np.linalg.LinAlgError, ValueError):
+        return None
+    if not converged:
         return None
     if not all(m.lamp_center_in_camera(pose.rotation, pose.position)[2] > 0.0 for m in measurements):
         return None
@@ -47,15 +49,28 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement]) -> PoseC
     return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=count)
 
 
-def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement]
-                         ) -> tuple[Pose, np.ndarray, np.ndarray]:
+def descend(initial: Pose, measurements: Sequence[LampMeasurement], max_iterations: int) -> Pose | None:
+    """The least-squares pose reached from ``initial`` within ``max_iterations``, None if not
+    reached (a cheap probe of where a start leads)."""
+    try:
+        pose, _, _, converged = _levenberg_marquardt(initial, measurements, max_iterations)
+    except np.linalg.LinAlgError:
+        return None
+    return pose if converged else None
+
+
+def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement], max_iterations: int
+                         ) -> tuple[Pose, np.ndarray, np.ndarray, bool]:
     residuals, jacobian = linearize(measurements, pose)
     cost = residuals @ residuals
     damping = _INITIAL_DAMPING
-    for _ in range(_MAX_ITERATIONS):
+    for _ in range(max_iterations):
         information = jacobian.T @ jacobian
         gradient = jacobian.T @ residuals
         step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
+        # The linear model's predicted decrease: ~0 at the minimum, where no trial is needed.
+        if -(2.0 * gradient @ step + step @ information @ step) < _COST_TOLERANCE * max(cost, 1.0):
+            return pose, residuals, jacobian, True
         trial = Pose(*perturbed(pose, step))
         trial_residuals, trial_jacobian = linearize(measurements, trial)
         trial_cost = trial_residuals @ trial_residuals
@@ -66,5 +81,5 @@ def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement]
         pose, residuals, jacobian, cost = trial, trial_residuals, trial_jacobian, trial_cost
         damping = max(damping / 10.0, 1e-12)
         if converged:
-            return pose, residuals, jacobian
-    raise ValueError('pose refinement did not converge')
+            return pose, residuals, jacobian, True
+    return pose, residuals, jacobian, False

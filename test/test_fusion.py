@@ -1,0 +1,97 @@
+"""One joint pose from every lamp of a frame."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, observe, small_lamp
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.solvers.ambiguity import DisambiguationHints
+from vlp_ros.solvers.candidates import Reason
+from vlp_ros.solvers.fusion import pnp_starts, solve_lamps
+
+WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
+NO_HINTS = DisambiguationHints()
+
+
+def _pairs(count: int, markers, rng=None):
+    lamps = grid_lamps(count)
+    return [(observe(lamp, WIDE_TRUTH, camera_wide(), rng=rng, with_marker=m), lamp)
+            for lamp, m in zip(lamps, markers)]
+
+
+@pytest.mark.parametrize('markers', [(True, True), (True, False), (False, False), (True, True, True),
+                                     (False, False, False), (True, False, True, False), (False,) * 4])
+def test_exact_lamps_give_the_true_pose_without_hints(markers) -> None:
+    choice = solve_lamps(_pairs(len(markers), markers), camera_wide(), NO_HINTS)
+    assert choice.reason is Reason.MULTI_LAMP
+    assert choice.pose.position_error(WIDE_TRUTH) < 1e-6
+    assert choice.pose.rotation_error(WIDE_TRUTH) < 1e-6
+    assert np.all(np.linalg.eigvalsh(choice.pose.covariance) > 0.0)
+
+
+def test_two_small_lamps_with_the_4k_camera() -> None:
+    lamps = [small_lamp((-0.6, 0.0, 2.0), 0.3, 1), small_lamp((0.6, 0.0, 2.0), 2.0, 2)]
+    truth = looking_up((0.1, -0.1, 0.2), (0.05, -0.05, 0.4))
+    rng = np.random.default_rng(2)
+    pairs = [(observe(lamp, truth, camera_4k(), rng=rng), lamp) for lamp in lamps]
+    choice = solve_lamps(pairs, camera_4k(), NO_HINTS)
+    assert choice.reason is Reason.MULTI_LAMP
+    assert choice.pose.position_error(truth) < 0.01
+
+
+def test_more_lamps_shrink_the_covariance() -> None:
+    rng = np.random.default_rng(4)
+    spreads = [np.trace(solve_lamps(_pairs(n, (True,) * n, rng), camera_wide(), NO_HINTS).pose.covariance[:3, :3])
+               for n in (2, 3, 4)]
+    assert spreads[0] > spreads[1] > spreads[2]
+
+
+def test_pnp_on_lamp_centres_alone_starts_at_the_truth() -> None:
+    lamps = grid_lamps(4)
+    centres = [WIDE_TRUTH.map_to_camera(lamp.position)[0] for lamp in lamps]
+    image = np.array([c[:2] / c[2] for c in centres])
+    starts = pnp_starts(np.array([lamp.position for lamp in lamps]), image)
+    assert min(p.position_error(WIDE_TRUTH) for p in starts) < 1e-6
+
+
+def test_hints_still_veto_a_multi_lamp_pose() -> None:
+    hints = DisambiguationHints(up_in_camera=[(-WIDE_TRUTH.up_in_camera(), np.radians(10.0))])
+    choice = solve_lamps(_pairs(2, (True, True)), camera_wide(), hints)
+    assert choice.pose is None and choice.reason is Reason.NO_CANDIDATE_AGREES
+
+
+def test_swapped_identities_are_inconsistent() -> None:
+    pairs = _pairs(2, (True, True), np.random.default_rng(5))
+    swapped = [(pairs[0][0], pairs[1][1]), (pairs[1][0], pairs[0][1])]
+    choice = solve_lamps(swapped, camera_wide(), NO_HINTS)
+    assert choice.pose is None and choice.reason is Reason.INCONSISTENT_LAMPS
+
+
+@pytest.mark.parametrize('shift', [0.03, 0.3])
+def test_a_misplaced_map_entry_is_inconsistent(shift: float) -> None:
+    pairs = _pairs(3, (True, True, True), np.random.default_rng(6))
+    observation, lamp = pairs[2]
+    moved = Lamp(lamp.name, lamp.id, lamp.position + [shift, 0.0, 0.0], lamp.radius, lamp.marker_angle,
+                 lamp.marker_distance)
+    choice = solve_lamps(pairs[:2] + [(observation, moved)], camera_wide(), NO_HINTS)
+    assert choice.pose is None and choice.reason is Reason.INCONSISTENT_LAMPS
+
+
+def test_one_lamp_goes_through_the_single_lamp_path() -> None:
+    lamp = small_lamp()
+    truth = looking_up((0.6, -0.4, 0.2), (-0.25, -0.3, 0.4))
+    observation = observe(lamp, truth, camera_4k(), rng=np.random.default_rng(8))
+    assert solve_lamps([(observation, lamp)], camera_4k(), NO_HINTS).reason is Reason.AMBIGUOUS
+    gravity = DisambiguationHints(up_in_camera=[(truth.up_in_camera(), np.radians(5.0))])
+    choice = solve_lamps([(observation, lamp)], camera_4k(), gravity)
+    assert choice.reason is Reason.UP_DIRECTION and choice.pose.position_error(truth) < 0.05
+    no_marker = replace(observation, marker=None)
+    assert solve_lamps([(no_marker, lamp)], camera_4k(), gravity).reason is Reason.NO_CANDIDATES
+
+
+def test_degenerate_inputs() -> None:
+    assert solve_lamps([], camera_wide(), NO_HINTS).reason is Reason.NO_CANDIDATES
+    pairs = _pairs(2, (True, True))
+    twice = [pairs[0], (pairs[1][0], pairs[0][1])]
+    assert solve_lamps(twice, camera_wide(), NO_HINTS).reason is Reason.INCONSISTENT_LAMPS

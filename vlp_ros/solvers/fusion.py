@@ -1,0 +1,140 @@
+"""One pose from every identified lamp of a frame: a joint least squares (the paper's eq. 15,
+generalised to exact perspective, any number of lamps and lamps without markers).
+
+Starts: each lamp's two circle poses, their yaw from the lamp's marker or, without
+one, from the image of another lamp's centre (exact for any number of lamps); and
+for four or more lamps SQPnP on the lamp centres. (With three lamps on one ceiling
+SQPnP returned three poses, none of them right, so it is not used there.) Starts that land on the same pose are refined once; every
+distinct joint minimum is a candidate. A wrong single-lamp candidate puts the
+camera metres away, where the other lamps would be seen elsewhere, so its joint
+minimum costs far more than the true one: ``ambiguity.choose_candidate`` then
+decides on the (statistically bounded) cost gap and reports MULTI_LAMP, still
+subject to every hint. Lamps that cannot be explained by one pose at all (a
+misidentified lamp, a wrong map entry) give INCONSISTENT_LAMPS.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.stats import chi2
+
+from vlp_ros.camera import CameraModel
+from vlp_ros.ellipse import ellipse_from_conic
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.observation import LampObservation
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
+from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
+from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
+from vlp_ros.solvers.measurement import LampMeasurement
+from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
+from vlp_ros.solvers.refinement import descend, linearize, refine_pose
+
+# Starts closer than this (m, rad) reach the same minimum: refine only the cheapest.
+_SAME_START_M = 0.05
+_SAME_START_RAD = 0.05
+# Each start is first followed on a thinned copy of the data. Any pose that explains
+# all lamps explains each one, so it lies within single-lamp error of one of that
+# lamp's candidates, i.e. of a start, and is reached from there in a few iterations
+# (2-5 measured). A start that has not reached a minimum within this many is on a
+# plateau far from any such pose (wrong candidates creep at ~1e6 chi-square) and is dropped.
+_PROBE_RIM_POINTS = 16
+_PNP_MIN_LAMPS = 4
+_PROBE_ITERATIONS = 10
+# The best joint fit is inconsistent when its chi-square is both improbable under the
+# stated noise (tail below 1e-6) and over 4x its degrees of freedom, so sigmas that are
+# off by up to 2x are tolerated while a misplaced lamp (thousands) is not.
+_INCONSISTENT_TAIL = 1e-6
+_INCONSISTENT_REDUCED_CHI2 = 4.0
+
+
+def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
+                hints: DisambiguationHints) -> Choice:
+    """The camera pose from all identified lamps of one frame, or no pose and why."""
+    if not pairs:
+        return Choice(None, Reason.NO_CANDIDATES, 'no identified lamp')
+    ids = [lamp.id for _, lamp in pairs]
+    if len(set(ids)) != len(ids):
+        return Choice(None, Reason.INCONSISTENT_LAMPS, f'one lamp identified twice in the frame: {sorted(ids)}')
+    if len(pairs) == 1:
+        observation, lamp = pairs[0]
+        if observation.marker is None:
+            return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+        return choose_candidate(solve_lamp(observation, lamp, camera), hints)
+    candidates = joint_candidates(pairs, camera)
+    if not candidates:
+        return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
+    best = candidates[0]
+    dof = best.residual_count - 6
+    if best.cost > _INCONSISTENT_REDUCED_CHI2 * dof and chi2.sf(best.cost, dof) < _INCONSISTENT_TAIL:
+        return Choice(None, Reason.INCONSISTENT_LAMPS,
+                      f'best joint chi-square {best.cost:.0f} for {dof} degrees of freedom')
+    choice = choose_candidate(candidates, hints, cost_reason=Reason.MULTI_LAMP)
+    # A single joint minimum is the other lamps' doing: each lamp alone has two.
+    return Choice(choice.pose, Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice
+
+
+def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel) -> list[PoseCandidate]:
+    """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps."""
+    measurements = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs]
+    coarse = [m.thinned(_PROBE_RIM_POINTS) for m in measurements]
+    probed = (descend(start, coarse, _PROBE_ITERATIONS) for start in _distinct_poses(_starts(pairs, camera), coarse))
+    minima = _distinct_poses([pose for pose in probed if pose is not None], coarse)
+    refined = (refine_pose(pose, measurements) for pose in minima)
+    return distinct([candidate for candidate in refined if candidate is not None])
+
+
+def _starts(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel) -> list[Pose]:
+    conics = [normalized_conic(obs.rim_points, camera) for obs, _ in pairs]
+    centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics])
+    rays = np.column_stack([centres, np.ones(len(centres))])
+    starts = []
+    for i, ((observation, lamp), conic) in enumerate(zip(pairs, conics)):
+        if observation.marker is not None:
+            ray = np.append(camera.normalize(np.asarray(observation.marker, dtype=float))[0], 1.0)
+            target = lamp.marker_position()
+        else:
+            # The farthest other lamp in the image gives the best-conditioned heading.
+            j = max((k for k in range(len(pairs)) if k != i), key=lambda k: np.linalg.norm(rays[k] - rays[i]))
+            ray, target = rays[j], pairs[j][1].position
+        for circle in circle_poses(conic, lamp.radius):
+            pose = pose_from_circle(circle, lamp, ray, target)
+            if pose is not None:
+                starts.append(pose)
+    if len(pairs) >= _PNP_MIN_LAMPS:
+        starts.extend(pnp_starts(np.array([lamp.position for _, lamp in pairs]), centres))
+    return starts
+
+
+def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Pose]:
+    """SQPnP's solutions for the lamp centres seen at the ellipse centres (close enough to
+    the projected circle centres for a start)."""
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(lamp_positions, image_centres.reshape(-1, 1, 2), np.eye(3), None,
+                                                 flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return []
+    poses = []
+    for rvec, tvec in zip(rvecs, tvecs):
+        map_to_camera, _ = cv2.Rodrigues(rvec)
+        poses.append(Pose(map_to_camera.T, -map_to_camera.T @ tvec.reshape(3)))
+    return poses
+
+
+def _distinct_poses(starts: list[Pose], measurements: list[LampMeasurement]) -> list[Pose]:
+    """Poses with a finite joint cost, cheapest first, one per neighbourhood."""
+    scored = []
+    for start in starts:
+        try:
+            residuals, _ = linearize(measurements, start)
+        except np.linalg.LinAlgError:
+            continue
+        cost = float(residuals @ residuals)
+        if np.isfinite(cost):
+            scored.append((cost, start))
+    kept: list[Pose] = []
+    for _, start in sorted(scored, key=lambda item: item[0]):
+        if not any(start.position_error(k) < _SAME_START_M and start.rotation_error(k) < _SAME_START_RAD
+                   for k in kept):
+            kept.append(start)
+    return kept
