@@ -1,0 +1,172 @@
+"""Lamp detection on simulated frames: accuracy against the simulator's ground truth, and robustness."""
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from vlp_ros.beacon.encoding import packet_waveform
+from vlp_ros.camera import CameraModel
+from vlp_ros.detection import DetectionOptions, detect_lamps
+from vlp_ros.ellipse import geometric_distances
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.pose import Pose
+from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.sim.sensor import SensorModel
+
+ROW_TIME = 1e-5
+HEIGHT = 2.5
+
+
+def camera(width=640, height=480) -> CameraModel:
+    return CameraModel.from_horizontal_fov(width, height, np.radians(70.0))
+
+
+def tilted_pose(tilt=15.0, yaw=30.0) -> Pose:
+    return Pose(Rotation.from_euler('zx', [yaw, tilt], degrees=True).as_matrix(), [0.0, 0.0, 0.0])
+
+
+def sim_lamp(cam: CameraModel, pose: Pose, at, diameter_px, lamp_id=7, depth=0.5, stripe_rows=8,
+             marker_angle=0.7, peak_dn=200.0, phase=0.0) -> SimLamp:
+    """A lamp whose image is centred near pixel ``at`` and about ``diameter_px`` across."""
+    ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
+    position = ray * HEIGHT / ray[2]
+    radius = 0.5 * diameter_px * np.linalg.norm(position) / cam.focal
+    lamp = Lamp(f'lamp{lamp_id}', lamp_id, position, radius, marker_angle=marker_angle,
+                marker_distance=0.89 * radius)
+    waveform = packet_waveform(lamp_id, 1.0 / (stripe_rows * ROW_TIME), depth, offset=phase)
+    return SimLamp(lamp, waveform, peak_dn=peak_dn)
+
+
+def render(cam, pose, lamps, seed=0, blur=0.8):
+    sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=blur)
+    return render_frame(cam, pose, lamps, sensor, 0.0, np.random.default_rng(seed))
+
+
+def single(depth=0.5, seed=0, peak_dn=200.0, at=(300.0, 250.0), diameter=120.0, stripe_rows=8,
+           marker_angle=0.7):
+    cam, pose = camera(), tilted_pose()
+    rng = np.random.default_rng(seed)
+    lamp = sim_lamp(cam, pose, at, diameter, depth=depth, stripe_rows=stripe_rows, marker_angle=marker_angle,
+                    peak_dn=peak_dn, phase=rng.uniform(0.0, 1e-3))
+    frame = render(cam, pose, [lamp], seed=seed)
+    return frame, frame.truth(lamp.lamp.id)
+
+
+def only(observations):
+    assert len(observations) == 1
+    return observations[0]
+
+
+@pytest.mark.parametrize('depth', [0.0, 0.3, 1.0])
+def test_ellipse_is_sub_pixel_accurate_through_stripes(depth):
+    for seed in range(3):
+        frame, truth = single(depth=depth, seed=seed)
+        lamp = only(detect_lamps(frame.image))
+        np.testing.assert_allclose(lamp.center, truth.ellipse[:2], atol=0.05)
+        np.testing.assert_allclose(lamp.ellipse[2:4], truth.ellipse[2:4], atol=0.06)
+        # Rim points lie on the true edge, and rim_sigma describes their spread.
+        distances = geometric_distances(truth.ellipse, lamp.rim_points)
+        assert abs(np.median(distances)) < 0.05
+        assert 0.5 < np.std(distances) / lamp.rim_sigma < 2.0
+
+
+@pytest.mark.parametrize('depth', [0.3, 1.0])
+def test_marker_centroid_is_accurate_through_stripes(depth):
+    found = 0
+    for seed in range(4):
+        frame, truth = single(depth=depth, seed=seed, marker_angle=0.7 + seed)
+        lamp = only(detect_lamps(frame.image))
+        if lamp.marker is None:
+            continue  # a fully dark stripe can hide the whole marker
+        found += 1
+        error = np.linalg.norm(lamp.marker - truth.marker_pixel)
+        assert error < 0.3
+        assert error < 4.0 * lamp.marker_sigma
+        assert lamp.marker_mask[int(round(truth.marker_pixel[1])) - lamp.bbox[1],
+                                int(round(truth.marker_pixel[0])) - lamp.bbox[0]]
+    assert found >= 3
+
+
+def test_saturated_lamp_keeps_its_centre_and_marker():
+    frame, truth = single(depth=0.3, peak_dn=450.0)
+    assert frame.image.max() == 255
+    lamp = only(detect_lamps(frame.image))
+    np.testing.assert_allclose(lamp.center, truth.ellipse[:2], atol=0.1)
+    assert lamp.marker is not None
+    assert np.linalg.norm(lamp.marker - truth.marker_pixel) < 0.5
+
+
+def test_every_lamp_of_a_frame_is_found_once():
+    cam, pose = camera(), tilted_pose()
+    spots = [(150.0, 130.0), (460.0, 150.0), (330.0, 360.0)]
+    lamps = [sim_lamp(cam, pose, at, 90.0, lamp_id=i + 1, depth=0.6, phase=1e-4 * i)
+             for i, at in enumerate(spots)]
+    frame = render(cam, pose, lamps)
+    observations = detect_lamps(frame.image)
+    assert len(observations) == 3
+    for truth in frame.lamps:
+        matches = [o for o in observations if np.linalg.norm(o.center - truth.ellipse[:2]) < 0.1]
+        assert len(matches) == 1
+
+
+def test_lamp_cut_by_the_border_is_left_out():
+    cam, pose = camera(), tilted_pose()
+    whole = sim_lamp(cam, pose, (250.0, 240.0), 100.0, lamp_id=1)
+    cut = sim_lamp(cam, pose, (610.0, 200.0), 100.0, lamp_id=2)
+    frame = render(cam, pose, [whole, cut])
+    assert not frame.truth(2).fully_inside
+    lamp = only(detect_lamps(frame.image))
+    np.testing.assert_allclose(lamp.center, frame.truth(1).ellipse[:2], atol=0.05)
+
+
+def test_mono8_frame_gives_the_ellipse_without_marker():
+    frame, truth = single(depth=0.3)
+    lamp = only(detect_lamps(cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)))
+    np.testing.assert_allclose(lamp.center, truth.ellipse[:2], atol=0.05)
+    assert lamp.marker is None and lamp.marker_mask is None
+    assert lamp.marker_sigma == np.inf
+
+
+def test_masks_cover_the_disc_and_the_box_holds_it():
+    frame, truth = single(depth=0.0)
+    lamp = only(detect_lamps(frame.image))
+    _, _, a, b, _ = truth.ellipse
+    assert lamp.disc_mask.shape == (lamp.bbox[3] - lamp.bbox[1], lamp.bbox[2] - lamp.bbox[0])
+    assert lamp.disc_mask.sum() == pytest.approx(np.pi * a * b, rel=0.01)
+    assert not lamp.disc_mask[0].any() and not lamp.disc_mask[-1].any()
+    assert not lamp.disc_mask[:, 0].any() and not lamp.disc_mask[:, -1].any()
+    assert lamp.marker_mask.sum() == pytest.approx(np.pi * (0.09 * 0.5 * 120.0) ** 2, rel=0.3)
+    assert not (lamp.marker_mask & ~lamp.disc_mask).any()
+
+
+def test_frames_without_lamps_give_nothing():
+    assert detect_lamps(np.zeros((480, 640, 3), np.uint8)) == []
+    noise = np.random.default_rng(1).normal(20.0, 3.0, (480, 640)).clip(0, 255).astype(np.uint8)
+    assert detect_lamps(noise) == []
+
+
+def test_bright_shapes_that_are_not_discs_are_rejected():
+    image = np.full((480, 640, 3), 12, np.uint8)
+    cv2.rectangle(image, (100, 100), (220, 180), (200, 200, 200), -1)
+    cv2.fillPoly(image, [np.array([[400, 300], [560, 320], [420, 440]])], (200, 200, 200))
+    image = cv2.GaussianBlur(image, (0, 0), 0.8)
+    assert detect_lamps(image) == []
+
+
+@pytest.mark.parametrize('image', [
+    np.zeros((480, 640), np.float32),
+    np.zeros((480, 640, 4), np.uint8),
+    np.zeros(640, np.uint8),
+    np.zeros((0, 640), np.uint8),
+    [[0, 1], [2, 3]],
+])
+def test_garbage_input_is_a_value_error(image):
+    with pytest.raises(ValueError):
+        detect_lamps(image)
+
+
+def test_bad_options_are_value_errors():
+    with pytest.raises(ValueError, match='min_diameter'):
+        DetectionOptions(min_diameter=0.0)
+    with pytest.raises(ValueError, match='search_step'):
+        DetectionOptions(search_step=0)

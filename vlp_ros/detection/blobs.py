@@ -1,0 +1,88 @@
+"""Where the lamps are: bright blobs on a coarse grid, the bands of a striped lamp merged.
+
+One strided pass reads every ``step``-th pixel of every ``step``-th row, so the
+search costs a fraction of one pass over the frame; everything after works on
+that small image or inside one box per lamp.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+# Histogram counts above the peak level that are ignored as hot pixels.
+_HOT_PIXELS = 2
+
+
+@dataclass(frozen=True)
+class Blob:
+    """A candidate lamp: ``bbox`` (x0, y0, x1, y1, ends exclusive) in full-frame pixels.
+
+    ``noise`` is the robust noise sigma (8-bit levels) of the frame's background.
+    """
+
+    bbox: tuple[int, int, int, int]
+    noise: float
+
+
+def search_image(image: np.ndarray, step: int) -> np.ndarray:
+    """Every ``step``-th pixel of every ``step``-th row; green only for colour frames.
+
+    The lamps are white, so green sees them as well as any channel and costs a third.
+    """
+    plane = image[::step, ::step, 1] if image.ndim == 3 else image[::step, ::step]
+    return np.ascontiguousarray(plane)
+
+
+def search_levels(small: np.ndarray, threshold_fraction: float, min_contrast: float,
+                  noise_factor: float) -> tuple[float, float, float] | None:
+    """(background, noise, threshold) of the search image, or None when nothing stands out.
+
+    Background is the median; the threshold lies ``threshold_fraction`` of the way
+    up to the brightest pixels, and at least ``noise_factor`` robust noise sigmas above
+    the background.
+    """
+    hist = cv2.calcHist([small], [0], None, [256], [0, 256]).ravel()
+    cumulative = np.cumsum(hist)
+    total = cumulative[-1]
+    background = float(np.searchsorted(cumulative, 0.5 * total))
+    upper_quartile = float(np.searchsorted(cumulative, 0.75 * total))
+    noise = max((upper_quartile - background) / 0.6745, 0.5)
+    peak = float(np.searchsorted(cumulative, total - _HOT_PIXELS))
+    if peak - background < min_contrast:
+        return None
+    threshold = max(background + threshold_fraction * (peak - background), background + noise_factor * noise)
+    return background, noise, threshold
+
+
+def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_contrast: float,
+               noise_factor: float, max_stripe_rows: int, min_diameter: float,
+               margin: int) -> list[Blob]:
+    """Lamp candidates, each with a box that holds its whole disc plus ``margin`` pixels.
+
+    A lamp whose dark stripes are fully dark falls apart into horizontal bands:
+    closing the mask with a vertical kernel as tall as the longest dark stripe
+    joins them again. Blobs narrower or shorter than ``min_diameter`` / 2 are dropped.
+    """
+    small = search_image(image, step)
+    levels = search_levels(small, threshold_fraction, min_contrast, noise_factor)
+    if levels is None:
+        return []
+    _, noise, threshold = levels
+    mask = (small > threshold).astype(np.uint8)
+    gap = int(np.ceil(max_stripe_rows / step)) + 1
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (1, gap + 1)))
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    height, width = image.shape[:2]
+    blobs = []
+    for contour in contours:
+        x, y, w, h = cv2.boundingRect(contour)
+        if min(w, h) * step < 0.5 * min_diameter:
+            continue
+        # A sampled blob may miss up to one step on each side.
+        extra = margin + step
+        bbox = (max(x * step - extra, 0), max(y * step - extra, 0),
+                min((x + w) * step + extra, width), min((y + h) * step + extra, height))
+        blobs.append(Blob(bbox, noise))
+    return blobs

@@ -1,0 +1,266 @@
+"""Lamps in one frame: blobs, sub-pixel rim, fitted ellipse and marker centroid per lamp."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlp_ros.detection.blobs import Blob, find_blobs
+from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness
+from vlp_ros.detection.rim import RimFit, RowLevels, fit_rim, row_crossings, row_levels, steady_rows
+from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
+from vlp_ros.observation import LampObservation
+
+# A lamp's rim must have this many kept points on each side of its centre.
+_MIN_SIDE_FRACTION = 0.2
+# Share of the slope-selected rim points that must survive outlier rejection.
+_MIN_INLIER_FRACTION = 0.7
+_MIN_RIM_SIGMA = 0.01
+# Rows whose neighbours differ by less than this (of the brightest row) count as one stripe.
+_STEADY_TOLERANCE = 0.05
+
+
+@dataclass(frozen=True)
+class DetectionOptions:
+    """Settings of ``detect_lamps`` (lengths in pixels, levels in 8-bit units).
+
+    ``min_diameter``: smallest lamp (major axis) reported. ``search_step``: grid of the
+    coarse search (default: a fifth of ``min_diameter``). ``threshold_fraction``: search
+    threshold, as a fraction of the way from background to the brightest lamp.
+    ``min_contrast``: brightest minus background below which the frame holds no lamp.
+    ``noise_factor``: the threshold stays this many noise sigmas above background.
+    ``max_stripe_rows``: tallest dark stripe to bridge. ``level_fraction``: rows dimmer
+    than this fraction of the lamp's lit rows give no rim points. ``max_blur``: largest
+    optical blur sigma expected. ``max_slope``: rows meeting the edge at |dx/dy| above
+    this give no rim point. ``max_rim_sigma``: lamps whose rim points scatter more are
+    rejected as not elliptic. ``min_marker_redness``: R - max(G, B) a marker must reach.
+    """
+
+    min_diameter: float = 16.0
+    search_step: int | None = None
+    threshold_fraction: float = 0.25
+    min_contrast: float = 24.0
+    noise_factor: float = 6.0
+    max_stripe_rows: int = 30
+    level_fraction: float = 0.3
+    max_blur: float = 2.0
+    max_slope: float = 3.0
+    outlier_sigmas: float = 3.0
+    max_rim_sigma: float = 0.75
+    min_rim_points: int = 16
+    min_axis_ratio: float = 0.1
+    min_marker_redness: float = 20.0
+    saturation_level: float = 250.0
+
+    def __post_init__(self) -> None:
+        positive = ('min_diameter', 'threshold_fraction', 'min_contrast', 'noise_factor', 'max_stripe_rows',
+                    'level_fraction', 'max_blur', 'max_slope', 'outlier_sigmas', 'max_rim_sigma',
+                    'min_rim_points', 'min_axis_ratio', 'min_marker_redness', 'saturation_level')
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f'detection option {name} must be positive, got {getattr(self, name)}')
+        if self.search_step is not None and self.search_step < 1:
+            raise ValueError(f'detection option search_step must be >= 1, got {self.search_step}')
+        if not self.threshold_fraction < 1.0 or not self.level_fraction < 1.0:
+            raise ValueError('detection options threshold_fraction and level_fraction must be below 1')
+
+    @property
+    def step(self) -> int:
+        return self.search_step if self.search_step is not None else max(1, int(self.min_diameter // 5))
+
+    @property
+    def reach(self) -> int:
+        """How far (px) inside the first bright pixel a row's half-level crossing may lie."""
+        return int(np.ceil(2.5 * self.max_blur * np.hypot(1.0, self.max_slope))) + 2
+
+    @property
+    def blur_margin(self) -> int:
+        return int(np.ceil(3.0 * self.max_blur)) + 1
+
+
+def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> list[LampObservation]:
+    """Every whole lamp in a bgr8 (H, W, 3) or mono8 (H, W) uint8 frame.
+
+    Coordinates are full-frame raw pixels with pixel centres at integers (as in
+    OpenCV). A lamp cut by the frame border, or whose rim is not an ellipse, is
+    left out. The marker is found by colour, so mono8 frames give ``marker=None``
+    (``marker_sigma`` is then infinite), as does a lamp whose marker is not seen.
+    """
+    _check_image(image)
+    options = options or DetectionOptions()
+    blobs = find_blobs(image, options.step, options.threshold_fraction, options.min_contrast,
+                       options.noise_factor, options.max_stripe_rows, options.min_diameter,
+                       margin=options.blur_margin + int(np.ceil(0.2 * options.min_diameter)))
+    observations = []
+    for blob in blobs:
+        observation = _observe(image, blob, options)
+        if observation is not None:
+            observations.append(observation)
+    return observations
+
+
+def _check_image(image: np.ndarray) -> None:
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f'image must be a numpy array, got {type(image).__name__}')
+    if image.dtype != np.uint8:
+        raise ValueError(f'image must be uint8 (bgr8 or mono8), got {image.dtype}')
+    if not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
+        raise ValueError(f'image must be (H, W) mono8 or (H, W, 3) bgr8, got shape {image.shape}')
+    if image.shape[0] < 1 or image.shape[1] < 1:
+        raise ValueError(f'image is empty: shape {image.shape}')
+
+
+@dataclass(frozen=True)
+class _LampBox:
+    """One lamp's box of the frame and what was measured in it (box pixels)."""
+
+    origin: tuple[int, int]
+    background: float
+    red: np.ndarray | None
+    levels: RowLevels
+    seed: MarkerSeed | None
+    rim: RimFit
+
+
+def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
+    """The observation of the lamp in ``blob``, or None if it is not a whole, elliptic lamp.
+
+    A lamp whose lower or upper part is dark (a long dark stripe) may be found as a
+    smaller blob: its box grows to hold the fitted ellipse, once, and is measured again.
+    """
+    bbox = blob.bbox
+    for _ in range(2):
+        box = _measure(image, bbox, blob.noise, options)
+        if box is None:
+            return None
+        lo, hi = _extent(box.rim.ellipse)
+        lo, hi = lo + box.origin, hi + box.origin
+        margin = options.blur_margin + 1
+        needed = (min(bbox[0], max(int(np.floor(lo[0])) - margin, 0)),
+                  min(bbox[1], max(int(np.floor(lo[1])) - margin, 0)),
+                  max(bbox[2], min(int(np.ceil(hi[0])) + margin + 1, image.shape[1])),
+                  max(bbox[3], min(int(np.ceil(hi[1])) + margin + 1, image.shape[0])))
+        if needed == bbox:
+            break
+        bbox = needed
+    roi_shape = (bbox[3] - bbox[1], bbox[2] - bbox[0])
+    if not _is_whole_lamp(box.rim, roi_shape, box.origin, image.shape[:2], options):
+        return None
+    return _observation(box.rim, _marker(box, options), box.origin, image.shape[:2])
+
+
+def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
+             options: DetectionOptions) -> _LampBox | None:
+    """Rim fit (and marker seed) of the lamp in ``bbox``; None if no ellipse fits."""
+    x0, y0, x1, y1 = bbox
+    roi = image[y0:y1, x0:x1]
+    colour = roi.ndim == 3
+    brightness = np.maximum(np.maximum(roi[..., 0], roi[..., 1]), roi[..., 2]) if colour else roi
+    background = float(np.median(np.concatenate(
+        [brightness[0], brightness[-1], brightness[:, 0], brightness[:, -1]])))
+    peak = float(brightness.max())
+    if peak - background < options.min_contrast:
+        return None
+    threshold = max(background + options.threshold_fraction * (peak - background),
+                    background + options.noise_factor * noise)
+    levels = row_levels(brightness, threshold, background, options.level_fraction)
+    points, _ = row_crossings(brightness, levels, background, options.reach)
+    red = redness(roi) if colour else None
+    seed = None
+    if red is not None:
+        lamp_radius = 0.5 * max(x1 - x0, y1 - y0)
+        seed = find_seed(red, 0.3 * lamp_radius + 3.0, options.min_marker_redness)
+    if seed is not None:
+        # The marker's colour changes the brightness near it: its rim points are not trusted.
+        near = np.linalg.norm(points - seed.center, axis=1) <= seed.radius + options.blur_margin + 1.0
+        points = points[~near]
+    if len(points) < options.min_rim_points:
+        return None
+    try:
+        rim = fit_rim(points, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
+    except ValueError:
+        return None
+    return _LampBox((x0, y0), background, red, levels, seed, rim)
+
+
+def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
+    """The marker, fitted on lit rows that share their level with a neighbour (blur has not mixed stripes)."""
+    if box.seed is None:
+        return None
+    profile = box.levels.profile
+    rows = (profile > options.level_fraction * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
+    saturated = profile + box.background >= options.saturation_level
+    fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, options.blur_margin + 1.0,
+                     profile, saturated, rows)
+    if fit is None or geometric_distances(box.rim.ellipse, fit.center[None])[0] > 0.0:
+        return None
+    return fit
+
+
+def _is_whole_lamp(rim: RimFit, roi_shape: tuple[int, int], origin: tuple[int, int],
+                   frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
+    """The rim is elliptic, big enough, seen on both sides, and its blurred disc lies inside the box and frame."""
+    cx, cy, a, b, _ = rim.ellipse
+    if (len(rim.points) < options.min_rim_points or rim.sigma > options.max_rim_sigma
+            or len(rim.points) < _MIN_INLIER_FRACTION * rim.candidates
+            or 2.0 * a < options.min_diameter or b < options.min_axis_ratio * a):
+        return False
+    left = np.count_nonzero(rim.points[:, 0] < cx)
+    if min(left, len(rim.points) - left) < _MIN_SIDE_FRACTION * len(rim.points):
+        return False
+    lo, hi = _extent(rim.ellipse)
+    margin = options.blur_margin
+    if np.any(lo < margin) or hi[0] > roi_shape[1] - 1 - margin or hi[1] > roi_shape[0] - 1 - margin:
+        return False
+    lo, hi = lo + origin, hi + origin
+    return bool(np.all(lo >= margin) and hi[0] <= frame_shape[1] - 1 - margin
+                and hi[1] <= frame_shape[0] - 1 - margin)
+
+
+def _extent(ellipse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (lo, hi) of the ellipse's axis-aligned bounding box."""
+    cx, cy, a, b, theta = (float(v) for v in ellipse)
+    c, s = np.cos(theta), np.sin(theta)
+    half = np.array([np.hypot(a * c, b * s), np.hypot(a * s, b * c)])
+    centre = np.array([cx, cy])
+    return centre - half, centre + half
+
+
+def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
+                 frame_shape: tuple[int, int]) -> LampObservation:
+    """Move the lamp-box results to full-frame pixels and draw the masks."""
+    shift = np.asarray(origin, dtype=float)
+    ellipse = rim.ellipse.copy()
+    ellipse[:2] += shift
+    lo, hi = _extent(ellipse)
+    bx0, by0 = max(int(np.floor(lo[0])) - 1, 0), max(int(np.floor(lo[1])) - 1, 0)
+    bx1 = min(int(np.ceil(hi[0])) + 2, frame_shape[1])
+    by1 = min(int(np.ceil(hi[1])) + 2, frame_shape[0])
+    bbox = (bx0, by0, bx1, by1)
+    disc_mask = _inside_mask(conic_from_ellipse(ellipse), bbox)
+    marker_centre, marker_sigma, marker_mask = None, float('inf'), None
+    if marker is not None:
+        marker_centre = marker.center + shift
+        marker_sigma = marker.sigma
+        conic = np.zeros((3, 3))
+        conic[:2, :2] = marker.shape
+        conic[:2, 2] = conic[2, :2] = -marker.shape @ marker_centre
+        conic[2, 2] = marker_centre @ marker.shape @ marker_centre - marker.radius ** 2
+        marker_mask = _inside_mask(conic, bbox)
+    return LampObservation(ellipse=ellipse, rim_points=rim.points + shift, rim_sigma=rim.sigma,
+                           marker=marker_centre, marker_sigma=marker_sigma,
+                           bbox=bbox, disc_mask=disc_mask, marker_mask=marker_mask)
+
+
+def _inside_mask(conic: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
+    """Pixels of ``bbox`` whose centres lie inside the ellipse ``conic`` (row by row, from its chords)."""
+    x0, y0, x1, y1 = bbox
+    y = np.arange(y0, y1, dtype=float)
+    # Each row's conic in x: a x^2 + b x + c <= 0 between the two roots.
+    a = conic[0, 0]
+    b = 2.0 * (conic[0, 1] * y + conic[0, 2])
+    c = conic[1, 1] * y * y + 2.0 * conic[1, 2] * y + conic[2, 2]
+    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    left, right = (-b - root) / (2.0 * a), (-b + root) / (2.0 * a)
+    x = np.arange(x0, x1, dtype=float)
+    return (x >= left[:, None]) & (x <= right[:, None]) & (b * b > 4.0 * a * c)[:, None]

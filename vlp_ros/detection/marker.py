@@ -1,0 +1,211 @@
+"""The red marker's centroid, to a fraction of a pixel, through the lamp's stripes.
+
+The marker is lit by the lamp, so it is striped like the lamp and vanishes in fully
+dark rows: a centroid of red pixels would follow the stripes. Instead a blurred
+disc of the lamp's own elliptic shape (a small disc in the same plane projects to
+nearly the same ellipse, scaled) is fitted to the redness R - max(G, B) with a
+free amplitude per row: whatever a row's brightness, or its clipping, the marker's
+position is carried by where it starts and ends in each row and by how its chord
+widths change from row to row. The lamp's own redness (a tinted white) enters each
+row as a second amplitude times the blurred disc of the lamp.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+from vlp_ros.ellipse import geometric_distances
+
+_SQRT_2PI = np.sqrt(2.0 * np.pi)
+_MAX_ITERATIONS = 12
+# Stop when the centre moves less than this (px).
+_CONVERGED = 1e-3
+_BLUR_BOUNDS = (0.3, 4.0)
+# Fewest rows through the marker that pin down its position.
+_MIN_MARKER_ROWS = 3
+# Expected relative difference between the marker's image shape and its lamp's (perspective).
+_SHAPE_PRIOR = 0.05
+
+
+@dataclass(frozen=True)
+class MarkerSeed:
+    """Rough marker position and radius (px) in the lamp box's pixels."""
+
+    center: np.ndarray
+    radius: float
+
+
+@dataclass(frozen=True)
+class MarkerFit:
+    """Marker centre (px, lamp-box pixels), its standard deviation per axis, size and the blur fitted."""
+
+    center: np.ndarray
+    sigma: float
+    radius: float
+    blur: float
+    shape: np.ndarray
+
+
+def redness(bgr: np.ndarray) -> np.ndarray:
+    """R - (G + B) / 2 as float32: large on the marker, near zero on a white lamp; linear in the light."""
+    channels = bgr.astype(np.float32)
+    return channels[..., 2] - 0.5 * (channels[..., 0] + channels[..., 1])
+
+
+def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> MarkerSeed | None:
+    """The reddest spot and the extent of the red pixels around it, or None if nothing is red enough."""
+    peak_index = int(np.argmax(red))
+    y, x = divmod(peak_index, red.shape[1])
+    peak = float(red[y, x])
+    if peak < min_redness:
+        return None
+    r = int(np.ceil(search_radius))
+    y0, x0 = max(y - r, 0), max(x - r, 0)
+    window = red[y0:y + r + 1, x0:x + r + 1]
+    ys, xs = np.nonzero(window > 0.4 * peak)
+    centre = np.array([x0 + 0.5 * (xs.min() + xs.max()), y0 + 0.5 * (ys.min() + ys.max())])
+    radius = 0.5 * max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+    return MarkerSeed(centre, float(radius))
+
+
+def shape_matrix(ellipse: np.ndarray) -> np.ndarray:
+    """2x2 matrix A with det 1 whose ellipse p^T A p = s^2 has the shape of ``ellipse``, mean radius s."""
+    _, _, a, b, theta = (float(v) for v in ellipse)
+    c, s = np.cos(theta), np.sin(theta)
+    rotation = np.array([[c, -s], [s, c]])
+    return rotation @ np.diag([b / a, a / b]) @ rotation.T
+
+
+def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
+               margin: float, row_level: np.ndarray, row_saturated: np.ndarray,
+               rows_used: np.ndarray) -> MarkerFit | None:
+    """Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
+
+    ``lamp_ellipse`` is in the same pixels; it gives the marker's shape and the
+    lamp's own disc term. ``margin`` (px) widens the window beyond the seed radius.
+    Per row of ``red``: ``row_level`` is the lamp's brightness above background,
+    ``row_saturated`` whether it is clipped, ``rows_used`` whether the row takes part.
+    A lit row's marker is as bright as the row (one ratio for all unclipped rows);
+    clipped rows share one amplitude of their own.
+    """
+    half = seed.radius + margin
+    x0 = max(int(np.floor(seed.center[0] - half)), 0)
+    y0 = max(int(np.floor(seed.center[1] - half)), 0)
+    x1 = min(int(np.ceil(seed.center[0] + half)) + 1, red.shape[1])
+    y1 = min(int(np.ceil(seed.center[1] + half)) + 1, red.shape[0])
+    rows = np.arange(y0, y1)
+    rows = rows[rows_used[y0:y1]]
+    if rows.size < _MIN_MARKER_ROWS or x1 - x0 < 5:
+        return None
+    data = red[rows, x0:x1].astype(float)
+    xs, ys = np.meshgrid(np.arange(x0, x1, dtype=float), rows.astype(float))
+    pixels = np.stack([xs, ys], axis=-1)
+    lamp_disc = ndtr(-geometric_distances(lamp_ellipse, pixels.reshape(-1, 2)).reshape(data.shape) / blur_guess)
+    saturated = row_saturated[rows]
+    classes = [c for c in (np.where(saturated, 0.0, row_level[rows]), saturated.astype(float)) if c.any()]
+    root = _symmetric_root(shape_matrix(lamp_ellipse))
+    model = _MarkerModel(data, pixels, lamp_disc, root, np.stack(classes, axis=1))
+    params = np.array([seed.center[0], seed.center[1], seed.radius, blur_guess])
+    cost, residual, jac = model.evaluate(params)
+    damping = 1e-3
+    for _ in range(_MAX_ITERATIONS):
+        JtJ = jac[:, :4].T @ jac[:, :4]
+        step = np.linalg.solve(JtJ + damping * np.diag(np.diag(JtJ) + 1e-12), jac[:, :4].T @ residual)
+        trial = _bounded(params + step)
+        trial_cost, trial_residual, trial_jac = model.evaluate(trial)
+        if trial_cost < cost:
+            moved = np.linalg.norm(trial[:2] - params[:2])
+            params, cost, residual, jac = trial, trial_cost, trial_residual, trial_jac
+            damping = max(damping * 0.3, 1e-6)
+            if moved < _CONVERGED:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e6:
+                break
+    centre, radius = params[:2], params[2]
+    if not (x0 <= centre[0] < x1 and y0 <= centre[1] < y1):
+        return None
+    # Rows crossing the marker carry its position; one or two leave it ambiguous.
+    if np.count_nonzero(np.abs(rows - centre[1]) < radius) < _MIN_MARKER_ROWS:
+        return None
+    dof = data.size - params.size - model.linear_count
+    if dof <= 0:
+        return None
+    return MarkerFit(centre, _centre_sigma(jac, cost / dof), float(radius), float(params[3]), root @ root)
+
+
+def _centre_sigma(jac: np.ndarray, noise_variance: float) -> float:
+    """Per-axis standard deviation of the centre: pixel noise plus the unknown shape difference.
+
+    The shape is held at the lamp's, so its true difference (of ``_SHAPE_PRIOR`` spread)
+    moves the centre by the sensitivity of the fit to it: a consider covariance. It
+    matters when only one side of the marker is lit.
+    """
+    fitted, shape = jac[:, :4], jac[:, 4:]
+    inverse = np.linalg.pinv(fitted.T @ fitted)
+    sensitivity = inverse @ fitted.T @ shape
+    covariance = noise_variance * inverse + _SHAPE_PRIOR ** 2 * sensitivity @ sensitivity.T
+    return float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
+
+
+def _symmetric_root(A: np.ndarray) -> np.ndarray:
+    values, vectors = np.linalg.eigh(A)
+    return vectors @ np.diag(np.sqrt(values)) @ vectors.T
+
+
+def _bounded(params: np.ndarray) -> np.ndarray:
+    out = params.copy()
+    out[2] = max(out[2], 0.5)
+    out[3] = float(np.clip(out[3], *_BLUR_BOUNDS))
+    return out
+
+
+class _MarkerModel:
+    """Residuals and the variable-projection Jacobian of the marker model.
+
+    Parameters: centre (2), mean radius and blur sigma; the Jacobian has two more
+    columns, for stretching the shape away from the lamp's (along the axes and the
+    diagonals, in the frame where the lamp is round). ``row_weights`` (rows, classes):
+    the marker and lamp-disc terms of class c contribute amplitude_c * weight[row, c] to a row.
+    """
+
+    def __init__(self, data: np.ndarray, pixels: np.ndarray, lamp_disc: np.ndarray, root: np.ndarray,
+                 row_weights: np.ndarray) -> None:
+        self.data = data.ravel()
+        self.pixels = pixels
+        self.root = root
+        self.row_weights = row_weights
+        self.disc_terms = (row_weights[:, None, :] * lamp_disc[..., None]).reshape(self.data.size, -1)
+        self.linear_count = 2 * row_weights.shape[1]
+
+    def evaluate(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """(cost, residual (N,), Jacobian of the model (N, 6)) with the amplitudes eliminated."""
+        cx, cy, s, blur = params
+        u = (self.pixels - np.array([cx, cy])) @ self.root
+        gradient = u @ self.root
+        norm = np.maximum(np.linalg.norm(gradient, axis=-1), 1e-9)
+        rho = np.linalg.norm(u, axis=-1)
+        safe_rho = np.maximum(rho, 1e-9)
+        # Distance to the marker's edge, positive inside (first order in the offset from the edge).
+        gain = rho / norm
+        distance = (s - rho) * gain
+        z = distance / blur
+        marker = ndtr(z)
+        density = np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
+        d_marker = np.stack([
+            density * gradient[..., 0] / norm, density * gradient[..., 1] / norm, density * gain, -density * z,
+            -density * gain * 0.5 * (u[..., 0] ** 2 - u[..., 1] ** 2) / safe_rho,
+            -density * gain * u[..., 0] * u[..., 1] / safe_rho], axis=-1)
+        marker_terms = (self.row_weights[:, None, :] * marker[..., None]).reshape(self.data.size, -1)
+        basis = np.concatenate([marker_terms, self.disc_terms], axis=1)
+        q, _ = np.linalg.qr(basis)
+        residual = self.data - q @ (q.T @ self.data)
+        coef = np.linalg.lstsq(basis, self.data - residual, rcond=None)[0]
+        # Kaufman's approximation: the marker amplitude of each row times dM, minus its part in the basis.
+        amplitude = self.row_weights @ coef[:self.row_weights.shape[1]]
+        jac = (amplitude[:, None, None] * d_marker).reshape(self.data.size, d_marker.shape[-1])
+        jac = jac - q @ (q.T @ jac)
+        return float(residual @ residual), residual, jac
