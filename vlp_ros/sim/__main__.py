@@ -25,7 +25,9 @@ class UsageError(Exception):
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim', description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog='python -m vlp_ros.sim',
+        description='Simulate a rolling-shutter VLP recording: DIR/<scenario> (rosbag2) and DIR/params.yaml.')
     parser.add_argument('--scenario', required=True, choices=('paper', 'robot'))
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--storage', default='sqlite3', choices=tuple(STORAGES))
