@@ -56,25 +56,36 @@ def disc_coverage(camera: CameraModel, pose: Pose, height: float, circles: list[
     grid = plane_points(camera, pose, np.stack([gx.ravel(), gy.ravel()], axis=1), height).reshape(h + 1, w + 1, 2)
     centres = grid[:-1, :-1]
     step_x, step_y = grid[:-1, 1:] - centres, grid[1:, :-1] - centres
+    # A pixel spans less than this on the plane in any direction from its centre.
+    reach = np.hypot(step_x[..., 0], step_x[..., 1]) + np.hypot(step_y[..., 0], step_y[..., 1])
     coverages = []
     for circle in circles:
-        dx, dy = centres[..., 0] - circle.center_xy[0], centres[..., 1] - circle.center_xy[1]
-        distance = np.maximum(np.hypot(dx, dy), 1e-12 * circle.radius)
-        # Gradient (per pixel step) of the distance from the circle centre on the plane.
-        ux, uy = dx / distance, dy / distance
-        grad_x = ux * step_x[..., 0] + uy * step_x[..., 1]
-        grad_y = ux * step_y[..., 0] + uy * step_y[..., 1]
-        grad = np.hypot(grad_x, grad_y)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            signed_px = (distance - circle.radius) / grad
-            coverage = _half_plane_coverage(-signed_px, grad_x / grad, grad_y / grad)
-        coverage = np.where(np.isfinite(coverage), coverage, 0.0).astype(np.float32)
-        edges = np.abs(signed_px) < 1.0
-        if edges.any() and circle.radius / np.median(grad[edges]) < SUPERSAMPLE_BELOW_PX:
-            rows, cols = np.nonzero(edges)
-            coverage[rows, cols] = _supersampled(camera, pose, height, circle, x0 + cols, y0 + rows)
+        distance = np.hypot(centres[..., 0] - circle.center_xy[0], centres[..., 1] - circle.center_xy[1])
+        coverage = (distance < circle.radius).astype(np.float32)
+        rows, cols = np.nonzero(np.abs(distance - circle.radius) < reach)
+        if rows.size == 0:
+            coverages.append(coverage)
+            continue
+        cut, grad = _tangent_cut(centres[rows, cols], step_x[rows, cols], step_y[rows, cols], circle)
+        if circle.radius / np.median(grad) < SUPERSAMPLE_BELOW_PX:
+            cut = _supersampled(camera, pose, height, circle, x0 + cols, y0 + rows)
+        coverage[rows, cols] = cut
         coverages.append(coverage)
     return coverages
+
+
+def _tangent_cut(centres: np.ndarray, step_x: np.ndarray, step_y: np.ndarray,
+                 circle: Circle) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage of pixels (plane points of their centres and of one step along x and y)
+    cut by the circle's tangent line, and the plane distance per pixel step across the edge."""
+    offset = centres - circle.center_xy
+    distance = np.maximum(np.hypot(offset[:, 0], offset[:, 1]), 1e-12 * circle.radius)
+    unit = offset / distance[:, None]
+    # Gradient, per pixel step, of the distance from the circle centre.
+    grad_x, grad_y = np.sum(unit * step_x, axis=1), np.sum(unit * step_y, axis=1)
+    grad = np.hypot(grad_x, grad_y)
+    cut = _half_plane_coverage((circle.radius - distance) / grad, grad_x / grad, grad_y / grad)
+    return cut, grad
 
 
 def _half_plane_coverage(t: np.ndarray, nx: np.ndarray, ny: np.ndarray) -> np.ndarray:
