@@ -6,9 +6,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlp_ros.detection.blobs import Blob, find_blobs
-from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness
-from vlp_ros.detection.rim import RimFit, RowLevels, fit_rim, row_crossings, row_levels, steady_rows
-from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
+from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness, shape_spread
+from vlp_ros.detection.rim import RimFit, fit_rim, row_crossings
+from vlp_ros.detection.rows import ellipse_chords, row_levels, row_profile, steady_rows
+from vlp_ros.ellipse import geometric_distances
 from vlp_ros.observation import LampObservation
 
 # A lamp's rim must have this many kept points on each side of its centre.
@@ -18,6 +19,8 @@ _MIN_INLIER_FRACTION = 0.7
 _MIN_RIM_SIGMA = 0.01
 # Rows whose neighbours differ by less than this (of the brightest row) count as one stripe.
 _STEADY_TOLERANCE = 0.05
+# Rows dimmer than this (of the brightest row) carry too little marker signal to use.
+_MIN_MARKER_ROW_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
@@ -33,7 +36,10 @@ class DetectionOptions:
     than this fraction of the lamp's lit rows give no rim points. ``max_blur``: largest
     optical blur sigma expected. ``max_slope``: rows meeting the edge at |dx/dy| above
     this give no rim point. ``max_rim_sigma``: lamps whose rim points scatter more are
-    rejected as not elliptic. ``min_marker_redness``: R - max(G, B) a marker must reach.
+    rejected as not elliptic. ``min_marker_redness``: R - (G + B) / 2 a marker must reach.
+    ``saturation_level``: rows whose plateau reaches it are clipped. ``focal_length``: the
+    camera's (px), which sets how much perspective may bend the marker's shape away from
+    its lamp's (None: the frame width, a 53 deg horizontal field of view).
     """
 
     min_diameter: float = 16.0
@@ -51,6 +57,7 @@ class DetectionOptions:
     min_axis_ratio: float = 0.1
     min_marker_redness: float = 20.0
     saturation_level: float = 250.0
+    focal_length: float | None = None
 
     def __post_init__(self) -> None:
         positive = ('min_diameter', 'threshold_fraction', 'min_contrast', 'noise_factor', 'max_stripe_rows',
@@ -59,6 +66,8 @@ class DetectionOptions:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f'detection option {name} must be positive, got {getattr(self, name)}')
+        if self.focal_length is not None and not self.focal_length > 0.0:
+            raise ValueError(f'detection option focal_length must be positive, got {self.focal_length}')
         if self.search_step is not None and self.search_step < 1:
             raise ValueError(f'detection option search_step must be >= 1, got {self.search_step}')
         if not self.threshold_fraction < 1.0 or not self.level_fraction < 1.0:
@@ -115,9 +124,10 @@ class _LampBox:
     """One lamp's box of the frame and what was measured in it (box pixels)."""
 
     origin: tuple[int, int]
+    frame_width: int
+    brightness: np.ndarray
     background: float
     red: np.ndarray | None
-    levels: RowLevels
     seed: MarkerSeed | None
     rim: RimFit
 
@@ -180,18 +190,20 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
         rim = fit_rim(points, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
     except ValueError:
         return None
-    return _LampBox((x0, y0), background, red, levels, seed, rim)
+    return _LampBox((x0, y0), image.shape[1], brightness, background, red, seed, rim)
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     """The marker, fitted on lit rows that share their level with a neighbour (blur has not mixed stripes)."""
     if box.seed is None:
         return None
-    profile = box.levels.profile
-    rows = (profile > options.level_fraction * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
+    profile = row_profile(box.brightness, box.rim.ellipse, box.background)
+    # Dim rows still show the marker: anything clearly above the noise takes part.
+    rows = (profile > _MIN_MARKER_ROW_FRACTION * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
     saturated = profile + box.background >= options.saturation_level
+    focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, options.blur_margin + 1.0,
-                     profile, saturated, rows)
+                     profile, saturated, rows, shape_spread(box.rim.ellipse, focal_length))
     if fit is None or geometric_distances(box.rim.ellipse, fit.center[None])[0] > 0.0:
         return None
     return fit
@@ -237,30 +249,20 @@ def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
     bx1 = min(int(np.ceil(hi[0])) + 2, frame_shape[1])
     by1 = min(int(np.ceil(hi[1])) + 2, frame_shape[0])
     bbox = (bx0, by0, bx1, by1)
-    disc_mask = _inside_mask(conic_from_ellipse(ellipse), bbox)
+    disc_mask = _inside_mask(ellipse, bbox)
     marker_centre, marker_sigma, marker_mask = None, float('inf'), None
     if marker is not None:
         marker_centre = marker.center + shift
         marker_sigma = marker.sigma
-        conic = np.zeros((3, 3))
-        conic[:2, :2] = marker.shape
-        conic[:2, 2] = conic[2, :2] = -marker.shape @ marker_centre
-        conic[2, 2] = marker_centre @ marker.shape @ marker_centre - marker.radius ** 2
-        marker_mask = _inside_mask(conic, bbox)
+        marker_mask = _inside_mask(marker.ellipse(shift), bbox)
     return LampObservation(ellipse=ellipse, rim_points=rim.points + shift, rim_sigma=rim.sigma,
                            marker=marker_centre, marker_sigma=marker_sigma,
                            bbox=bbox, disc_mask=disc_mask, marker_mask=marker_mask)
 
 
-def _inside_mask(conic: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
-    """Pixels of ``bbox`` whose centres lie inside the ellipse ``conic`` (row by row, from its chords)."""
+def _inside_mask(ellipse: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
+    """Pixels of ``bbox`` whose centres lie inside ``ellipse``."""
     x0, y0, x1, y1 = bbox
-    y = np.arange(y0, y1, dtype=float)
-    # Each row's conic in x: a x^2 + b x + c <= 0 between the two roots.
-    a = conic[0, 0]
-    b = 2.0 * (conic[0, 1] * y + conic[0, 2])
-    c = conic[1, 1] * y * y + 2.0 * conic[1, 2] * y + conic[2, 2]
-    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
-    left, right = (-b - root) / (2.0 * a), (-b + root) / (2.0 * a)
+    left, right, crossed = ellipse_chords(ellipse, np.arange(y0, y1))
     x = np.arange(x0, x1, dtype=float)
-    return (x >= left[:, None]) & (x <= right[:, None]) & (b * b > 4.0 * a * c)[:, None]
+    return (x >= left[:, None]) & (x <= right[:, None]) & crossed[:, None]

@@ -25,8 +25,9 @@ _CONVERGED = 1e-3
 _BLUR_BOUNDS = (0.3, 4.0)
 # Fewest rows through the marker that pin down its position.
 _MIN_MARKER_ROWS = 3
-# Expected relative difference between the marker's image shape and its lamp's (perspective).
-_SHAPE_PRIOR = 0.05
+# The marker's shape differs from its lamp's by up to this factor times the perspective estimate, plus the floor.
+_SHAPE_MARGIN = 1.5
+_SHAPE_FLOOR = 0.005
 
 
 @dataclass(frozen=True)
@@ -39,13 +40,24 @@ class MarkerSeed:
 
 @dataclass(frozen=True)
 class MarkerFit:
-    """Marker centre (px, lamp-box pixels), its standard deviation per axis, size and the blur fitted."""
+    """Marker centre (px, lamp-box pixels), its standard deviation per axis, mean radius and the blur fitted.
+
+    ``shape`` (2x2, det 1): the marker's edge is (p - center)^T shape (p - center) = radius^2.
+    """
 
     center: np.ndarray
     sigma: float
     radius: float
     blur: float
     shape: np.ndarray
+
+    def ellipse(self, shift: np.ndarray) -> np.ndarray:
+        """The marker's edge as (cx, cy, a, b, theta), moved by ``shift``."""
+        values, vectors = np.linalg.eigh(self.shape)
+        theta = float(np.arctan2(vectors[1, 0], vectors[0, 0]))
+        theta = (theta + np.pi / 2) % np.pi - np.pi / 2
+        return np.array([*(self.center + shift), self.radius / np.sqrt(values[0]),
+                         self.radius / np.sqrt(values[1]), theta])
 
 
 def redness(bgr: np.ndarray) -> np.ndarray:
@@ -70,6 +82,17 @@ def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> Mark
     return MarkerSeed(centre, float(radius))
 
 
+def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
+    """Expected stretch of the marker's image relative to its lamp's shape.
+
+    Perspective changes the local image scale across a disc seen at tilt t from
+    distance Z by about (radius / Z) sin t; radius / Z is the semi-major axis over
+    the focal length (px) and cos t the axis ratio.
+    """
+    _, _, a, b, _ = (float(v) for v in lamp_ellipse)
+    return _SHAPE_FLOOR + _SHAPE_MARGIN * (a / focal_length) * np.sqrt(max(1.0 - (b / a) ** 2, 0.0))
+
+
 def shape_matrix(ellipse: np.ndarray) -> np.ndarray:
     """2x2 matrix A with det 1 whose ellipse p^T A p = s^2 has the shape of ``ellipse``, mean radius s."""
     _, _, a, b, theta = (float(v) for v in ellipse)
@@ -80,7 +103,7 @@ def shape_matrix(ellipse: np.ndarray) -> np.ndarray:
 
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
                margin: float, row_level: np.ndarray, row_saturated: np.ndarray,
-               rows_used: np.ndarray) -> MarkerFit | None:
+               rows_used: np.ndarray, shape_spread: float) -> MarkerFit | None:
     """Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
 
     ``lamp_ellipse`` is in the same pixels; it gives the marker's shape and the
@@ -88,7 +111,8 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     Per row of ``red``: ``row_level`` is the lamp's brightness above background,
     ``row_saturated`` whether it is clipped, ``rows_used`` whether the row takes part.
     A lit row's marker is as bright as the row (one ratio for all unclipped rows);
-    clipped rows share one amplitude of their own.
+    clipped rows share one amplitude of their own. ``shape_spread`` is the expected
+    relative difference (stretch) between the marker's image shape and its lamp's.
     """
     half = seed.radius + margin
     x0 = max(int(np.floor(seed.center[0] - half)), 0)
@@ -125,8 +149,10 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
             damping *= 10.0
             if damping > 1e6:
                 break
-    centre, radius = params[:2], params[2]
-    if not (x0 <= centre[0] < x1 and y0 <= centre[1] < y1):
+    centre, radius, blur = params[:2], params[2], params[3]
+    # A marker must lie in its window, fit inside it, and be blurred by a plausible amount.
+    if (not (x0 <= centre[0] < x1 and y0 <= centre[1] < y1) or radius > half
+            or not _BLUR_BOUNDS[0] < blur < _BLUR_BOUNDS[1]):
         return None
     # Rows crossing the marker carry its position; one or two leave it ambiguous.
     if np.count_nonzero(np.abs(rows - centre[1]) < radius) < _MIN_MARKER_ROWS:
@@ -134,20 +160,20 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     dof = data.size - params.size - model.linear_count
     if dof <= 0:
         return None
-    return MarkerFit(centre, _centre_sigma(jac, cost / dof), float(radius), float(params[3]), root @ root)
+    return MarkerFit(centre, _centre_sigma(jac, cost / dof, shape_spread), float(radius), float(blur), root @ root)
 
 
-def _centre_sigma(jac: np.ndarray, noise_variance: float) -> float:
+def _centre_sigma(jac: np.ndarray, noise_variance: float, shape_spread: float) -> float:
     """Per-axis standard deviation of the centre: pixel noise plus the unknown shape difference.
 
-    The shape is held at the lamp's, so its true difference (of ``_SHAPE_PRIOR`` spread)
+    The shape is held at the lamp's, so its true difference (of ``shape_spread``)
     moves the centre by the sensitivity of the fit to it: a consider covariance. It
     matters when only one side of the marker is lit.
     """
     fitted, shape = jac[:, :4], jac[:, 4:]
     inverse = np.linalg.pinv(fitted.T @ fitted)
     sensitivity = inverse @ fitted.T @ shape
-    covariance = noise_variance * inverse + _SHAPE_PRIOR ** 2 * sensitivity @ sensitivity.T
+    covariance = noise_variance * inverse + shape_spread ** 2 * sensitivity @ sensitivity.T
     return float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
 
 

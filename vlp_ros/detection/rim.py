@@ -12,26 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vlp_ros.detection.rows import RowLevels
 from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse, geometric_distances
 
-# Plateau samples per row, spread over the middle half of the row's chord.
-_PLATEAU_SAMPLES = 9
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
-
-
-@dataclass(frozen=True)
-class RowLevels:
-    """The lit rows of one lamp: row index, first and last pixel above threshold, plateau level.
-
-    ``profile`` is every row's plateau above background (0 where no pixel is above threshold).
-    """
-
-    rows: np.ndarray
-    first: np.ndarray
-    last: np.ndarray
-    plateau: np.ndarray
-    profile: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -42,42 +27,6 @@ class RimFit:
     points: np.ndarray
     sigma: float
     candidates: int
-
-
-def row_levels(brightness: np.ndarray, threshold: float, background: float,
-               level_fraction: float) -> RowLevels:
-    """Rows bright enough to carry edges: plateau above ``level_fraction`` of the typical lit row.
-
-    ``brightness`` holds one lamp (2D); ``threshold`` separates it from the background.
-    """
-    above = brightness > threshold
-    lit = np.flatnonzero(above.any(axis=1))
-    profile = np.zeros(brightness.shape[0])
-    if lit.size == 0:
-        return RowLevels(*(np.zeros(0, dtype=int),) * 3, np.zeros(0), profile)
-    above = above[lit]
-    first = np.argmax(above, axis=1)
-    last = brightness.shape[1] - 1 - np.argmax(above[:, ::-1], axis=1)
-    span = last - first
-    # The middle half of the chord is well away from the blurred edge (and from a marker at the rim).
-    fractions = np.linspace(0.25, 0.75, _PLATEAU_SAMPLES)
-    cols = np.rint(first[:, None] + span[:, None] * fractions[None, :]).astype(int)
-    plateau = np.median(brightness[lit[:, None], cols], axis=1)
-    profile[lit] = plateau - background
-    reference = np.percentile(plateau, 90.0)
-    keep = (span >= 2) & (plateau - background >= level_fraction * (reference - background))
-    return RowLevels(lit[keep], first[keep], last[keep], plateau[keep], profile)
-
-
-def steady_rows(profile: np.ndarray, tolerance: float) -> np.ndarray:
-    """Rows that share their level with a neighbouring row, within ``tolerance`` of the brightest row.
-
-    Where blur has mixed a row with a neighbour of another level, its level lies between
-    the two stripes' and matches neither neighbour; such a row's profile is not its own.
-    """
-    padded = np.pad(profile, 1, constant_values=np.inf)
-    closest = np.minimum(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
-    return closest <= tolerance * max(float(profile.max()), 1e-9)
 
 
 def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,

@@ -1,0 +1,1 @@
+"""Measurement scripts that print tables: accuracy against ground truth and speed against a reference."""

@@ -1,0 +1,102 @@
+"""Detection accuracy and speed: python -m vlp_ros.benchmarks.detection [--frames N] [--repeats N].
+
+Renders the paper scenario's photos (one lamp, hand-held postures) at 1080p and
+4K, in colour and saturated, and prints per case: how often the lamp and its
+marker were found, the bias and standard deviation (px) of the ellipse centre, of
+the semi-axes and of the marker centroid against the simulator's ground truth,
+the RMS of marker error over reported marker_sigma, and the median detection time
+with its ratio to one plain copy of the same frame timed in the same run.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vlp_ros.detection import detect_lamps
+from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.sim.scenarios import paper_scenario
+
+
+@dataclass
+class CaseResult:
+    frames: int = 0
+    found: int = 0
+    centre_errors: list[np.ndarray] = field(default_factory=list)
+    axis_errors: list[np.ndarray] = field(default_factory=list)
+    marker_errors: list[np.ndarray] = field(default_factory=list)
+    marker_z: list[np.ndarray] = field(default_factory=list)
+    detect_seconds: list[float] = field(default_factory=list)
+    copy_seconds: list[float] = field(default_factory=list)
+
+
+def median_seconds(run: Callable[[], object], repeats: int) -> float:
+    run()
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - started)
+    return float(np.median(times))
+
+
+def run_case(camera_kind: str, peak_dn: float, frames: int, repeats: int, seed: int) -> CaseResult:
+    scenario = paper_scenario(camera_kind, points=max(2, int(np.ceil(np.sqrt(frames)))), postures=1, seed=seed)
+    lamps = [SimLamp(s.lamp, s.waveform, peak_dn=peak_dn) for s in scenario.lamps]
+    rng = np.random.default_rng(seed)
+    result = CaseResult()
+    for k, pose in enumerate(scenario.poses[:frames]):
+        frame = render_frame(scenario.camera, pose, lamps, scenario.sensor, k / scenario.frame_rate, rng)
+        truth = frame.lamps[0]
+        result.frames += 1
+        observations = detect_lamps(frame.image)
+        result.detect_seconds.append(median_seconds(lambda: detect_lamps(frame.image), repeats))
+        result.copy_seconds.append(median_seconds(frame.image.copy, repeats))
+        matches = [o for o in observations if np.linalg.norm(o.center - truth.ellipse[:2]) < 2.0]
+        if len(observations) != 1 or len(matches) != 1:
+            continue
+        lamp = matches[0]
+        result.found += 1
+        result.centre_errors.append(lamp.center - truth.ellipse[:2])
+        result.axis_errors.append(lamp.ellipse[2:4] - truth.ellipse[2:4])
+        if lamp.marker is not None:
+            error = lamp.marker - truth.marker_pixel
+            result.marker_errors.append(error)
+            result.marker_z.append(error / lamp.marker_sigma)
+    return result
+
+
+def _stats(values: list[np.ndarray]) -> str:
+    if not values:
+        return f'{"-":>27}'
+    v = np.asarray(values)
+    bias, std = v.mean(axis=0), v.std(axis=0)
+    return f'{bias[0]:+6.3f} {bias[1]:+6.3f} {std[0]:6.3f} {std[1]:6.3f}'
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.detection',
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument('--frames', type=int, default=16, help='photos per case')
+    parser.add_argument('--repeats', type=int, default=5, help='timed detections per photo')
+    parser.add_argument('--seed', type=int, default=1)
+    args = parser.parse_args(argv)
+    cases = [('1080p', 210.0), ('4k', 210.0), ('1080p', 500.0), ('4k', 500.0)]
+    print('bias x, bias y, std x, std y in px; axes: (a, b); z: RMS of marker error / marker_sigma per axis')
+    print(f'{"case":<14} {"found":>6} {"marker":>6}  {"centre bias / std":>27}  {"axes bias / std":>27}  '
+          f'{"marker bias / std":>27}  {"z x":>5} {"z y":>5}  {"detect ms":>9} {"copy ms":>7} {"ratio":>6}')
+    for kind, peak in cases:
+        r = run_case(kind, peak, args.frames, args.repeats, args.seed)
+        z = np.sqrt(np.mean(np.square(r.marker_z), axis=0)) if r.marker_z else np.full(2, np.nan)
+        detect, copy = float(np.median(r.detect_seconds)), float(np.median(r.copy_seconds))
+        name = f'{kind} {"sat" if peak > 255 else "ok"}'
+        print(f'{name:<14} {r.found:>3}/{r.frames:<2} {len(r.marker_errors):>6}  {_stats(r.centre_errors)}  '
+              f'{_stats(r.axis_errors)}  {_stats(r.marker_errors)}  {z[0]:5.2f} {z[1]:5.2f}  '
+              f'{1e3 * detect:9.2f} {1e3 * copy:7.2f} {detect / copy:6.1f}')
+
+
+if __name__ == '__main__':
+    main()

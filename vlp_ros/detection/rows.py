@@ -1,0 +1,87 @@
+"""Rows of a rolling-shutter lamp: each row has one brightness across the disc.
+
+A row's level is the median of samples over the middle half of its chord, well
+away from the blurred edge and from a marker at the rim.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlp_ros.ellipse import conic_from_ellipse
+
+# Plateau samples per row, spread over the middle half of the row's chord.
+_FRACTIONS = np.linspace(0.25, 0.75, 9)
+
+
+@dataclass(frozen=True)
+class RowLevels:
+    """The lit rows of one lamp: row index, first and last pixel above threshold, plateau level."""
+
+    rows: np.ndarray
+    first: np.ndarray
+    last: np.ndarray
+    plateau: np.ndarray
+
+
+def row_levels(brightness: np.ndarray, threshold: float, background: float,
+               level_fraction: float) -> RowLevels:
+    """Rows bright enough to carry edges: plateau above ``level_fraction`` of the typical lit row.
+
+    ``brightness`` holds one lamp (2D); ``threshold`` separates it from the background.
+    """
+    above = brightness > threshold
+    lit = np.flatnonzero(above.any(axis=1))
+    if lit.size == 0:
+        return RowLevels(*(np.zeros(0, dtype=int),) * 3, np.zeros(0))
+    above = above[lit]
+    first = np.argmax(above, axis=1)
+    last = brightness.shape[1] - 1 - np.argmax(above[:, ::-1], axis=1)
+    span = last - first
+    # The middle half of the chord is well away from the blurred edge (and from a marker at the rim).
+    cols = np.rint(first[:, None] + span[:, None] * _FRACTIONS[None, :]).astype(int)
+    plateau = _median_of_rows(brightness[lit[:, None], cols])
+    reference = np.percentile(plateau, 90.0)
+    keep = (span >= 2) & (plateau - background >= level_fraction * (reference - background))
+    return RowLevels(lit[keep], first[keep], last[keep], plateau[keep])
+
+
+def steady_rows(profile: np.ndarray, tolerance: float) -> np.ndarray:
+    """Rows that share their level with a neighbouring row, within ``tolerance`` of the brightest row.
+
+    Where blur has mixed a row with a neighbour of another level, its level lies between
+    the two stripes' and matches neither neighbour; such a row's profile is not its own.
+    """
+    padded = np.pad(profile, 1, constant_values=np.inf)
+    closest = np.minimum(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
+    return closest <= tolerance * max(float(profile.max()), 1e-9)
+
+
+def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(left, right, crossed): where each row (y = ``rows``) enters and leaves the ellipse."""
+    conic = conic_from_ellipse(ellipse)
+    y = np.asarray(rows, dtype=float)
+    # The row's conic in x: a x^2 + b x + c = 0.
+    a = conic[0, 0]
+    b = 2.0 * (conic[0, 1] * y + conic[0, 2])
+    c = conic[1, 1] * y * y + 2.0 * conic[1, 2] * y + conic[2, 2]
+    discriminant = b * b - 4.0 * a * c
+    root = np.sqrt(np.maximum(discriminant, 0.0))
+    return (-b - root) / (2.0 * a), (-b + root) / (2.0 * a), discriminant > 0.0
+
+
+def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float) -> np.ndarray:
+    """Every row's level above ``background`` inside ``ellipse`` (array pixels); 0 for rows that miss it."""
+    rows = np.arange(brightness.shape[0])
+    left, right, crossed = ellipse_chords(ellipse, rows)
+    crossed &= (left >= 0.0) & (right <= brightness.shape[1] - 1)
+    profile = np.zeros(rows.size)
+    inside = np.flatnonzero(crossed)
+    cols = np.rint(left[inside, None] + (right - left)[inside, None] * _FRACTIONS[None, :]).astype(int)
+    profile[inside] = _median_of_rows(brightness[inside[:, None], cols]) - background
+    return profile
+
+
+def _median_of_rows(samples: np.ndarray) -> np.ndarray:
+    return np.partition(samples, samples.shape[1] // 2, axis=1)[:, samples.shape[1] // 2].astype(float)
