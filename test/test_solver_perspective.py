@@ -7,6 +7,7 @@ from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, observ
 from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.solvers.circle_pose import circle_poses
+from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp
 
 # (camera position, tilt) seeing small_lamp() at (0, 0, 2) with the 4K camera.
@@ -92,7 +93,7 @@ def test_exact_wide_distorted_views_of_a_grid(lamp_index: int) -> None:
     candidates = solve_lamp(observation, lamp, camera)
     _assert_truth_among(candidates, truth)
     # The closed form alone is exact too: distortion is removed before the conic fit.
-    closed = closed_form_poses(observation, lamp, camera)
+    closed = closed_form_poses(LampMeasurement.from_observation(observation, lamp, camera))
     assert min(p.position_error(truth) for p in closed) < 1e-6
 
 
@@ -115,7 +116,7 @@ def test_exactly_frontal_view_without_noise_gives_no_first_order_pose() -> None:
     lamp = small_lamp()
     truth = looking_up((0.0, 0.0, 0.0))
     observation = observe(lamp, truth, camera_4k())
-    closed = closed_form_poses(observation, lamp, camera_4k())
+    closed = closed_form_poses(LampMeasurement.from_observation(observation, lamp, camera_4k()))
     assert min(p.position_error(truth) for p in closed) < 1e-6
     assert solve_lamp(observation, lamp, camera_4k()) == []
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlp_ros.camera import CameraModel
 from vlp_ros.ellipse import conic_from_ellipse, ellipse_from_conic, fit_ellipse
 
 # Below this (~ the tilt from the line of sight, rad) the two circles are one:
@@ -31,9 +30,9 @@ class CirclePose:
     center: np.ndarray
 
 
-def normalized_conic(rim_pixels: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """Conic (3x3) of the rim in undistorted normalised coordinates (the cone's matrix)."""
-    return conic_from_ellipse(fit_ellipse(camera.normalize(rim_pixels)))
+def normalized_conic(normalized_rim: np.ndarray) -> np.ndarray:
+    """Conic (3x3) fitted to rim points (N, 2) in undistorted normalised coordinates: the cone's matrix."""
+    return conic_from_ellipse(fit_ellipse(normalized_rim))
 
 
 def circle_poses(conic: np.ndarray, radius: float) -> list[CirclePose]:

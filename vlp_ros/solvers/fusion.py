@@ -30,7 +30,7 @@ from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
 from vlp_ros.solvers.refinement import descend, linearize, refine_pose
 
-# Starts closer than this (m, rad) reach the same minimum: refine only the cheapest.
+# Poses closer than this (m, rad) lead to the same minimum: follow only the cheapest.
 _SAME_START_M = 0.05
 _SAME_START_RAD = 0.05
 # Each start is first followed on a thinned copy of the data. Any pose that explains
@@ -39,6 +39,11 @@ _SAME_START_RAD = 0.05
 # (2-5 measured). A start that has not reached a minimum within this many is on a
 # plateau far from any such pose (wrong candidates creep at ~1e6 chi-square) and is dropped.
 _PROBE_RIM_POINTS = 16
+# A start near a minimum is at that minimum's chi-square after ``refinement.PATIENCE``
+# iterations (quadratic convergence); wrong starts are still ~1000x above the best
+# one there. Beyond this factor a start cannot lead to a competitive pose: dropped,
+# as is one that has by then come near a minimum already reached.
+_HOPELESS_FACTOR = 100.0
 _PNP_MIN_LAMPS = 4
 _PROBE_ITERATIONS = 10
 # The best joint fit is inconsistent when its chi-square is both improbable under the
@@ -78,31 +83,39 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
     """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps."""
     measurements = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs]
     coarse = [m.thinned(_PROBE_RIM_POINTS) for m in measurements]
-    probed = (descend(start, coarse, _PROBE_ITERATIONS) for start in _distinct_poses(_starts(pairs, camera), coarse))
-    minima = _distinct_poses([pose for pose in probed if pose is not None], coarse)
-    refined = (refine_pose(pose, measurements) for pose in minima)
+    reached: list[tuple[Pose, float]] = []
+
+    def known_or_hopeless(pose: Pose, cost: float) -> bool:
+        return any(_near(pose, minimum) for minimum, _ in reached) or \
+            cost > _HOPELESS_FACTOR * min((c for _, c in reached), default=np.inf)
+
+    for start in _distinct_poses(_starts(measurements), coarse):
+        probe = descend(start, coarse, _PROBE_ITERATIONS, give_up=known_or_hopeless)
+        if probe is not None and not any(_near(probe[0], minimum) for minimum, _ in reached):
+            reached.append(probe)
+    refined = (refine_pose(pose, measurements) for pose, _ in reached)
     return distinct([candidate for candidate in refined if candidate is not None])
 
 
-def _starts(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel) -> list[Pose]:
-    conics = [normalized_conic(obs.rim_points, camera) for obs, _ in pairs]
+def _starts(measurements: list[LampMeasurement]) -> list[Pose]:
+    conics = [normalized_conic(m.rim_rays[:, :2]) for m in measurements]
     centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics])
     rays = np.column_stack([centres, np.ones(len(centres))])
     starts = []
-    for i, ((observation, lamp), conic) in enumerate(zip(pairs, conics)):
-        if observation.marker is not None:
-            ray = np.append(camera.normalize(np.asarray(observation.marker, dtype=float))[0], 1.0)
-            target = lamp.marker_position()
+    for i, (measurement, conic) in enumerate(zip(measurements, conics)):
+        lamp = measurement.lamp
+        if measurement.marker_ray is not None:
+            ray, target = measurement.marker_ray, lamp.marker_position()
         else:
             # The farthest other lamp in the image gives the best-conditioned heading.
-            j = max((k for k in range(len(pairs)) if k != i), key=lambda k: np.linalg.norm(rays[k] - rays[i]))
-            ray, target = rays[j], pairs[j][1].position
+            j = max((k for k in range(len(measurements)) if k != i), key=lambda k: np.linalg.norm(rays[k] - rays[i]))
+            ray, target = rays[j], measurements[j].lamp.position
         for circle in circle_poses(conic, lamp.radius):
             pose = pose_from_circle(circle, lamp, ray, target)
             if pose is not None:
                 starts.append(pose)
-    if len(pairs) >= _PNP_MIN_LAMPS:
-        starts.extend(pnp_starts(np.array([lamp.position for _, lamp in pairs]), centres))
+    if len(measurements) >= _PNP_MIN_LAMPS:
+        starts.extend(pnp_starts(np.array([m.lamp.position for m in measurements]), centres))
     return starts
 
 
@@ -134,7 +147,10 @@ def _distinct_poses(starts: list[Pose], measurements: list[LampMeasurement]) -> 
             scored.append((cost, start))
     kept: list[Pose] = []
     for _, start in sorted(scored, key=lambda item: item[0]):
-        if not any(start.position_error(k) < _SAME_START_M and start.rotation_error(k) < _SAME_START_RAD
-                   for k in kept):
+        if not any(_near(start, k) for k in kept):
             kept.append(start)
     return kept
+
+
+def _near(a: Pose, b: Pose) -> bool:
+    return a.position_error(b) < _SAME_START_M and a.rotation_error(b) < _SAME_START_RAD

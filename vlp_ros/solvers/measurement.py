@@ -8,8 +8,9 @@ point are carried to pixels through the local Jacobian of the lens model, so
 the residual is the distance across the edge that ``rim_sigma`` describes and
 lens distortion costs nothing per iteration. The first-order error is
 ~ sigma^2 / (ellipse radius): 1e-3 px for 0.3 px noise on a 90 px lamp.
-Marker residual: the pixel offset of the observed centroid from
-``CameraModel.project`` of the marker's map position.
+Marker residual: the pixel offset of the observed centroid from the projection
+of the marker's map position through the camera's K and D (OpenCV's model, as
+``CameraModel.project``, called directly for its Jacobian).
 """
 from __future__ import annotations
 
@@ -22,6 +23,10 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
 
+# [e_j]x for the map axes j: rotation perturbations about them.
+_AXIS_SKEWS = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
+                        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]],
+                        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]])
 # Step (normalised units, ~1e-3 px) of the central differences for the lens Jacobian.
 _LENS_STEP = 1e-6
 
@@ -31,7 +36,8 @@ class LampMeasurement:
     """One lamp's observation, prepared for repeated residual evaluation.
 
     ``rim_rays`` (N, 3) are the rim points as homogeneous normalised coordinates;
-    ``rim_pixel_jacobian`` (N, 2, 2) is d(normalised)/d(pixel) at each of them.
+    ``rim_pixel_jacobian`` (N, 2, 2) is d(normalised)/d(pixel) at each of them;
+    ``marker_ray`` is the marker centroid's homogeneous normalised coordinates.
     """
 
     lamp: Lamp
@@ -41,6 +47,7 @@ class LampMeasurement:
     rim_sigma: float
     marker_pixel: np.ndarray | None
     marker_sigma: float
+    marker_ray: np.ndarray | None
 
     @classmethod
     def from_observation(cls, observation: LampObservation, lamp: Lamp,
@@ -61,11 +68,12 @@ class LampMeasurement:
                 raise ValueError(f'lamp {lamp.name!r}: marker_sigma must be positive, '
                                  f'got {observation.marker_sigma}')
         normalized = camera.normalize(rim)
+        marker_ray = None if marker is None else np.append(camera.normalize(marker)[0], 1.0)
         return cls(lamp=lamp, camera=camera,
                    rim_rays=np.column_stack([normalized, np.ones(len(normalized))]),
                    rim_pixel_jacobian=np.linalg.inv(_lens_jacobian(camera, normalized)),
                    rim_sigma=float(observation.rim_sigma), marker_pixel=marker,
-                   marker_sigma=float(observation.marker_sigma))
+                   marker_sigma=float(observation.marker_sigma), marker_ray=marker_ray)
 
     def thinned(self, max_rim_points: int) -> LampMeasurement:
         """The same measurement on every k-th rim point, at most ``max_rim_points`` of them."""
@@ -92,43 +100,34 @@ class LampMeasurement:
 
     def _rim(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # H = R^T A maps lamp-plane (x, y, 1) to rays, A's columns being the lamp's map x
-        # and y axes and its centre relative to the camera. For a ray h: w = H^-1 h,
-        # value v = w^T Q w, half gradient g = H^-T Q w, pixel gradient / 2 P = G^T g_xy
-        # with G = d normalised / d pixel, residual s = v / (2 |P|).
+        # and y axes and its centre relative to the camera; the rim's image is the conic
+        # C = H^-T Q H^-1, Q = diag(1, 1, -r^2). For a ray h: value v = h^T C h, half the
+        # pixel gradient P = G^T (C h)_xy with G = d normalised / d pixel, residual
+        # s = v / (2 |P|).
         plane_axes = np.eye(3)
         plane_axes[:, 2] = self.lamp.position - position
         image_to_plane = np.linalg.inv(rotation.T @ plane_axes)
         q_diagonal = np.array([1.0, 1.0, -self.lamp.radius ** 2])
-        w = self.rim_rays @ image_to_plane.T
-        value = (w * w) @ q_diagonal
-        g = (w * q_diagonal) @ image_to_plane
-        pixel = self._to_pixel_gradient(g)
-        norm2 = pixel[:, 0] ** 2 + pixel[:, 1] ** 2
+        conic = image_to_plane.T @ (q_diagonal[:, None] * image_to_plane)
+        rays, lens = self.rim_rays, self.rim_pixel_jacobian
+        c_h = rays @ conic
+        value = np.einsum('ni,ni->n', rays, c_h)
+        pixel = c_h[:, 0:1] * lens[:, 0, :] + c_h[:, 1:2] * lens[:, 1, :]
+        norm2 = np.einsum('ni,ni->n', pixel, pixel)
         norm = np.sqrt(norm2)
         residual = 0.5 * value / norm
-        # Exact derivatives along the six perturbations dH of H: dv = -2 g.(dH w),
-        # dg = -H^-T (dH^T g + Q H^-1 dH w). Exactness matters far from the minimum,
-        # where the value is large (starts from a wrong candidate).
-        map_gradient = g @ rotation.T
-        in_map = w @ plane_axes.T
-        count = len(w)
-        dh_w = np.empty((6, count, 3))
-        dh_t_g = np.zeros((6, count, 3))
-        dh_w[:3] = -w[None, :, 2:3] * rotation[:, None, :]
-        dh_t_g[:3, :, 2] = -map_gradient.T
-        dh_w[3:] = -(_axis_crosses(in_map) @ rotation)
-        dh_t_g[3:] = _axis_crosses(map_gradient) @ plane_axes
-        d_value = -2.0 * np.einsum('knj,nj->kn', dh_w, g)
-        d_g = -(dh_t_g + (dh_w @ image_to_plane.T) * q_diagonal) @ image_to_plane[:, :2]
-        # P . dP = dg_xy . (G P): the pixel gradient's change is only needed along itself.
-        along = np.sum(self.rim_pixel_jacobian * pixel[:, None, :], axis=2)
-        d_norm_term = d_g[..., 0] * along[:, 0] + d_g[..., 1] * along[:, 1]
-        jacobian = 0.5 * d_value / norm - residual * d_norm_term / norm2
-        return residual, jacobian.T
-
-    def _to_pixel_gradient(self, ray_gradient: np.ndarray) -> np.ndarray:
-        jacobian = self.rim_pixel_jacobian
-        return ray_gradient[:, 0:1] * jacobian[:, 0, :] + ray_gradient[:, 1:2] * jacobian[:, 1, :]
+        # Exact derivative (it matters far from the minimum, where v is large):
+        # ds = a^T dC h, a = h / (2|P|) - s (G P, 0) / |P|^2, and along each of the six
+        # perturbations dH of H, dC = -(M + M^T) with M = C dH H^-1.
+        a = rays * (0.5 / norm)[:, None]
+        a[:, :2] -= (residual / norm2)[:, None] * np.einsum('nji,ni->nj', lens, pixel)
+        d_h = np.zeros((6, 3, 3))
+        d_h[:3, :, 2] = -rotation
+        d_h[3:] = -(rotation.T @ _AXIS_SKEWS) @ plane_axes
+        m = conic @ d_h @ image_to_plane
+        d_conic = -(m + m.transpose(0, 2, 1))
+        jacobian = np.einsum('kni,ni->nk', a @ d_conic, rays)
+        return residual, jacobian
 
     def _marker(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         offset = self.lamp.marker_position() - position
@@ -139,15 +138,6 @@ class LampMeasurement:
         to_pixel = lens[:, 3:6] @ rotation.T
         jacobian = np.hstack([-to_pixel, to_pixel @ _cross_matrix(offset)])
         return pixel.reshape(2) - self.marker_pixel, jacobian
-
-
-def _axis_crosses(v: np.ndarray) -> np.ndarray:
-    """e_j x v (3, N, 3) for j = 0, 1, 2 and rows v (N, 3)."""
-    out = np.zeros((3,) + v.shape)
-    out[0, :, 1], out[0, :, 2] = -v[:, 2], v[:, 1]
-    out[1, :, 0], out[1, :, 2] = v[:, 2], -v[:, 0]
-    out[2, :, 0], out[2, :, 1] = -v[:, 1], v[:, 0]
-    return out
 
 
 def _cross_matrix(v: np.ndarray) -> np.ndarray:

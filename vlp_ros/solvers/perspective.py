@@ -59,21 +59,22 @@ def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np
     return Pose(rotation, lamp.position - rotation @ circle.center)
 
 
-def closed_form_poses(observation: LampObservation, lamp: Lamp, camera: CameraModel) -> list[Pose]:
+def closed_form_poses(measurement: LampMeasurement) -> list[Pose]:
     """The unrefined pose of each circle candidate (one or two)."""
-    if observation.marker is None:
+    lamp = measurement.lamp
+    if measurement.marker_ray is None:
         raise ValueError(f'lamp {lamp.name!r}: a single lamp needs its marker to fix the yaw')
-    _check_marker_offset(lamp)
-    marker_ray = np.append(camera.normalize(np.asarray(observation.marker, dtype=float))[0], 1.0)
-    circles = circle_poses(normalized_conic(observation.rim_points, camera), lamp.radius)
-    poses = (pose_from_circle(circle, lamp, marker_ray, lamp.marker_position()) for circle in circles)
+    if not lamp.marker_distance > 0.0:
+        raise ValueError(f'lamp {lamp.name!r}: marker at the centre cannot fix the yaw')
+    circles = circle_poses(normalized_conic(measurement.rim_rays[:, :2]), lamp.radius)
+    poses = (pose_from_circle(circle, lamp, measurement.marker_ray, lamp.marker_position()) for circle in circles)
     return [pose for pose in poses if pose is not None]
 
 
 def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel) -> list[PoseCandidate]:
     """Refined candidate poses (one or two, cheapest first, covariance set) from one lamp."""
     measurement = LampMeasurement.from_observation(observation, lamp, camera)
-    refined = (refine_pose(pose, [measurement]) for pose in closed_form_poses(observation, lamp, camera))
+    refined = (refine_pose(pose, [measurement]) for pose in closed_form_poses(measurement))
     candidates = distinct([candidate for candidate in refined if candidate is not None])
     if len(candidates) == 2 and _straddle_frontal(*candidates):
         return [_midpoint(*candidates, measurement)]
@@ -92,7 +93,3 @@ def _midpoint(a: PoseCandidate, b: PoseCandidate, measurement: LampMeasurement) 
     residuals, _ = linearize([measurement], pose)
     return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=len(residuals))
 
-
-def _check_marker_offset(lamp: Lamp) -> None:
-    if not lamp.marker_distance > 0.0:
-        raise ValueError(f'lamp {lamp.name!r}: marker at the centre cannot fix the yaw')

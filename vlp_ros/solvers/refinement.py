@@ -3,11 +3,11 @@
 A small Levenberg-Marquardt loop on the analytic Jacobians of ``measurement``
 rather than scipy.optimize.least_squares: the starts are close, so a solve
 takes 3-6 iterations of ~0.1 ms, while least_squares' per-call overhead alone
-is over 1 ms (see the report of benchmarks/solver_timing.py).
+is over 1 ms (python -m vlp_ros.solvers.benchmark).
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -21,6 +21,8 @@ from vlp_ros.solvers.measurement import LampMeasurement
 _COST_TOLERANCE = 1e-9
 _MAX_ITERATIONS = 50
 _INITIAL_DAMPING = 1e-4
+# Iterations after which ``descend`` judges whether a start is still worth following.
+PATIENCE = 3
 
 
 def linearize(measurements: Sequence[LampMeasurement], pose: Pose) -> tuple[np.ndarray, np.ndarray]:
@@ -49,22 +51,27 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement]) -> PoseC
     return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=count)
 
 
-def descend(initial: Pose, measurements: Sequence[LampMeasurement], max_iterations: int) -> Pose | None:
-    """The least-squares pose reached from ``initial`` within ``max_iterations``, None if not
-    reached (a cheap probe of where a start leads)."""
+def descend(initial: Pose, measurements: Sequence[LampMeasurement], max_iterations: int,
+            give_up: Callable[[Pose, float], bool] | None = None) -> tuple[Pose, float] | None:
+    """The least-squares pose and its chi-square reached from ``initial`` within
+    ``max_iterations`` (a cheap probe of where a start leads); None if not reached, or if
+    ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations."""
     try:
-        pose, _, _, converged = _levenberg_marquardt(initial, measurements, max_iterations)
+        pose, residuals, _, converged = _levenberg_marquardt(initial, measurements, max_iterations, give_up)
     except np.linalg.LinAlgError:
         return None
-    return pose if converged else None
+    return (pose, float(residuals @ residuals)) if converged else None
 
 
-def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement], max_iterations: int
+def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement], max_iterations: int,
+                         give_up: Callable[[Pose, float], bool] | None = None
                          ) -> tuple[Pose, np.ndarray, np.ndarray, bool]:
     residuals, jacobian = linearize(measurements, pose)
     cost = residuals @ residuals
     damping = _INITIAL_DAMPING
-    for _ in range(max_iterations):
+    for iteration in range(max_iterations):
+        if iteration == PATIENCE and give_up is not None and give_up(pose, cost):
+            break
         information = jacobian.T @ jacobian
         gradient = jacobian.T @ residuals
         step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
