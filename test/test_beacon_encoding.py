@@ -1,0 +1,72 @@
+"""The beacon contract: packets as chips, their hard-decision inverse, and the light they make."""
+import numpy as np
+import pytest
+
+from vlp_ros.beacon.encoding import (PREAMBLE, decode_chips, packet_bits, packet_chips, packet_length,
+                                     packet_waveform, tone_waveform)
+
+
+@pytest.mark.parametrize('id_bits', [1, 4, 8, 12])
+def test_every_id_round_trips(id_bits):
+    ids = range(2 ** id_bits) if id_bits <= 8 else range(0, 2 ** id_bits, 97)
+    for lamp_id in ids:
+        chips = packet_chips(lamp_id, id_bits)
+        assert len(chips) == packet_length(id_bits)
+        assert decode_chips(chips, id_bits) == lamp_id
+
+
+def test_packet_layout_is_preamble_then_manchester_msb_first_with_even_parity():
+    chips = packet_chips(0b10110000)
+    assert packet_length(8) == 24
+    assert tuple(chips[:6]) == PREAMBLE
+    # 1 -> 10, 0 -> 01; data 10110000 has three ones: parity 1.
+    assert chips[6:].tolist() == [1, 0, 0, 1, 1, 0, 1, 0, 0, 1, 0, 1, 0, 1, 0, 1, 1, 0]
+    assert packet_bits(0b10110000) == [1, 0, 1, 1, 0, 0, 0, 0, 1]
+    assert packet_bits(0b11)[-1] == 0
+
+
+def test_back_to_back_packets_decode_from_any_start():
+    stream = np.tile(packet_chips(201), 4)
+    for start in range(24):
+        assert decode_chips(stream[start:start + 48]) == 201
+
+
+def test_no_complete_packet_gives_none():
+    stream = np.tile(packet_chips(77), 2)
+    assert decode_chips(stream[3:26]) is None
+    assert decode_chips(np.zeros(30, dtype=int)) is None
+
+
+def test_manchester_violation_gives_none():
+    chips = packet_chips(77)
+    chips[9] = chips[8]
+    assert decode_chips(chips) is None
+
+
+def test_parity_violation_gives_none():
+    chips = packet_chips(77)
+    chips[8:10] = 1 - chips[8:10]  # a valid Manchester pair, but the other bit
+    assert decode_chips(chips) is None
+
+
+def test_packets_that_disagree_give_none():
+    assert decode_chips(np.concatenate([packet_chips(5), packet_chips(6)])) is None
+
+
+def test_bad_inputs_are_rejected():
+    with pytest.raises(ValueError, match='does not fit'):
+        packet_chips(256)
+    with pytest.raises(ValueError, match='0 or 1'):
+        decode_chips(np.array([1, 2, 0]))
+
+
+def test_light_levels_and_exposure_averaging():
+    wave = packet_waveform(77, chip_rate=10_000.0, depth=0.6, offset=3e-5)
+    chip = 1e-4
+    starts = 3e-5 + chip * np.arange(24) + 0.25 * chip
+    # A window inside one chip sees that chip's level exactly.
+    np.testing.assert_allclose(wave.mean_brightness(starts, 0.5 * chip), 1.0 - 0.6 * (1 - packet_chips(77)))
+    # A whole packet averages to the middle level: half the chips are bright.
+    assert wave.mean_brightness(np.array([0.123]), 24 * chip)[0] == pytest.approx(0.7)
+    tone = tone_waveform(2_000.0, depth=1.0)
+    assert tone.mean_brightness(np.array([0.0, 2.5e-4]), 0.0).tolist() == [1.0, 0.0]

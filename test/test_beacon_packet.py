@@ -1,0 +1,115 @@
+"""Packet-mode decoding: the right ID or None, never another one."""
+import numpy as np
+import pytest
+from beacon_scenes import flat_profile, lamp_image
+
+from vlp_ros.beacon.decoding import decode_packet, row_profile
+from vlp_ros.beacon.encoding import Waveform, packet_chips, packet_waveform
+
+ROW_TIME = 2e-5
+ROWS_PER_CHIP = 5.0
+CHIP_RATE = 1.0 / (ROWS_PER_CHIP * ROW_TIME)
+MAP = [3, 17, 77, 130, 201, 254]
+
+
+def profile_of(lamp_id, packets=1.5, depth=0.7, chip_rate=CHIP_RATE, noise=0.5, seed=0, start=3.3e-4):
+    wave = packet_waveform(lamp_id, chip_rate, depth, offset=start)
+    rows = int(round(packets * 24 * ROWS_PER_CHIP))
+    return flat_profile(wave, rows, ROW_TIME, 3e-5, noise=noise, rng=np.random.default_rng(seed))
+
+
+@pytest.mark.parametrize('lamp_id', [0, 1, 85, 170, 254, 255])
+def test_every_kind_of_id_decodes_from_one_and_a_half_packets(lamp_id):
+    for start in (0.0, 7.7e-4, 1.9e-3):
+        reading = decode_packet(profile_of(lamp_id, start=start), CHIP_RATE, ROW_TIME, 8, None)
+        assert reading.lamp_id == lamp_id and reading.confidence > 0.9999
+        assert np.argmax(reading.log_likelihoods) == lamp_id
+
+
+@pytest.mark.parametrize('depth', [0.3, 0.5, 1.0])
+def test_depth_from_thirty_to_hundred_percent(depth):
+    assert decode_packet(profile_of(130, depth=depth), CHIP_RATE, ROW_TIME, 8, MAP).lamp_id == 130
+
+
+@pytest.mark.parametrize('error', [-0.04, -0.02, 0.02, 0.04])
+def test_chip_rate_known_to_a_few_percent(error):
+    profile = profile_of(201, packets=2.0, chip_rate=CHIP_RATE * (1.0 + error))
+    assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP).lamp_id == 201
+
+
+def test_far_wrong_chip_rate_gives_no_id():
+    for error in (-0.2, 0.25):
+        profile = profile_of(201, packets=2.0, chip_rate=CHIP_RATE * (1.0 + error))
+        assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP).lamp_id is None
+
+
+def test_id_outside_the_map_is_recognised_and_rejected():
+    reading = decode_packet(profile_of(100), CHIP_RATE, ROW_TIME, 8, MAP)
+    assert reading.lamp_id is None and reading.unknown
+    assert 'not in the map' in reading.detail
+
+
+def test_partial_packet_matches_only_among_the_map_when_the_map_is_trusted():
+    profile = profile_of(77, packets=0.7, seed=4, start=1.0e-3)
+    trusting = decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP, unmapped_weight=0.0)
+    assert trusting.lamp_id == 77
+    # Unseen bits leave unmapped IDs as likely as 77: no decision.
+    assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP).lamp_id is None
+
+
+def test_window_too_short_gives_no_evidence():
+    reading = decode_packet(profile_of(77, packets=0.1), CHIP_RATE, ROW_TIME, 8, MAP)
+    assert reading.lamp_id is None and not np.any(reading.log_likelihoods)
+
+
+def test_noise_or_steady_light_gives_no_id():
+    rng = np.random.default_rng(1)
+    noise = flat_profile(Waveform(np.array([1], dtype=np.uint8), 1.0, 0.0), 180, ROW_TIME, 3e-5, noise=2.0, rng=rng)
+    assert decode_packet(noise, CHIP_RATE, ROW_TIME, 8, None).lamp_id is None
+    steady = flat_profile(Waveform(np.array([1], dtype=np.uint8), 1.0, 0.0), 180, ROW_TIME, 3e-5)
+    assert decode_packet(steady, CHIP_RATE, ROW_TIME, 8, None).lamp_id is None
+
+
+def test_broken_parity_is_never_read_as_a_neighbour():
+    chips = packet_chips(77)
+    chips[8:10] = 1 - chips[8:10]  # valid Manchester, parity now odd: one bit from two valid packets
+    wave = Waveform(chips, CHIP_RATE, 0.7, 2e-4)
+    profile = flat_profile(wave, 240, ROW_TIME, 3e-5, noise=0.5)
+    assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, None).lamp_id is None
+
+
+def test_manchester_violation_is_never_read_as_an_id():
+    chips = packet_chips(77)
+    chips[11] = chips[10]
+    wave = Waveform(chips, CHIP_RATE, 0.7, 2e-4)
+    profile = flat_profile(wave, 240, ROW_TIME, 3e-5, noise=0.5)
+    assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, None).lamp_id is None
+
+
+@pytest.mark.parametrize('bgr', [False, True])
+def test_from_an_image_of_a_tilted_dimming_lamp(bgr):
+    wave = packet_waveform(17, CHIP_RATE * 1.02, 0.6, offset=1.1e-4)
+    image, observation = lamp_image(wave, ROW_TIME, 3e-5, (110.0, 80.0), angle=0.7, falloff=0.3, bgr=bgr,
+                                    rng=np.random.default_rng(5))
+    reading = decode_packet(row_profile(image, observation), CHIP_RATE, ROW_TIME, 8, MAP, exposure=3e-5)
+    assert reading.lamp_id == 17
+
+
+def test_saturated_lamp_still_decodes():
+    wave = packet_waveform(254, CHIP_RATE, 0.6, offset=1.1e-4)
+    image, observation = lamp_image(wave, ROW_TIME, 3e-5, (100.0, 80.0), peak=380.0, rng=np.random.default_rng(6))
+    profile = row_profile(image, observation)
+    assert profile.saturated.max() > 0.5
+    assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP).lamp_id == 254
+
+
+def test_bad_inputs_are_rejected():
+    profile = profile_of(77)
+    with pytest.raises(ValueError, match='positive'):
+        decode_packet(profile, 0.0, ROW_TIME, 8, MAP)
+    with pytest.raises(ValueError, match='id_bits'):
+        decode_packet(profile, CHIP_RATE, ROW_TIME, 0, MAP)
+    with pytest.raises(ValueError, match='do not fit'):
+        decode_packet(profile, CHIP_RATE, ROW_TIME, 4, MAP)
+    with pytest.raises(ValueError, match='more than one row'):
+        decode_packet(profile, 1.0 / (0.5 * ROW_TIME), ROW_TIME, 8, MAP)

@@ -1,0 +1,92 @@
+"""Row profiles: which pixels a lamp's brightness per row is read from, and its envelope."""
+import dataclasses
+
+import numpy as np
+import pytest
+from beacon_scenes import lamp_image
+
+from vlp_ros.beacon.encoding import Waveform, packet_waveform, tone_waveform
+from vlp_ros.beacon.profile import RowProfile, modulation, row_profile
+
+ROW_TIME = 2e-5
+EXPOSURE = 3e-5
+
+
+def striped_lamp(**kwargs):
+    wave = packet_waveform(77, chip_rate=1.0 / (5 * ROW_TIME), depth=0.6)
+    return wave, lamp_image(wave, ROW_TIME, EXPOSURE, (60.0, 45.0), angle=0.4, **kwargs)
+
+
+def test_profile_follows_the_light_row_by_row():
+    wave, (image, observation) = striped_lamp(noise=1.0, falloff=0.0)
+    profile = row_profile(image, observation)
+    x0, y0, x1, y1 = observation.bbox
+    assert profile.first_row == y0 and len(profile.values) == y1 - y0
+    level = wave.mean_brightness(ROW_TIME * np.arange(y0, y1), EXPOSURE)
+    used = profile.weights > 0
+    # Background 12 DN plus 180 DN x level: the lamp's pixels only, nothing of the background.
+    np.testing.assert_allclose(profile.values[used], 12.0 + 180.0 * level[used], atol=1.5)
+
+
+def test_curved_edge_and_marker_are_left_out_and_short_rows_weigh_less():
+    _, (image, observation) = striped_lamp()
+    profile = row_profile(image, observation, edge_margin=2, marker_margin=2)
+    disc_rows = observation.disc_mask.sum(axis=1)
+    assert np.all(profile.weights <= disc_rows - 4 * (disc_rows > 0) + 1e-9)
+    middle = len(profile.weights) // 2
+    assert profile.weights[middle] > 5 * profile.weights[np.flatnonzero(profile.weights)[0]]
+    plain = row_profile(image, dataclasses.replace(observation, marker_mask=None))
+    # The marker is a third as bright as the disc: keeping it darkens its rows.
+    marker_rows = np.flatnonzero(observation.marker_mask.any(axis=1))
+    assert np.all(plain.values[marker_rows] < profile.values[marker_rows] - 1.0)
+
+
+def test_bgr_and_mono_frames_give_the_same_profile():
+    _, (mono, observation) = striped_lamp(rng=np.random.default_rng(3))
+    _, (bgr, _) = striped_lamp(rng=np.random.default_rng(3), bgr=True)
+    a, b = row_profile(mono, observation), row_profile(bgr, observation)
+    np.testing.assert_allclose(a.values, b.values, atol=0.01)
+    np.testing.assert_array_equal(a.weights, b.weights)
+
+
+def test_saturated_pixels_are_counted_and_kept_at_the_ceiling():
+    wave = packet_waveform(77, chip_rate=1.0 / (5 * ROW_TIME), depth=0.5)
+    image, observation = lamp_image(wave, ROW_TIME, 1e-6, (60.0, 45.0), peak=400.0, falloff=0.0)
+    profile = row_profile(image, observation)
+    level = wave.level_at(ROW_TIME * np.arange(observation.bbox[1], observation.bbox[3]))
+    used = profile.weights > 0
+    bright, dark = used & (level == 1.0), used & (level == 0.5)
+    assert np.all(profile.saturated[bright] > 0.9) and np.all(profile.saturated[dark] == 0.0)
+    assert np.all(profile.values[bright] == 255.0)
+    assert np.all(profile.values[dark] < 230.0)
+
+
+def test_modulation_removes_the_envelope():
+    steady = Waveform(np.array([1], dtype=np.uint8), 1000.0, 0.0)
+    image, observation = lamp_image(steady, ROW_TIME, EXPOSURE, (60.0, 45.0), falloff=0.3, noise=0.0)
+    profile = row_profile(image, observation)
+    assert np.ptp(profile.values[profile.weights > 0]) > 20.0
+    assert np.max(np.abs(modulation(profile))) < 0.03
+
+
+def test_modulation_over_whole_periods_suits_periodic_light():
+    rows = np.arange(43)
+    light = tone_waveform(1.0 / (7.3 * ROW_TIME), 0.8, 1e-5).mean_brightness(ROW_TIME * rows, EXPOSURE)
+    envelope = 100.0 * (1.0 + 0.004 * rows - 0.0002 * (rows - 20.0) ** 2)
+    profile = RowProfile(envelope * light, np.full(43, 50.0), np.zeros(43), 0)
+    expected = light / 0.6 - 1.0  # a square wave's mean level is 1 - depth / 2
+    # Through the stripes, the envelope leans on them; over whole periods it does not.
+    assert np.max(np.abs(modulation(profile, period=7.3) - expected)) < 0.06
+    assert np.max(np.abs(modulation(profile) - expected)) > 0.15
+
+
+def test_bad_inputs_are_rejected():
+    _, (image, observation) = striped_lamp()
+    with pytest.raises(ValueError, match='bbox'):
+        row_profile(image[:50], observation)
+    with pytest.raises(ValueError, match='disc_mask'):
+        row_profile(image, dataclasses.replace(observation, disc_mask=observation.disc_mask[1:]))
+    with pytest.raises(ValueError, match='mono'):
+        row_profile(image[..., None], observation)
+    with pytest.raises(ValueError, match='same length'):
+        RowProfile(np.zeros(3), np.zeros(2), np.zeros(3), 0)

@@ -1,0 +1,157 @@
+"""From a row profile to chip levels: find the chip grid, then average each chip's rows.
+
+Positions are in rows: row r of the profile covers [r, r + 1). The chip period in
+rows is known only to a few percent (``row_time`` and ``chip_rate`` are both
+nominal), and the phase not at all, so both are searched: the right grid is the
+one whose chip-wise constant fit of the profile captures the most energy (least
+squares with one free level per chip). Sums over chips come from cumulative sums,
+so a candidate grid costs one look-up per chip, not per row.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_COARSE_PHASES = 6
+# Largest drift of the coarse period grid across the window, in chips.
+_COARSE_DRIFT = 0.3
+# The fine grid: 5 x 5 points a quarter of the coarse steps apart, around the coarse best.
+_FINE_STEPS = np.arange(-2, 3) / 4.0
+_MIN_DOF = 4
+# Median of a chi-square variable with one degree of freedom.
+_CHI2_1_MEDIAN = 0.4549
+
+
+@dataclass(frozen=True)
+class ChipLevels:
+    """Chip-wise averages of a modulation profile on the found grid.
+
+    Chip k spans rows [phase + k period, phase + (k + 1) period). ``levels`` are
+    normalised to about +1 (bright) and -1 (dark); ``variances`` their noise
+    variances on that scale (inf for chips without rows).
+    """
+
+    levels: np.ndarray
+    variances: np.ndarray
+    period: float
+    phase: float
+
+
+class _Cumulative:
+    """Sums of w, w z, w z^2 and of used rows over any row interval, rows split pro rata."""
+
+    def __init__(self, z: np.ndarray, w: np.ndarray) -> None:
+        self.size = len(z)
+        rows = np.zeros((4, self.size + 1))
+        rows[0, :-1], rows[1, :-1], rows[2, :-1], rows[3, :-1] = w, w * z, w * z * z, w > 0
+        self.rows = rows
+        self.totals = np.zeros((4, self.size + 1))
+        np.cumsum(rows[:, :-1], axis=1, out=self.totals[:, 1:])
+
+    def at(self, u: np.ndarray, fields: int) -> list[np.ndarray]:
+        """The first ``fields`` cumulative sums up to positions ``u``."""
+        u = np.clip(u, 0.0, self.size)
+        i = u.astype(np.intp)
+        frac = u - i
+        return [np.take(self.totals[f], i) + frac * np.take(self.rows[f], i) for f in range(fields)]
+
+
+def noise_variance(z: np.ndarray, w: np.ndarray) -> float:
+    """Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges)."""
+    both = (w[:-1] > 0) & (w[1:] > 0)
+    if np.count_nonzero(both) < 3:
+        return float('inf')
+    d = np.diff(z)[both]
+    scale = 1.0 / w[:-1][both] + 1.0 / w[1:][both]
+    return float(np.median(d * d / scale) / _CHI2_1_MEDIAN)
+
+
+def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
+                margin: float | None) -> ChipLevels | None:
+    """Chip levels of modulation ``z`` (weights ``w``) with a nominal chip ``period`` in rows.
+
+    The period is searched within +-``tolerance`` (relative). Each chip averages only
+    the rows more than ``margin`` rows from its edges, where a row's exposure lies in
+    one chip (None: the middle half of the chip). None when the window holds too few
+    rows to fit a grid.
+    """
+    if not period > 1.0:
+        raise ValueError(f'a chip must span more than one row, got {period:.3g} rows')
+    cum = _Cumulative(z, w)
+    sigma2 = noise_variance(z, w)
+    if not np.isfinite(sigma2) or cum.size < 3 * period:
+        return None
+    sigma2 = max(sigma2, 1e-12)
+    period, phase = _search_grid(cum, period, tolerance, sigma2)
+    interior = period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
+    return _levels(cum, period, phase, interior, sigma2)
+
+
+def _search_grid(cum: _Cumulative, period: float, tolerance: float, sigma2: float) -> tuple[float, float]:
+    step = _COARSE_DRIFT * period / cum.size
+    count = int(np.ceil(tolerance / step))
+    phase_step = period / _COARSE_PHASES
+    best = _best_grid(cum, period * (1.0 + step * np.arange(-count, count + 1)),
+                      phase_step * np.arange(_COARSE_PHASES), sigma2)
+    return _best_grid(cum, best[0] * (1.0 + step * _FINE_STEPS), best[1] + phase_step * _FINE_STEPS, sigma2)
+
+
+def _best_grid(cum: _Cumulative, periods: np.ndarray, phases: np.ndarray, sigma2: float) -> tuple[float, float]:
+    """The (period, phase) pair whose chip-wise constant fit captures most energy beyond noise."""
+    p = np.repeat(periods, len(phases))[:, None]
+    f = np.tile(phases, len(periods))[:, None] % p
+    bounds = f + p * np.arange(-1, int(np.ceil(cum.size / periods.min())) + 2)
+    weight, total = (np.diff(v, axis=1) for v in cum.at(bounds, 2))
+    # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
+    energy = (total * total / (weight + 1e-12)).sum(axis=1) - sigma2 * np.count_nonzero(weight > 1e-9, axis=1)
+    k = int(np.argmax(energy))
+    return float(p[k, 0]), float(f[k, 0])
+
+
+def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2: float) -> ChipLevels:
+    first = int(np.floor(-phase / period))
+    count = int(np.ceil((cum.size - phase) / period)) - first
+    starts = phase + period * np.arange(first, first + count)
+    ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
+    weight, total, square, rows = (e[count:] - e[:count] for e in ends)
+    filled = weight > 1e-9
+    mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
+    # Within-chip scatter measures the noise where there is enough of it.
+    dof = rows[filled].sum() - np.count_nonzero(filled)
+    if dof >= _MIN_DOF:
+        sigma2 = max(float((square - mean * total)[filled].sum() / dof), 1e-12)
+    used = np.flatnonzero(filled)
+    used_range = slice(used[0], used[-1] + 1)
+    weight, mean, filled = weight[used_range], mean[used_range], filled[used_range]
+    centre, amplitude = _baseline(mean, weight, filled)
+    levels = np.where(filled, (mean - centre) / amplitude, 0.0)
+    variances = np.where(filled, sigma2 / np.where(filled, weight, 1.0) / amplitude ** 2, np.inf)
+    return ChipLevels(levels, variances, period, float(starts[used[0]]))
+
+
+def _baseline(mean: np.ndarray, weight: np.ndarray, filled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Slowly varying midline and half-contrast of the chips (ID-agnostic: half of all chips are bright).
+
+    Straight lines in the chip index, so a residual envelope or a contrast that
+    saturation squeezes differently along the lamp does not bias the levels.
+    """
+    k = np.arange(len(mean), dtype=float)
+    w = np.where(filled, weight, 0.0)
+    straight = np.count_nonzero(filled) >= 8
+    centre = _line(k, mean, w, straight)
+    deviation = np.abs(mean - centre)
+    amplitude = _line(k, deviation, w, straight)
+    floor = 0.1 * max(float(np.average(deviation, weights=w)), 1e-12)
+    return centre, np.maximum(amplitude, floor)
+
+
+def _line(k: np.ndarray, y: np.ndarray, w: np.ndarray, straight: bool) -> np.ndarray:
+    """Weighted least-squares straight line (or constant) through (k, y), evaluated at k."""
+    sw = w.sum()
+    mean_k, mean_y = (w @ k) / sw, (w @ y) / sw
+    if not straight:
+        return np.full(len(k), mean_y)
+    dk = k - mean_k
+    slope = (w @ (dk * y)) / max(float(w @ (dk * dk)), 1e-12)
+    return mean_y + slope * dk

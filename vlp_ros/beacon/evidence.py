@@ -1,0 +1,108 @@
+"""Beacon evidence across frames: a lamp too small to read in one frame is read over several.
+
+Each lamp is tracked by its image position (nearest ellipse centre within a gate
+proportional to its size); the log-likelihoods of its frames add, since the noise
+and the packet phase are independent from frame to frame. A track that is not seen
+for ``max_gap`` seconds is dropped. A frame that is itself certain of another
+candidate than its track starts the track afresh: two lamps were confused.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlp_ros.beacon.reading import MIN_CONFIDENCE, BeaconReading, Decision, decide
+from vlp_ros.observation import LampObservation
+
+
+@dataclass
+class _Track:
+    center: np.ndarray
+    size: float
+    last_seen: float
+    candidates: np.ndarray
+    log_likelihoods: np.ndarray
+    log_prior: np.ndarray
+    mapped: np.ndarray
+    frames: int = 1
+
+
+class EvidenceTracker:
+    """Accumulates per-candidate evidence for every lamp in view until its ID is certain.
+
+    ``known_ids`` (None: any) limits the IDs it returns; ``gate`` is the largest
+    centre jump between frames as a fraction of the lamp's semi-major axis.
+    """
+
+    def __init__(self, known_ids: Iterable[int] | None = None, min_confidence: float = MIN_CONFIDENCE,
+                 gate: float = 0.5, max_gap: float = 0.5) -> None:
+        if not 0.0 < min_confidence < 1.0:
+            raise ValueError(f'min_confidence must lie in (0, 1), got {min_confidence}')
+        if not (gate > 0.0 and max_gap > 0.0):
+            raise ValueError(f'gate and max_gap must be positive, got {gate} and {max_gap}')
+        self.known_ids = None if known_ids is None else set(int(i) for i in known_ids)
+        self.min_confidence = min_confidence
+        self.gate = gate
+        self.max_gap = max_gap
+        self.tracks: list[_Track] = []
+        self.decisions: list[Decision] = []
+        self._stamp: float | None = None
+
+    def update(self, observations: Sequence[LampObservation], readings: Sequence[BeaconReading],
+               stamp: float) -> list[int | None]:
+        """The certain ID of each observation (None if not yet), after adding this frame's readings."""
+        if len(observations) != len(readings):
+            raise ValueError(f'{len(observations)} observations but {len(readings)} readings')
+        if self._stamp is not None and stamp < self._stamp:
+            self.tracks = []
+        self._stamp = stamp
+        self.tracks = [t for t in self.tracks if stamp - t.last_seen <= self.max_gap]
+        matches = self._associate(observations)
+        self.decisions = []
+        for k, (observation, reading) in enumerate(zip(observations, readings)):
+            track = matches.get(k)
+            if track is None or not self._continues(track, reading):
+                track = _Track(observation.center, float(observation.ellipse[2]), stamp, reading.candidates,
+                               np.array(reading.log_likelihoods, dtype=float), reading.log_prior, reading.mapped, 0)
+                self.tracks.append(track)
+            else:
+                track.log_likelihoods = track.log_likelihoods + reading.log_likelihoods
+            track.center, track.size, track.last_seen = observation.center, float(observation.ellipse[2]), stamp
+            track.frames += 1
+            self.decisions.append(self._decide(track))
+        return [d.lamp_id for d in self.decisions]
+
+    def _associate(self, observations: Sequence[LampObservation]) -> dict[int, _Track]:
+        """Observation index -> track, nearest pairs first, each track used once."""
+        pairs = []
+        for k, observation in enumerate(observations):
+            for track in self.tracks:
+                distance = float(np.linalg.norm(observation.center - track.center))
+                if distance <= self.gate * max(float(observation.ellipse[2]), track.size):
+                    pairs.append((distance, k, id(track), track))
+        matches: dict[int, _Track] = {}
+        taken: set[int] = set()
+        for _, k, key, track in sorted(pairs, key=lambda p: p[:3]):
+            if k not in matches and key not in taken:
+                matches[k] = track
+                taken.add(key)
+        return matches
+
+    def _continues(self, track: _Track, reading: BeaconReading) -> bool:
+        """Whether ``reading`` can add to ``track``: same candidates, and not certain of another one."""
+        if not np.array_equal(track.candidates, reading.candidates):
+            return False
+        if reading.lamp_id is None and not reading.unknown:
+            return True
+        frame_best = np.argmax(reading.log_likelihoods + reading.log_prior)
+        track_best = np.argmax(track.log_likelihoods + track.log_prior)
+        return frame_best == track_best or self._decide(track).confidence < self.min_confidence
+
+    def _decide(self, track: _Track) -> Decision:
+        decision = decide(track.candidates, track.mapped, track.log_likelihoods, track.log_prior,
+                          self.min_confidence)
+        if decision.lamp_id is not None and self.known_ids is not None and decision.lamp_id not in self.known_ids:
+            return Decision(None, decision.confidence, True, f'ID {decision.lamp_id} is not in the map')
+        return decision

@@ -1,0 +1,216 @@
+"""Tone mode (Luxapose style): which lamp's frequency the stripes repeat at.
+
+Row r samples the light at ``r * row_time``, so a square wave of frequency f
+shows stripes of period ``1 / (f * row_time)`` rows. The frequency is the least-
+squares fit of a sinusoid (on top of a quadratic envelope) to the modulation
+profile: a zero-padded FFT finds the peak, exact fits around it refine it and
+give its uncertainty from the curvature of the log-likelihood. The estimate is
+then weighed against every lamp's band (its frequency +- the tolerance) and
+against "some other frequency", each band as likely per hertz as any other.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import log_ndtr
+
+from vlp_ros.beacon.profile import RowProfile, modulation
+from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
+                                    no_evidence, reading)
+
+# Evidence (nats) by which a sinusoid must beat the envelope alone before its frequency counts.
+MIN_TONE_EVIDENCE = 25.0
+_PAD = 8
+_MAX_ITERATIONS = 12
+# Exposure as a fraction of the tone's period: where the fit may start, and its bounds.
+_START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.6, 1.2])
+_START_PHASES = np.array([-0.1, 0.0, 0.1])
+_KAPPA_RANGE = (0.01, 3.0)
+
+
+def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
+                unmapped_weight: float = UNMAPPED_WEIGHT, min_confidence: float = MIN_CONFIDENCE,
+                min_periods: float = 1.5) -> BeaconReading:
+    """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within ``tolerance_hz``.
+
+    A frequency outside every band counts for the candidate ``UNMAPPED`` (prior
+    ``unmapped_weight`` per hertz relative to the bands). Fewer than
+    ``min_periods`` stripe periods in view give no evidence.
+    """
+    if not row_time > 0.0:
+        raise ValueError(f'row_time must be positive, got {row_time}')
+    if not tolerance_hz > 0.0:
+        raise ValueError(f'tolerance_hz must be positive, got {tolerance_hz}')
+    if not frequencies:
+        raise ValueError('tone decoding needs at least one lamp frequency')
+    ids = np.array(sorted(frequencies), dtype=int)
+    if np.any(ids < 0):
+        raise ValueError(f'lamp ids must not be negative, got {ids[ids < 0].tolist()}')
+    centres = np.array([frequencies[i] for i in ids], dtype=float)
+    nyquist = 0.5 / row_time
+    if not (np.all(centres > 0.0) and np.all(centres + tolerance_hz < nyquist)):
+        raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
+                         f'(row Nyquist minus tolerance), got {centres.tolist()}')
+    candidates = np.append(ids, UNMAPPED)
+    mapped = np.append(np.ones(len(ids), dtype=bool), False)
+    prior = log_prior(mapped, unmapped_weight)
+
+    w = np.asarray(profile.weights, dtype=float)
+    used = np.flatnonzero(w > 0)
+    if used.size < 8:
+        return no_evidence(candidates, mapped, prior, 'too few rows')
+    window = slice(used[0], used[-1] + 1)
+    w = w[window]
+    fit = _ToneFit(modulation(profile)[window], w, row_time)
+    start = fit.start(0.5 * centres.min() * fit.duration, min(1.5 * centres.max(), 0.9 * nyquist) * fit.duration)
+    if start is None:
+        return no_evidence(candidates, mapped, prior, 'no tone stands out of the noise')
+    if start[0] < min_periods:
+        return no_evidence(candidates, mapped, prior, f'fewer than {min_periods} stripe periods in view')
+    # The envelope through the stripes leans on them; one over whole periods does not.
+    fit = _ToneFit(modulation(profile, period=len(w) / start[0])[window], w, row_time)
+    estimate = fit.square_wave(*start)
+    if estimate is None:
+        return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
+    frequency, sigma = estimate[0] / fit.duration, estimate[1] / fit.duration
+    log_mass = _log_band_masses(frequency, sigma, centres - tolerance_hz, centres + tolerance_hz)
+    return reading(candidates, mapped, log_mass, prior, min_confidence)
+
+
+class _ToneFit:
+    """Weighted least squares of a profile by an envelope (1, u, u^2) plus a tone.
+
+    Time runs in units of the window (tau in [0, 1)), frequency in cycles per window.
+    """
+
+    def __init__(self, z: np.ndarray, w: np.ndarray, row_time: float) -> None:
+        self.duration = len(z) * row_time
+        self.tau = np.arange(len(z)) / len(z)
+        u = np.linspace(-1.0, 1.0, len(z))
+        self.sqrt_w = np.sqrt(w)
+        basis = np.stack([np.ones_like(u), u, u * u], axis=1) * self.sqrt_w[:, None]
+        # Orthonormal envelope basis: projecting it out leaves what the tone must explain.
+        self.envelope, _ = np.linalg.qr(basis)
+        self.y = self._residual(z * self.sqrt_w)
+        self.null_rss = float(self.y @ self.y)
+
+    def _residual(self, columns: np.ndarray) -> np.ndarray:
+        return columns - self.envelope @ (self.envelope.T @ columns)
+
+    def sinusoid(self, cycles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residual sum of squares and the cosine and sine amplitudes of the best sinusoid at each frequency."""
+        phase = 2.0 * np.pi * np.outer(self.tau, cycles)
+        c = self._residual(np.cos(phase) * self.sqrt_w[:, None])
+        s = self._residual(np.sin(phase) * self.sqrt_w[:, None])
+        cc, ss, cs = (c * c).sum(0), (s * s).sum(0), (c * s).sum(0)
+        cy, sy = self.y @ c, self.y @ s
+        det = np.maximum(cc * ss - cs * cs, 1e-300)
+        a, b = (ss * cy - cs * sy) / det, (cc * sy - cs * cy) / det
+        return self.null_rss - a * cy - b * sy, a, b
+
+    def start(self, low: float, high: float) -> tuple[float, float] | None:
+        """(cycles, phase) of the best sinusoid between ``low`` and ``high`` cycles per window.
+
+        None unless it beats the envelope alone by MIN_TONE_EVIDENCE. The FFT's peak
+        is refined by parabolas through exact fits on ever finer grids.
+        """
+        n = len(self.y)
+        size = _PAD * int(2 ** np.ceil(np.log2(n)))
+        spectrum = np.abs(np.fft.rfft(self.y * self.sqrt_w, size)) ** 2
+        bins = np.arange(len(spectrum)) * n / size
+        inside = np.flatnonzero((bins >= low) & (bins <= high))
+        if inside.size == 0:
+            return None
+        cycles, step = bins[inside[np.argmax(spectrum[inside])]], bins[1]
+        for _ in range(2):
+            rss = self.sinusoid(np.maximum(cycles + step * np.array([-1.0, 0.0, 1.0]), 0.5 * bins[1]))[0]
+            curvature = rss[0] - 2.0 * rss[1] + rss[2]
+            if curvature > 0.0:
+                cycles += float(np.clip(-0.5 * step * (rss[2] - rss[0]) / curvature, -step, step))
+            step /= 4.0
+        rss, a, b = (float(v[0]) for v in self.sinusoid(np.array([cycles])))
+        sigma2 = max(rss / max(n - 5, 1), 1e-15 * self.null_rss, 1e-300)
+        if (self.null_rss - rss) / (2.0 * sigma2) < MIN_TONE_EVIDENCE:
+            return None
+        return cycles, float(np.arctan2(-a, b) / (2.0 * np.pi))
+
+    def square_wave(self, cycles: float, phase: float) -> tuple[float, float] | None:
+        """(cycles, standard deviation) of the exposure-smeared square wave, fitted from a sinusoid's start.
+
+        Levenberg-Marquardt over frequency, phase and the exposure as a fraction of
+        the period (kappa), with envelope and amplitude solved exactly at every step
+        (variable projection): a row sees the square wave's mean over
+        [theta, theta + kappa], whose integral is a triangle wave.
+        """
+        kappas = np.repeat(_START_KAPPAS, len(_START_PHASES))
+        starts = np.column_stack([np.full(len(kappas), cycles),
+                                  phase + 0.5 * kappas + np.tile(_START_PHASES, len(_START_KAPPAS)), kappas])
+        params = starts[int(np.argmin([self._projected(p)[0] for p in starts]))]
+        rss, residual, jacobian = self._projected(params)
+        damping = 1e-3
+        for _ in range(_MAX_ITERATIONS):
+            normal = jacobian.T @ jacobian
+            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-300), jacobian.T @ residual)
+            trial = params + step
+            trial[2] = np.clip(trial[2], *_KAPPA_RANGE)
+            trial_rss, trial_residual, trial_jacobian = self._projected(trial)
+            if trial_rss < rss:
+                converged = rss - trial_rss < 1e-9 * rss
+                params, rss, residual, jacobian = trial, trial_rss, trial_residual, trial_jacobian
+                damping = max(damping / 4.0, 1e-9)
+                if converged:
+                    break
+            else:
+                damping *= 8.0
+        # Frequency's information with phase and kappa free (they may be degenerate with each other,
+        # e.g. when the period spans a whole number of rows).
+        others = jacobian[:, 1:]
+        leftover = jacobian[:, 0] - others @ np.linalg.lstsq(others, jacobian[:, 0], rcond=1e-10)[0]
+        information = float(leftover @ leftover)
+        # Four linear parameters (envelope, amplitude) were solved for along the way.
+        variance = rss / max(len(self.y) - 7, 1) / information if information > 0.0 else np.inf
+        if not np.isfinite(variance):
+            return None
+        return float(params[0]), float(np.sqrt(variance))
+
+    def _projected(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase, kappa)
+        with the best envelope and amplitude."""
+        cycles, phase, kappa = params
+        theta = cycles * self.tau - phase
+        late, early = _square(theta + kappa), _square(theta)
+        mean = (_triangle(theta + kappa) - _triangle(theta)) / kappa
+        columns = np.column_stack([mean, (late - early) / kappa * self.tau, (early - late) / kappa,
+                                   (late - mean) / kappa]) * self.sqrt_w[:, None]
+        columns = self._residual(columns)
+        template = columns[:, 0]
+        norm = float(template @ template)
+        if not norm > 0.0:
+            return float('inf'), self.y, np.zeros((len(self.y), 3))
+        amplitude = float(self.y @ template) / norm
+        residual = self.y - amplitude * template
+        jacobian = amplitude * columns[:, 1:]
+        jacobian -= np.outer(template, template @ jacobian) / norm
+        return float(residual @ residual), residual, jacobian
+
+
+def _triangle(x: np.ndarray) -> np.ndarray:
+    """Integral of the +-1 square wave (period 1, +1 on [0, 0.5)) from 0 to x."""
+    f = x - np.floor(x)
+    return np.minimum(f, 1.0 - f)
+
+
+def _square(x: np.ndarray) -> np.ndarray:
+    return np.where(x - np.floor(x) < 0.5, 1.0, -1.0)
+
+
+def _log_band_masses(frequency: float, sigma: float, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """log P(f in each band) and, last, log P(f in none) for f ~ N(frequency, sigma^2)."""
+    a, b = (low - frequency) / sigma, (high - frequency) / sigma
+    # Mass in [a, b] from whichever tail is smaller, in logs so that far bands stay finite.
+    upper = a > 0.0
+    lo_tail = np.where(upper, log_ndtr(-b), log_ndtr(a))
+    hi_tail = np.where(upper, log_ndtr(-a), log_ndtr(b))
+    band = hi_tail + np.log1p(-np.exp(np.minimum(lo_tail - hi_tail, -1e-300)))
+    inside = float(np.exp(band).sum())
+    outside = np.log1p(-inside) if inside < 1.0 else -np.inf
+    return np.append(band, max(outside, -700.0))
