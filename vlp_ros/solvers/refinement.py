@@ -16,8 +16,8 @@ from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import covariance_from_jacobian, perturbed
 from vlp_ros.solvers.measurement import LampMeasurement
 
-# Stop when a step lowers the chi-square by less than this: far below the
-# ~1 unit that noise moves it, so stopping adds no error.
+# Stop when the best step can lower the chi-square by less than this fraction:
+# far below the ~1 unit that noise moves it, so stopping adds no error.
 _COST_TOLERANCE = 1e-9
 _MAX_ITERATIONS = 50
 _INITIAL_DAMPING = 1e-4
@@ -74,19 +74,16 @@ def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement], ma
             break
         information = jacobian.T @ jacobian
         gradient = jacobian.T @ residuals
-        step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
-        # The linear model's predicted decrease: ~0 at the minimum, where no trial is needed.
-        if -(2.0 * gradient @ step + step @ information @ step) < _COST_TOLERANCE * max(cost, 1.0):
+        # Converged when even the undamped Gauss-Newton step promises no real decrease.
+        if gradient @ np.linalg.solve(information, gradient) < _COST_TOLERANCE * max(cost, 1.0):
             return pose, residuals, jacobian, True
+        step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
         trial = Pose(*perturbed(pose, step))
         trial_residuals, trial_jacobian = linearize(measurements, trial)
         trial_cost = trial_residuals @ trial_residuals
         if not np.isfinite(trial_cost) or trial_cost > cost:
             damping *= 10.0
             continue
-        converged = cost - trial_cost < _COST_TOLERANCE * max(cost, 1.0)
         pose, residuals, jacobian, cost = trial, trial_residuals, trial_jacobian, trial_cost
         damping = max(damping / 10.0, 1e-12)
-        if converged:
-            return pose, residuals, jacobian, True
     return pose, residuals, jacobian, False
