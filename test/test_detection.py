@@ -87,13 +87,36 @@ def test_marker_centroid_is_accurate_through_stripes(depth):
     assert found >= 3
 
 
-def test_saturated_lamp_keeps_its_centre_and_marker():
-    frame, truth = single(depth=0.3, peak_dn=450.0)
-    assert frame.image.max() == 255
-    lamp = only(detect_lamps(frame.image))
-    np.testing.assert_allclose(lamp.center, truth.ellipse[:2], atol=0.1)
-    assert lamp.marker is not None
-    assert np.linalg.norm(lamp.marker - truth.marker_pixel) < 0.5
+def test_saturated_lamp_with_unclipped_dark_stripes_is_measured_on_them():
+    found = 0
+    for seed in range(4):
+        frame, truth = single(depth=0.75, peak_dn=450.0, seed=seed, marker_angle=0.7 + seed)
+        assert frame.image.max() == 255
+        lamp = only(detect_lamps(frame.image))
+        # Only the dark stripes' rows give rim points: fewer of them, hence the wider bound.
+        np.testing.assert_allclose(lamp.center, truth.ellipse[:2], atol=0.1)
+        np.testing.assert_allclose(lamp.ellipse[2:4], truth.ellipse[2:4], atol=0.1)
+        if lamp.marker is not None:
+            found += 1
+            assert np.linalg.norm(lamp.marker - truth.marker_pixel) < 0.3
+    assert found >= 2
+
+
+def test_fully_clipped_lamp_keeps_its_centre_and_edge():
+    axis_errors = []
+    for seed in range(3):
+        frame, truth = single(depth=1.0, peak_dn=400.0, seed=seed)
+        lamp = only(detect_lamps(frame.image))
+        np.testing.assert_allclose(lamp.center, truth.ellipse[:2], atol=0.15)
+        axis_errors.append(lamp.ellipse[2:4] - truth.ellipse[2:4])
+    # Half the clip level lies ~0.4 px outside the edge here; the foot of the blur puts it back.
+    assert np.all(np.abs(axis_errors) < 0.25)
+    assert np.all(np.abs(np.mean(axis_errors, axis=0)) < 0.12)
+
+
+def test_grossly_overexposed_lamp_is_left_out():
+    frame, _ = single(depth=1.0, peak_dn=2000.0)
+    assert detect_lamps(frame.image) == []
 
 
 def test_every_lamp_of_a_frame_is_found_once():

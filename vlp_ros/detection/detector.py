@@ -7,7 +7,7 @@ import numpy as np
 
 from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness, shape_spread
-from vlp_ros.detection.rim import RimFit, fit_rim, row_crossings
+from vlp_ros.detection.rim import RimFit, clipped_edge_offset, fit_rim, outward_normals, row_crossings
 from vlp_ros.detection.rows import ellipse_chords, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import geometric_distances
 from vlp_ros.observation import LampObservation
@@ -17,6 +17,10 @@ _MIN_SIDE_FRACTION = 0.2
 # Share of the slope-selected rim points that must survive outlier rejection.
 _MIN_INLIER_FRACTION = 0.7
 _MIN_RIM_SIGMA = 0.01
+# Below this share of unclipped rim points, clipped rows are used too (moved onto the edge).
+_MIN_UNCLIPPED_SHARE = 0.25
+# Clipped lamps brighter than this over the clip level give no observation.
+_MAX_OVEREXPOSURE = 2.5
 # Rows whose neighbours differ by less than this (of the brightest row) count as one stripe.
 _STEADY_TOLERANCE = 0.05
 # Rows dimmer than this (of the brightest row) carry too little marker signal to use.
@@ -174,7 +178,7 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     threshold = max(background + options.threshold_fraction * (peak - background),
                     background + options.noise_factor * noise)
     levels = row_levels(brightness, threshold, background, options.level_fraction)
-    points, _ = row_crossings(brightness, levels, background, options.reach)
+    points, plateaus = row_crossings(brightness, levels, background, options.reach)
     red = redness(roi) if colour else None
     seed = None
     if red is not None:
@@ -182,28 +186,56 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
         seed = find_seed(red, 0.3 * lamp_radius + 3.0, options.min_marker_redness)
     if seed is not None:
         # The marker's colour changes the brightness near it: its rim points are not trusted.
-        near = np.linalg.norm(points - seed.center, axis=1) <= seed.radius + options.blur_margin + 1.0
-        points = points[~near]
+        far = np.linalg.norm(points - seed.center, axis=1) > seed.radius + options.blur_margin + 1.0
+        points, plateaus = points[far], plateaus[far]
+    clipped = plateaus >= options.saturation_level
+    if np.count_nonzero(~clipped) >= max(options.min_rim_points, _MIN_UNCLIPPED_SHARE * len(points)):
+        # Unclipped rows place the edge exactly: clipped ones are not needed.
+        points, clipped = points[~clipped], clipped[~clipped]
     if len(points) < options.min_rim_points:
         return None
     try:
         rim = fit_rim(points, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
+        if clipped.any():
+            rim = _unclip(rim, points, clipped, brightness, background, options)
     except ValueError:
+        return None
+    if rim is None:
         return None
     return _LampBox((x0, y0), image.shape[1], brightness, background, red, seed, rim)
 
 
+def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np.ndarray, background: float,
+            options: DetectionOptions) -> RimFit | None:
+    """Refit with the crossings of clipped rows moved in onto the true edge.
+
+    None if the ramps do not tell, or if the lamp is so overexposed that the edge
+    would rest on the far foot of the blur (whose shape no camera guarantees).
+    """
+    measured = clipped_edge_offset(brightness, points[clipped], rim.ellipse, background, options.saturation_level,
+                                   options.max_blur)
+    if measured is None:
+        return None
+    offset, overexposure = measured
+    if overexposure > _MAX_OVEREXPOSURE:
+        return None
+    moved = points.copy()
+    moved[clipped] -= offset * outward_normals(rim.ellipse, points[clipped])
+    return fit_rim(moved, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
+
+
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
-    """The marker, fitted on lit rows that share their level with a neighbour (blur has not mixed stripes)."""
+    """The marker, fitted on lit, unclipped rows that share their level with a neighbour (blur has not mixed stripes)."""
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background)
-    # Dim rows still show the marker: anything clearly above the noise takes part.
-    rows = (profile > _MIN_MARKER_ROW_FRACTION * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
-    saturated = profile + box.background >= options.saturation_level
+    # Dim rows still show the marker: anything clearly above the noise takes part. In
+    # clipped rows the marker's redness is no longer proportional to the row's level.
+    rows = ((profile > _MIN_MARKER_ROW_FRACTION * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
+            & (profile + box.background < options.saturation_level))
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, options.blur_margin + 1.0,
-                     profile, saturated, rows, shape_spread(box.rim.ellipse, focal_length))
+                     profile, rows, shape_spread(box.rim.ellipse, focal_length))
     if fit is None or geometric_distances(box.rim.ellipse, fit.center[None])[0] > 0.0:
         return None
     return fit

@@ -102,16 +102,15 @@ def shape_matrix(ellipse: np.ndarray) -> np.ndarray:
 
 
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
-               margin: float, row_level: np.ndarray, row_saturated: np.ndarray,
-               rows_used: np.ndarray, shape_spread: float) -> MarkerFit | None:
+               margin: float, row_level: np.ndarray, rows_used: np.ndarray,
+               shape_spread: float) -> MarkerFit | None:
     """Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
 
     ``lamp_ellipse`` is in the same pixels; it gives the marker's shape and the
     lamp's own disc term. ``margin`` (px) widens the window beyond the seed radius.
-    Per row of ``red``: ``row_level`` is the lamp's brightness above background,
-    ``row_saturated`` whether it is clipped, ``rows_used`` whether the row takes part.
-    A lit row's marker is as bright as the row (one ratio for all unclipped rows);
-    clipped rows share one amplitude of their own. ``shape_spread`` is the expected
+    Per row of ``red``: ``row_level`` is the lamp's brightness above background (the
+    marker is lit by the lamp, so its redness is one ratio times that: rows must not be
+    clipped), ``rows_used`` whether the row takes part. ``shape_spread`` is the expected
     relative difference (stretch) between the marker's image shape and its lamp's.
     """
     half = seed.radius + margin
@@ -127,10 +126,8 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     xs, ys = np.meshgrid(np.arange(x0, x1, dtype=float), rows.astype(float))
     pixels = np.stack([xs, ys], axis=-1)
     lamp_disc = ndtr(-geometric_distances(lamp_ellipse, pixels.reshape(-1, 2)).reshape(data.shape) / blur_guess)
-    saturated = row_saturated[rows]
-    classes = [c for c in (np.where(saturated, 0.0, row_level[rows]), saturated.astype(float)) if c.any()]
     root = _symmetric_root(shape_matrix(lamp_ellipse))
-    model = _MarkerModel(data, pixels, lamp_disc, root, np.stack(classes, axis=1))
+    model = _MarkerModel(data, pixels, lamp_disc, root, row_level[rows])
     params = np.array([seed.center[0], seed.center[1], seed.radius, blur_guess])
     cost, residual, jac = model.evaluate(params)
     damping = 1e-3
@@ -192,46 +189,42 @@ def _bounded(params: np.ndarray) -> np.ndarray:
 class _MarkerModel:
     """Residuals and the variable-projection Jacobian of the marker model.
 
-    Parameters: centre (2), mean radius and blur sigma; the Jacobian has two more
-    columns, for stretching the shape away from the lamp's (along the axes and the
-    diagonals, in the frame where the lamp is round). ``row_weights`` (rows, classes):
-    the marker and lamp-disc terms of class c contribute amplitude_c * weight[row, c] to a row.
+    A pixel's redness is its row's lamp level times (k1 marker + k2 lamp disc), both
+    blurred; k1, k2 are eliminated. Parameters: centre (2), mean radius and blur
+    sigma; the Jacobian has two more columns, for stretching the shape away from the
+    lamp's (along the axes and the diagonals, in the frame where the lamp is round).
     """
 
+    linear_count = 2
+
     def __init__(self, data: np.ndarray, pixels: np.ndarray, lamp_disc: np.ndarray, root: np.ndarray,
-                 row_weights: np.ndarray) -> None:
+                 row_level: np.ndarray) -> None:
         self.data = data.ravel()
         self.pixels = pixels
         self.root = root
-        self.row_weights = row_weights
-        self.disc_terms = (row_weights[:, None, :] * lamp_disc[..., None]).reshape(self.data.size, -1)
-        self.linear_count = 2 * row_weights.shape[1]
+        self.level = np.broadcast_to(row_level[:, None], data.shape).ravel()
+        self.disc_term = (row_level[:, None] * lamp_disc).ravel()
 
     def evaluate(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """(cost, residual (N,), Jacobian of the model (N, 6)) with the amplitudes eliminated."""
         cx, cy, s, blur = params
-        u = (self.pixels - np.array([cx, cy])) @ self.root
+        u = ((self.pixels - np.array([cx, cy])) @ self.root).reshape(-1, 2)
         gradient = u @ self.root
-        norm = np.maximum(np.linalg.norm(gradient, axis=-1), 1e-9)
-        rho = np.linalg.norm(u, axis=-1)
-        safe_rho = np.maximum(rho, 1e-9)
+        norm = np.maximum(np.sqrt(np.einsum('ij,ij->i', gradient, gradient)), 1e-9)
+        rho = np.sqrt(np.einsum('ij,ij->i', u, u))
         # Distance to the marker's edge, positive inside (first order in the offset from the edge).
         gain = rho / norm
-        distance = (s - rho) * gain
-        z = distance / blur
-        marker = ndtr(z)
-        density = np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
-        d_marker = np.stack([
-            density * gradient[..., 0] / norm, density * gradient[..., 1] / norm, density * gain, -density * z,
-            -density * gain * 0.5 * (u[..., 0] ** 2 - u[..., 1] ** 2) / safe_rho,
-            -density * gain * u[..., 0] * u[..., 1] / safe_rho], axis=-1)
-        marker_terms = (self.row_weights[:, None, :] * marker[..., None]).reshape(self.data.size, -1)
-        basis = np.concatenate([marker_terms, self.disc_terms], axis=1)
+        z = (s - rho) * gain / blur
+        basis = np.column_stack([self.level * ndtr(z), self.disc_term])
         q, _ = np.linalg.qr(basis)
-        residual = self.data - q @ (q.T @ self.data)
-        coef = np.linalg.lstsq(basis, self.data - residual, rcond=None)[0]
-        # Kaufman's approximation: the marker amplitude of each row times dM, minus its part in the basis.
-        amplitude = self.row_weights @ coef[:self.row_weights.shape[1]]
-        jac = (amplitude[:, None, None] * d_marker).reshape(self.data.size, d_marker.shape[-1])
-        jac = jac - q @ (q.T @ jac)
+        fitted = q @ (q.T @ self.data)
+        residual = self.data - fitted
+        k1 = np.linalg.lstsq(basis, fitted, rcond=None)[0][0]
+        # Kaufman's approximation: the marker term's derivatives, minus their part in the basis.
+        density = k1 * self.level * np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
+        stretch = density * gain / np.maximum(rho, 1e-9)
+        jac = np.column_stack([density * gradient[:, 0] / norm, density * gradient[:, 1] / norm,
+                               density * gain, -density * z, -0.5 * stretch * (u[:, 0] ** 2 - u[:, 1] ** 2),
+                               -stretch * u[:, 0] * u[:, 1]])
+        jac -= q @ (q.T @ jac)
         return float(residual @ residual), residual, jac

@@ -11,12 +11,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.special import ndtr
 
 from vlp_ros.detection.rows import RowLevels
 from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse, geometric_distances
 
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
+# Clipped rows pooled to measure how far their crossings lie outside the edge.
+_MAX_POOLED_ROWS = 200
 
 
 @dataclass(frozen=True)
@@ -60,6 +64,67 @@ def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
         points.append(np.column_stack([x, levels.rows[rows].astype(float)]))
         plateaus.append(levels.plateau[rows])
     return np.concatenate(points), np.concatenate(plateaus)
+
+
+def outward_normals(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 2) of the ellipse's level curves at ``points``, pointing outward."""
+    C = conic_from_ellipse(ellipse)
+    gradient = (np.column_stack([points, np.ones(len(points))]) @ C)[:, :2]
+    return gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-12)
+
+
+def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.ndarray, background: float,
+                        saturation_level: float, max_blur: float) -> tuple[float, float] | None:
+    """(edge, overexposure): how far (px) inside ``ellipse``, fitted to half-clip crossings of
+    clipped rows, the true edge lies, and the rows' level over the clip level.
+
+    A clipped row's plateau is not its brightness A, so its half level sits low on
+    the blurred edge, outside the true edge. The rows' ramps, pooled in distance t
+    across the ellipse, show the unclipped foot of B + A Phi((-edge - t) / sigma)
+    averaged over the pixel's square; fitting A, sigma and the edge to it (clipped
+    pixels as censored: the model must reach the clip) places the edge. Only rows
+    inside clipped stripes (clipped two rows up and down) are pooled, so that they
+    share one A. None if the ramps do not tell.
+    """
+    height, width = brightness.shape
+    rows = points[:, 1].astype(int)
+    centre_col = int(np.clip(np.rint(ellipse[0]), 0, width - 1))
+    interior = ((brightness[np.clip(rows + 2, 0, height - 1), centre_col] >= saturation_level)
+                & (brightness[np.clip(rows - 2, 0, height - 1), centre_col] >= saturation_level))
+    points = points[interior][:_MAX_POOLED_ROWS]
+    if len(points) < 3:
+        return None
+    normals = outward_normals(ellipse, points)
+    reach = int(np.ceil(4.0 * max_blur / max(np.abs(normals[:, 0]).min(), 0.3))) + 1
+    cols = np.rint(points[:, 0])[:, None] + np.sign(normals[:, 0])[:, None] * np.arange(-3, reach + 1)[None, :]
+    rows = np.broadcast_to(points[:, 1:2], cols.shape)
+    keep = (cols >= 0) & (cols < width)
+    pixels = np.column_stack([cols[keep], rows[keep]])
+    values = brightness[pixels[:, 1].astype(int), pixels[:, 0].astype(int)].astype(float)
+    # Clipped pixels only say the light reached the clip level (a censored observation).
+    censored = values >= saturation_level - 1
+    if np.count_nonzero(~censored) < 10:
+        return None
+    t = geometric_distances(ellipse, pixels)
+    v = values - background
+    # The pixel square seen across the edge: offsets of a 3 x 3 grid of its points along each normal.
+    grid = (np.arange(3) - 1.0) / 3.0
+    qx, qy = (g.ravel() for g in np.meshgrid(grid, grid))
+    normal = np.abs(np.broadcast_to(normals[:, None, :], cols.shape + (2,))[keep])
+    spread = normal[:, :1] * qx[None, :] + normal[:, 1:] * qy[None, :]
+
+    def residual(params: np.ndarray) -> np.ndarray:
+        amplitude, sigma, edge = params
+        difference = amplitude * ndtr((-edge - t[:, None] - spread) / sigma).mean(axis=1) - v
+        return np.where(censored, np.minimum(difference, 0.0), difference)
+
+    clip = saturation_level - background
+    result = least_squares(residual, np.array([2.0 * clip, 0.5 * max_blur, 0.5]),
+                           bounds=([clip, 0.2, -1.0], [np.inf, 2.0 * max_blur, 4.0 * max_blur]))
+    if not result.success:
+        return None
+    amplitude, _, edge = result.x
+    return float(edge), float(amplitude / clip)
 
 
 def edge_slopes(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
