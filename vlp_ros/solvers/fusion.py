@@ -3,9 +3,9 @@ generalised to exact perspective, any number of lamps and lamps without markers)
 
 Starts: each lamp's two circle poses, their yaw from the lamp's marker or, without
 one, from the image of another lamp's centre (exact for any number of lamps); and
-for four or more lamps SQPnP on the lamp centres. (With three lamps on one ceiling
-SQPnP returned three poses, none of them right, so it is not used there.) Starts that land on the same pose are refined once; every
-distinct joint minimum is a candidate. A wrong single-lamp candidate puts the
+for four or more lamps SQPnP on the lamp centres (with three lamps on one ceiling
+SQPnP returned three poses, none of them right). Starts that lead to the same pose
+are refined once; every distinct joint minimum is a candidate. A wrong single-lamp candidate puts the
 camera metres away, where the other lamps would be seen elsewhere, so its joint
 minimum costs far more than the true one: ``ambiguity.choose_candidate`` then
 decides on the (statistically bounded) cost gap and reports MULTI_LAMP, still
@@ -35,17 +35,16 @@ _SAME_START_M = 0.05
 _SAME_START_RAD = 0.05
 # Each start is first followed on a thinned copy of the data. Any pose that explains
 # all lamps explains each one, so it lies within single-lamp error of one of that
-# lamp's candidates, i.e. of a start, and is reached from there in a few iterations
-# (2-5 measured). A start that has not reached a minimum within this many is on a
-# plateau far from any such pose (wrong candidates creep at ~1e6 chi-square) and is dropped.
+# lamp's candidates, i.e. of a start, and is reached from there in 2-5 iterations
+# (quadratic convergence). A start still over ``_HOPELESS_FACTOR`` times the best
+# minimum's chi-square after ``refinement.PATIENCE`` iterations (wrong candidates
+# creep along plateaus ~1000x above it), or not converged within
+# ``_PROBE_ITERATIONS``, cannot lead to a competitive pose and is dropped, as is one
+# that has come near a minimum already reached.
 _PROBE_RIM_POINTS = 16
-# A start near a minimum is at that minimum's chi-square after ``refinement.PATIENCE``
-# iterations (quadratic convergence); wrong starts are still ~1000x above the best
-# one there. Beyond this factor a start cannot lead to a competitive pose: dropped,
-# as is one that has by then come near a minimum already reached.
+_PROBE_ITERATIONS = 10
 _HOPELESS_FACTOR = 100.0
 _PNP_MIN_LAMPS = 4
-_PROBE_ITERATIONS = 10
 # The best joint fit is inconsistent when its chi-square is both improbable under the
 # stated noise (tail below 1e-6) and over 4x its degrees of freedom, so sigmas that are
 # off by up to 2x are tolerated while a misplaced lamp (thousands) is not.
