@@ -62,7 +62,9 @@ def cases(rng: np.random.Generator) -> dict[str, Callable[[], object]]:
     hints = DisambiguationHints()
     table = {
         'reference: scipy least_squares, 1 lamp, 120 rim pts': scipy_reference,
-        'closed form incl. undistortion, 1 lamp, 120 rim pts': lambda: closed_form_poses(LampMeasurement.from_observation(sparse, lamp, camera_4k)),
+        'undistortion and lens Jacobians, 1 lamp, 120 rim pts': lambda: LampMeasurement.from_observation(
+            sparse, lamp, camera_4k),
+        'closed form (cone, both circles, marker yaw), 1 lamp': lambda: closed_form_poses(measurement),
         'solve_lamp (2 candidates refined), 120 rim pts': lambda: solve_lamp(sparse, lamp, camera_4k),
         'solve_lamp (2 candidates refined), 560 rim pts': lambda: solve_lamp(dense, lamp, camera_4k),
     }
