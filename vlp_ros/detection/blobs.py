@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-# Histogram counts above the peak level that are ignored as hot pixels.
+# Brightest samples ignored as hot pixels when taking the peak level.
 _HOT_PIXELS = 2
 
 
@@ -70,7 +70,7 @@ def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_cont
     if levels is None:
         return []
     _, noise, threshold = levels
-    mask = (small > threshold).astype(np.uint8)
+    _, mask = cv2.threshold(small, threshold, 1, cv2.THRESH_BINARY)
     gap = int(np.ceil(max_stripe_rows / step)) + 1
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (1, gap + 1)))
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
@@ -80,9 +80,10 @@ def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_cont
         x, y, w, h = cv2.boundingRect(contour)
         if min(w, h) * step < 0.5 * min_diameter:
             continue
-        # A sampled blob may miss up to one step on each side.
+        # A sampled blob may miss up to one step on each side, and a dark stripe at its top or bottom.
         extra = margin + step
-        bbox = (max(x * step - extra, 0), max(y * step - extra, 0),
-                min((x + w) * step + extra, width), min((y + h) * step + extra, height))
+        extra_y = extra + max_stripe_rows // 2
+        bbox = (max(x * step - extra, 0), max(y * step - extra_y, 0),
+                min((x + w) * step + extra, width), min((y + h) * step + extra_y, height))
         blobs.append(Blob(bbox, noise))
     return blobs

@@ -32,7 +32,7 @@ class DetectionOptions:
     """Settings of ``detect_lamps`` (lengths in pixels, levels in 8-bit units).
 
     ``min_diameter``: smallest lamp (major axis) reported. ``search_step``: grid of the
-    coarse search (default: a fifth of ``min_diameter``). ``threshold_fraction``: search
+    coarse search (default: a quarter of ``min_diameter``). ``threshold_fraction``: search
     threshold, as a fraction of the way from background to the brightest lamp.
     ``min_contrast``: brightest minus background below which the frame holds no lamp.
     ``noise_factor``: the threshold stays this many noise sigmas above background.
@@ -40,7 +40,7 @@ class DetectionOptions:
     than this fraction of the lamp's lit rows give no rim points. ``max_blur``: largest
     optical blur sigma expected. ``max_slope``: rows meeting the edge at |dx/dy| above
     this give no rim point. ``max_rim_sigma``: lamps whose rim points scatter more are
-    rejected as not elliptic. ``min_marker_redness``: R - (G + B) / 2 a marker must reach.
+    rejected as not elliptic. ``min_marker_redness``: 2 R - G - B a marker must reach.
     ``saturation_level``: rows whose plateau reaches it are clipped. ``focal_length``: the
     camera's (px), which sets how much perspective may bend the marker's shape away from
     its lamp's (None: the frame width, a 53 deg horizontal field of view).
@@ -59,7 +59,7 @@ class DetectionOptions:
     max_rim_sigma: float = 0.75
     min_rim_points: int = 16
     min_axis_ratio: float = 0.1
-    min_marker_redness: float = 20.0
+    min_marker_redness: float = 40.0
     saturation_level: float = 250.0
     focal_length: float | None = None
 
@@ -79,7 +79,7 @@ class DetectionOptions:
 
     @property
     def step(self) -> int:
-        return self.search_step if self.search_step is not None else max(1, int(self.min_diameter // 5))
+        return self.search_step if self.search_step is not None else max(1, int(round(self.min_diameter / 4)))
 
     @property
     def reach(self) -> int:
@@ -234,7 +234,7 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     rows = ((profile > _MIN_MARKER_ROW_FRACTION * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
             & (profile + box.background < options.saturation_level))
     focal_length = options.focal_length or box.frame_width
-    fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, options.blur_margin + 1.0,
+    fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
                      profile, rows, shape_spread(box.rim.ellipse, focal_length))
     if fit is None or geometric_distances(box.rim.ellipse, fit.center[None])[0] > 0.0:
         return None

@@ -21,7 +21,7 @@ from vlp_ros.ellipse import geometric_distances
 _SQRT_2PI = np.sqrt(2.0 * np.pi)
 _MAX_ITERATIONS = 12
 # Stop when the centre moves less than this (px).
-_CONVERGED = 1e-3
+_CONVERGED = 3e-3
 _BLUR_BOUNDS = (0.3, 4.0)
 # Fewest rows through the marker that pin down its position.
 _MIN_MARKER_ROWS = 3
@@ -61,9 +61,11 @@ class MarkerFit:
 
 
 def redness(bgr: np.ndarray) -> np.ndarray:
-    """R - (G + B) / 2 as float32: large on the marker, near zero on a white lamp; linear in the light."""
-    channels = bgr.astype(np.float32)
-    return channels[..., 2] - 0.5 * (channels[..., 0] + channels[..., 1])
+    """2 R - G - B (int16): large on the marker, near zero on a white lamp; linear in the light."""
+    red = 2 * bgr[..., 2].astype(np.int16)
+    red -= bgr[..., 1]
+    red -= bgr[..., 0]
+    return red
 
 
 def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> MarkerSeed | None:
@@ -132,20 +134,18 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     cost, residual, jac = model.evaluate(params)
     damping = 1e-3
     for _ in range(_MAX_ITERATIONS):
-        JtJ = jac[:, :4].T @ jac[:, :4]
-        step = np.linalg.solve(JtJ + damping * np.diag(np.diag(JtJ) + 1e-12), jac[:, :4].T @ residual)
+        JtJ = jac.T @ jac
+        step = np.linalg.solve(JtJ + damping * np.diag(np.diag(JtJ) + 1e-12), jac.T @ residual)
         trial = _bounded(params + step)
         trial_cost, trial_residual, trial_jac = model.evaluate(trial)
+        moved = np.linalg.norm(trial[:2] - params[:2])
         if trial_cost < cost:
-            moved = np.linalg.norm(trial[:2] - params[:2])
             params, cost, residual, jac = trial, trial_cost, trial_residual, trial_jac
             damping = max(damping * 0.3, 1e-6)
-            if moved < _CONVERGED:
-                break
         else:
             damping *= 10.0
-            if damping > 1e6:
-                break
+        if moved < _CONVERGED or damping > 1e6:
+            break
     centre, radius, blur = params[:2], params[2], params[3]
     # A marker must lie in its window, fit inside it, and be blurred by a plausible amount.
     if (not (x0 <= centre[0] < x1 and y0 <= centre[1] < y1) or radius > half
@@ -157,6 +157,7 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     dof = data.size - params.size - model.linear_count
     if dof <= 0:
         return None
+    _, _, jac = model.evaluate(params, with_shape=True)
     return MarkerFit(centre, _centre_sigma(jac, cost / dof, shape_spread), float(radius), float(blur), root @ root)
 
 
@@ -205,8 +206,8 @@ class _MarkerModel:
         self.level = np.broadcast_to(row_level[:, None], data.shape).ravel()
         self.disc_term = (row_level[:, None] * lamp_disc).ravel()
 
-    def evaluate(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """(cost, residual (N,), Jacobian of the model (N, 6)) with the amplitudes eliminated."""
+    def evaluate(self, params: np.ndarray, with_shape: bool = False) -> tuple[float, np.ndarray, np.ndarray]:
+        """(cost, residual (N,), Jacobian of the model (N, 4), or (N, 6) ``with_shape``), amplitudes eliminated."""
         cx, cy, s, blur = params
         u = ((self.pixels - np.array([cx, cy])) @ self.root).reshape(-1, 2)
         gradient = u @ self.root
@@ -215,16 +216,18 @@ class _MarkerModel:
         # Distance to the marker's edge, positive inside (first order in the offset from the edge).
         gain = rho / norm
         z = (s - rho) * gain / blur
-        basis = np.column_stack([self.level * ndtr(z), self.disc_term])
-        q, _ = np.linalg.qr(basis)
-        fitted = q @ (q.T @ self.data)
-        residual = self.data - fitted
-        k1 = np.linalg.lstsq(basis, fitted, rcond=None)[0][0]
+        basis = np.empty((2, z.size))
+        basis[0] = self.level * ndtr(z)
+        basis[1] = self.disc_term
+        gram_inverse = np.linalg.inv(basis @ basis.T + 1e-9 * np.eye(2))
+        coef = gram_inverse @ (basis @ self.data)
+        residual = self.data - coef @ basis
         # Kaufman's approximation: the marker term's derivatives, minus their part in the basis.
-        density = k1 * self.level * np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
-        stretch = density * gain / np.maximum(rho, 1e-9)
-        jac = np.column_stack([density * gradient[:, 0] / norm, density * gradient[:, 1] / norm,
-                               density * gain, -density * z, -0.5 * stretch * (u[:, 0] ** 2 - u[:, 1] ** 2),
-                               -stretch * u[:, 0] * u[:, 1]])
-        jac -= q @ (q.T @ jac)
-        return float(residual @ residual), residual, jac
+        density = coef[0] * self.level * np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
+        columns = [density * gradient[:, 0] / norm, density * gradient[:, 1] / norm, density * gain, -density * z]
+        if with_shape:
+            stretch = density * gain / np.maximum(rho, 1e-9)
+            columns += [-0.5 * stretch * (u[:, 0] ** 2 - u[:, 1] ** 2), -stretch * u[:, 0] * u[:, 1]]
+        jac = np.array(columns)
+        jac -= (jac @ basis.T) @ gram_inverse @ basis
+        return float(residual @ residual), residual, jac.T
