@@ -21,10 +21,13 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
 _MAX_ITERATIONS = 12
-# Exposure as a fraction of the tone's period: where the fit may start, and its bounds.
-_START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.6, 1.2])
+# Exposure as a fraction of the tone's period: where the fit may start, and its bounds. Longer
+# exposures look the same: kappa and kappa + 1 give one shape, 1 - kappa its mirror image.
+_START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.45])
 _START_PHASES = np.array([-0.1, 0.0, 0.1])
-_KAPPA_RANGE = (0.01, 3.0)
+_KAPPA_RANGE = (0.005, 0.5)
+# Rows on each side that a row's value may borrow from (demosaicing, blur after read-out).
+_MIX_ROWS = 2
 
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
@@ -61,7 +64,8 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     window = slice(used[0], used[-1] + 1)
     w = w[window]
     fit = _ToneFit(modulation(profile)[window], w, row_time)
-    start = fit.start(0.5 * centres.min() * fit.duration, min(1.5 * centres.max(), 0.9 * nyquist) * fit.duration)
+    search = (0.5 * centres.min(), min(1.5 * centres.max(), 0.9 * nyquist))
+    start = fit.start(search[0] * fit.duration, search[1] * fit.duration)
     if start is None:
         return no_evidence(candidates, mapped, prior, 'no tone stands out of the noise')
     if start[0] < min_periods:
@@ -72,7 +76,7 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if estimate is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
     frequency, sigma = estimate[0] / fit.duration, estimate[1] / fit.duration
-    log_mass = _log_band_masses(frequency, sigma, centres - tolerance_hz, centres + tolerance_hz)
+    log_mass = _log_band_masses(frequency, sigma, centres - tolerance_hz, centres + tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
 
 
@@ -136,10 +140,13 @@ class _ToneFit:
     def square_wave(self, cycles: float, phase: float) -> tuple[float, float] | None:
         """(cycles, standard deviation) of the exposure-smeared square wave, fitted from a sinusoid's start.
 
-        Levenberg-Marquardt over frequency, phase and the exposure as a fraction of
-        the period (kappa), with envelope and amplitude solved exactly at every step
-        (variable projection): a row sees the square wave's mean over
-        [theta, theta + kappa], whose integral is a triangle wave.
+        A row sees the square wave averaged over its exposure (kappa, a fraction of
+        the period), exactly: the difference of the wave's integral, a triangle wave.
+        Demosaicing, blur applied after read-out and the like mix each row with its
+        neighbours, so the template is any symmetric mix of the rows up to two away
+        (three linear amplitudes). Levenberg-Marquardt over frequency, phase and
+        kappa, with envelope and amplitudes solved exactly at every step (variable
+        projection).
         """
         kappas = np.repeat(_START_KAPPAS, len(_START_PHASES))
         starts = np.column_stack([np.full(len(kappas), cycles),
@@ -154,7 +161,7 @@ class _ToneFit:
             trial[2] = np.clip(trial[2], *_KAPPA_RANGE)
             trial_rss, trial_residual, trial_jacobian = self._projected(trial)
             if trial_rss < rss:
-                converged = rss - trial_rss < 1e-9 * rss
+                converged = rss - trial_rss < 1e-7 * rss
                 params, rss, residual, jacobian = trial, trial_rss, trial_residual, trial_jacobian
                 damping = max(damping / 4.0, 1e-9)
                 if converged:
@@ -162,34 +169,39 @@ class _ToneFit:
             else:
                 damping *= 8.0
         # Frequency's information with phase and kappa free (they may be degenerate with each other,
-        # e.g. when the period spans a whole number of rows).
+        # e.g. when a period spans a whole number of rows).
         others = jacobian[:, 1:]
         leftover = jacobian[:, 0] - others @ np.linalg.lstsq(others, jacobian[:, 0], rcond=1e-10)[0]
         information = float(leftover @ leftover)
-        # Four linear parameters (envelope, amplitude) were solved for along the way.
-        variance = rss / max(len(self.y) - 7, 1) / information if information > 0.0 else np.inf
+        dof = len(self.y) - 3 - 2 * _MIX_ROWS - 1 - 3
+        variance = rss / max(dof, 1) / information if information > 0.0 else np.inf
         if not np.isfinite(variance):
             return None
         return float(params[0]), float(np.sqrt(variance))
 
     def _projected(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase, kappa)
-        with the best envelope and amplitude."""
+        with the best envelope and row mix."""
         cycles, phase, kappa = params
-        theta = cycles * self.tau - phase
-        late, early = _square(theta + kappa), _square(theta)
+        n = len(self.y)
+        offsets = np.arange(-_MIX_ROWS, _MIX_ROWS + 1)
+        # Rows r + j for every offset j: time in periods, and the window position it moves with.
+        tau = self.tau[None, :] + offsets[:, None] / n
+        theta = cycles * tau - phase
         mean = (_triangle(theta + kappa) - _triangle(theta)) / kappa
-        columns = np.column_stack([mean, (late - early) / kappa * self.tau, (early - late) / kappa,
-                                   (late - mean) / kappa]) * self.sqrt_w[:, None]
-        columns = self._residual(columns)
-        template = columns[:, 0]
-        norm = float(template @ template)
-        if not norm > 0.0:
-            return float('inf'), self.y, np.zeros((len(self.y), 3))
-        amplitude = float(self.y @ template) / norm
-        residual = self.y - amplitude * template
-        jacobian = amplitude * columns[:, 1:]
-        jacobian -= np.outer(template, template @ jacobian) / norm
+        late, early = _square(theta + kappa), _square(theta)
+        derivatives = [(late - early) / kappa * tau, (early - late) / kappa, (late - mean) / kappa]
+        fold = [np.abs(offsets) == j for j in range(_MIX_ROWS + 1)]
+        templates = self._residual(np.column_stack([mean[m].sum(axis=0) for m in fold]) * self.sqrt_w[:, None])
+        gram = templates.T @ templates
+        try:
+            mix = np.linalg.solve(gram, templates.T @ self.y)
+        except np.linalg.LinAlgError:
+            return float('inf'), self.y, np.zeros((n, 3))
+        residual = self.y - templates @ mix
+        weights = mix[np.abs(offsets)]
+        jacobian = self._residual(np.column_stack([weights @ d for d in derivatives]) * self.sqrt_w[:, None])
+        jacobian -= templates @ np.linalg.solve(gram, templates.T @ jacobian)
         return float(residual @ residual), residual, jacobian
 
 
@@ -203,14 +215,24 @@ def _square(x: np.ndarray) -> np.ndarray:
     return np.where(x - np.floor(x) < 0.5, 1.0, -1.0)
 
 
-def _log_band_masses(frequency: float, sigma: float, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """log P(f in each band) and, last, log P(f in none) for f ~ N(frequency, sigma^2)."""
-    a, b = (low - frequency) / sigma, (high - frequency) / sigma
-    # Mass in [a, b] from whichever tail is smaller, in logs so that far bands stay finite.
-    upper = a > 0.0
-    lo_tail = np.where(upper, log_ndtr(-b), log_ndtr(a))
-    hi_tail = np.where(upper, log_ndtr(-a), log_ndtr(b))
-    band = hi_tail + np.log1p(-np.exp(np.minimum(lo_tail - hi_tail, -1e-300)))
-    inside = float(np.exp(band).sum())
+def _log_band_masses(frequency: float, sigma: float, low: np.ndarray, high: np.ndarray,
+                     search: tuple[float, float]) -> np.ndarray:
+    """log P(f in each band) and, last, log P(f in none) for f ~ N(frequency, sigma^2) cut to the
+    ``search`` range: a frequency outside it would have shown as another peak."""
+    edges = np.clip(np.concatenate([low, high, search]), search[0], search[1])
+    cdf = log_ndtr((edges - frequency) / sigma)
+    upper = log_ndtr((frequency - edges) / sigma)
+    # Mass between two edges from whichever tail is smaller, in logs so that far bands stay finite.
+    count = len(low)
+    band = _log_between(cdf[:count], cdf[count:2 * count], upper[:count], upper[count:2 * count])
+    total = _log_between(cdf[-2:-1], cdf[-1:], upper[-2:-1], upper[-1:])[0]
+    inside = float(np.exp(band - total).sum())
     outside = np.log1p(-inside) if inside < 1.0 else -np.inf
-    return np.append(band, max(outside, -700.0))
+    return np.append(band - total, max(outside, -700.0))
+
+
+def _log_between(cdf_lo: np.ndarray, cdf_hi: np.ndarray, sf_lo: np.ndarray, sf_hi: np.ndarray) -> np.ndarray:
+    """log(F(hi) - F(lo)) from log F (``cdf_*``) or log(1 - F) (``sf_*``), whichever is more exact."""
+    left = cdf_hi + np.log(-np.expm1(np.minimum(cdf_lo - cdf_hi, -1e-300)))
+    right = sf_lo + np.log(-np.expm1(np.minimum(sf_hi - sf_lo, -1e-300)))
+    return np.where(sf_lo < cdf_hi, right, left)

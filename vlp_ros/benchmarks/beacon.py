@@ -1,0 +1,356 @@
+"""Beacon decoding on simulated lamps: python -m vlp_ros.benchmarks.beacon [--trials N] [--seed S].
+
+Every trial renders one lamp with the frame simulator (vlp_ros.sim: exact disc,
+rolling shutter, blur, shot and read noise, saturation, bgr8) in a small ROI,
+builds the observation a detector would report from the ground truth, and runs
+the pipeline's calls: ``row_profile`` and ``decode_packet`` / ``decode_tone`` with
+nominal timing that is off by up to 3 % (packet) or 0.2 % (tone), and without
+the exposure. Tables give, per condition, the correct-ID rate among lamps in the
+map, the share of unmapped lamps recognised as such, and every wrong ID. "span"
+is the lamp's usable height (rows left after the edge margin) in packets, or in
+stripe periods for tone mode. ``--trials`` is per mode, spread over the tables.
+The tracker table follows lamps over frames (new packet phase every frame).
+Times are medians per lamp, with the time of one plain copy of the lamp's ROI
+measured in the same run as reference.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, row_profile
+from vlp_ros.beacon.encoding import packet_length, packet_waveform, tone_waveform
+from vlp_ros.beacon.evidence import EvidenceTracker
+from vlp_ros.camera import CameraModel
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.observation import LampObservation
+from vlp_ros.pose import Pose
+from vlp_ros.sim.render import RenderedFrame, SimLamp, lamp_roi, render_frame
+from vlp_ros.sim.sensor import SensorModel
+
+CAMERA = CameraModel.from_horizontal_fov(2048, 2048, np.radians(60.0))
+RADIUS = 0.1
+ID_BITS = 8
+MAP_IDS = sorted(np.random.default_rng(7).choice(2 ** ID_BITS, 40, replace=False).tolist())
+TONES = {k: 1000.0 + 200.0 * k for k in range(46)}
+TOLERANCE_HZ = 60.0
+# Rows lost at the top and bottom of a lamp: the edge margin plus blur.
+LOST_ROWS = 6
+UNMAPPED_SHARE = 0.1
+FRAME_PERIOD = 1.0 / 30.0
+
+
+@dataclass(frozen=True)
+class Condition:
+    """Ranges a trial draws from (uniformly). ``span``: usable packets, or stripe periods for tone mode.
+
+    ``exposure``: as a fraction of the chip (packet mode) or in seconds (tone mode).
+    """
+
+    span: tuple[float, float] = (1.3, 2.0)
+    rows_per_chip: tuple[float, float] = (4.0, 8.0)
+    depth: tuple[float, float] = (0.5, 1.0)
+    exposure: tuple[float, float] = (0.2, 0.8)
+    full_well: float = 4000.0
+    tilt_deg: tuple[float, float] = (0.0, 40.0)
+    peak_dn: float = 200.0
+
+
+PACKET_BASE = Condition()
+TONE_BASE = Condition(span=(3.0, 5.0), exposure=(1e-5, 1.25e-4))
+
+
+@dataclass
+class Tally:
+    trials: int = 0
+    mapped: int = 0
+    correct: int = 0
+    unmapped: int = 0
+    recognised: int = 0
+    wrong: int = 0
+    wrong_examples: list[str] = field(default_factory=list)
+
+    def add(self, true_id: int, mapped: bool, reading: BeaconReading, lamp_id: int | None = None) -> None:
+        decided = reading.lamp_id if lamp_id is None else lamp_id
+        self.trials += 1
+        self.mapped += mapped
+        self.unmapped += not mapped
+        self.correct += mapped and decided == true_id
+        self.recognised += (not mapped) and reading.unknown
+        if decided is not None and (decided != true_id or not mapped):
+            self.wrong += 1
+            self.wrong_examples.append(f'{true_id}->{decided} ({reading.confidence:.6f})')
+
+    def row(self, label: str) -> str:
+        rate = 100.0 * self.correct / max(self.mapped, 1)
+        recognised = 100.0 * self.recognised / max(self.unmapped, 1)
+        return f'{label:<26}{self.trials:>7}{rate:>10.1f}{recognised:>12.1f}{self.wrong:>7}'
+
+
+@dataclass
+class Scene:
+    camera: CameraModel
+    pose: Pose
+    sim: SimLamp
+    sensor: SensorModel
+    roi: tuple[int, int, int, int]
+
+
+@dataclass
+class Timer:
+    profile: list[float] = field(default_factory=list)
+    decode: list[float] = field(default_factory=list)
+    copy: list[float] = field(default_factory=list)
+
+
+def lamp_scene(rng: np.random.Generator, lamp_id: int, rows: float, waveform, condition: Condition,
+               row_time: float, exposure: float) -> Scene:
+    """One lamp ``rows`` tall in the image, seen under a random tilt and heading."""
+    tilt = np.radians(rng.uniform(*condition.tilt_deg))
+    rotation = Rotation.from_euler('zx', [rng.uniform(0.0, 2.0 * np.pi), tilt]).as_matrix()
+    pose = Pose(rotation, np.zeros(3))
+    axis = rotation[:, 2]
+    lamp = Lamp('lamp', lamp_id, axis, RADIUS, marker_angle=rng.uniform(0.0, 2.0 * np.pi),
+                marker_distance=0.85 * RADIUS)
+    rim = CAMERA.project(pose.map_to_camera(lamp.rim_points(64)))
+    distance = float(np.ptp(rim[:, 1])) / rows
+    lamp = replace(lamp, position=distance * axis)
+    sim = SimLamp(lamp, waveform, peak_dn=condition.peak_dn)
+    sensor = SensorModel(row_time=row_time, exposure=exposure, full_well=condition.full_well)
+    rim = CAMERA.project(pose.map_to_camera(lamp.rim_points(64)))
+    size = int(np.ceil(np.ptp(rim, axis=0).max())) + 16
+    return Scene(CAMERA, pose, sim, sensor, lamp_roi(CAMERA, pose, lamp, size))
+
+
+def observe(scene: Scene, rng: np.random.Generator) -> tuple[RenderedFrame, LampObservation | None]:
+    """Render at a random time (random packet phase) and report what an ideal detector would."""
+    frame = render_frame(scene.camera, scene.pose, [scene.sim], scene.sensor, rng.uniform(0.0, 1.0), rng,
+                         roi=scene.roi)
+    truth = frame.truth(scene.sim.lamp.id)
+    if not truth.fully_inside:
+        return frame, None
+    x0, y0, x1, y1 = truth.bbox
+    ys, xs = np.mgrid[y0:y1, x0:x1].astype(float)
+    cx, cy, a, b, theta = truth.ellipse
+    c, s = np.cos(theta), np.sin(theta)
+    u, v = (xs - cx) * c + (ys - cy) * s, -(xs - cx) * s + (ys - cy) * c
+    disc = (u / a) ** 2 + (v / b) ** 2 <= 1.0
+    marker_px = scene.sim.marker_radius / RADIUS * a
+    marker = (xs - truth.marker_pixel[0]) ** 2 + (ys - truth.marker_pixel[1]) ** 2 <= marker_px ** 2
+    return frame, LampObservation(truth.ellipse, truth.rim_pixels, 0.1, truth.marker_pixel, 0.1,
+                                  truth.bbox, disc, marker)
+
+
+def timed_read(frame: RenderedFrame, observation: LampObservation, decode: Callable, timer: Timer) -> BeaconReading:
+    x0, y0, x1, y1 = observation.bbox
+    start = time.perf_counter()
+    frame.image[y0:y1, x0:x1].copy()
+    copied = time.perf_counter()
+    profile = row_profile(frame.image, observation)
+    profiled = time.perf_counter()
+    reading = decode(profile)
+    done = time.perf_counter()
+    timer.copy.append(copied - start)
+    timer.profile.append(profiled - copied)
+    timer.decode.append(done - profiled)
+    return reading
+
+
+def draw_id(rng: np.random.Generator, mapped_ids: list[int], all_ids: list[int]) -> tuple[int, bool]:
+    if rng.uniform() < UNMAPPED_SHARE:
+        return int(rng.choice(sorted(set(all_ids) - set(mapped_ids)))), False
+    return int(rng.choice(mapped_ids)), True
+
+
+def packet_trial(rng: np.random.Generator, condition: Condition, tally: Tally, timer: Timer) -> None:
+    lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)))
+    scene, decode = packet_setup(rng, condition, lamp_id)
+    frame, observation = observe(scene, rng)
+    if observation is not None:
+        tally.add(lamp_id, mapped, timed_read(frame, observation, decode, timer))
+
+
+def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int) -> tuple[Scene, Callable]:
+    row_time = rng.uniform(7e-6, 35e-6)
+    rows_per_chip = rng.uniform(*condition.rows_per_chip)
+    chip_rate = 1.0 / (row_time * rows_per_chip)
+    exposure = float(np.clip(rng.uniform(*condition.exposure) / chip_rate, 1e-6, None))
+    rows = rng.uniform(*condition.span) * packet_length(ID_BITS) * rows_per_chip + LOST_ROWS
+    waveform = packet_waveform(lamp_id, chip_rate, rng.uniform(*condition.depth), ID_BITS)
+    scene = lamp_scene(rng, lamp_id, rows, waveform, condition, row_time, exposure)
+    nominal_rate = chip_rate * (1.0 + rng.uniform(-0.02, 0.02))
+    nominal_row_time = row_time * (1.0 + rng.uniform(-0.01, 0.01))
+    return scene, lambda profile: decode_packet(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS)
+
+
+def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, timer: Timer) -> None:
+    mapped = rng.uniform() >= UNMAPPED_SHARE
+    lamp_id = int(rng.choice(list(TONES)))
+    if mapped:
+        frequency = TONES[lamp_id] * (1.0 + rng.uniform(-0.001, 0.001))
+    else:
+        # Midway between two lamps, or beyond the map's highest frequency.
+        frequency = TONES[lamp_id] + 100.0 if rng.uniform() < 0.7 else max(TONES.values()) + 200.0 * rng.integers(1, 6)
+        lamp_id = -1
+    row_time = rng.uniform(7e-6, 35e-6)
+    if frequency * row_time > 0.4:
+        row_time = 0.4 / frequency
+    exposure = rng.uniform(*condition.exposure)
+    rows = rng.uniform(*condition.span) / (frequency * row_time) + LOST_ROWS
+    waveform = tone_waveform(frequency, rng.uniform(*condition.depth))
+    scene = lamp_scene(rng, max(lamp_id, 0), rows, waveform, condition, row_time, exposure)
+    nominal_row_time = row_time * (1.0 + rng.uniform(-0.001, 0.001))
+    frame, observation = observe(scene, rng)
+    if observation is not None:
+        reading = timed_read(frame, observation,
+                             lambda profile: decode_tone(profile, nominal_row_time, TONES, TOLERANCE_HZ), timer)
+        tally.add(lamp_id, mapped, reading)
+
+
+def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, frames_needed: list[int],
+                timer: Timer, max_frames: int = 10) -> None:
+    """Follow one lamp over frames until its ID is certain (or ``max_frames``); log when it was."""
+    lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)))
+    scene, decode = packet_setup(rng, condition, lamp_id)
+    tracker = EvidenceTracker(MAP_IDS)
+    decided, reading = None, None
+    for frame_index in range(max_frames):
+        frame, observation = observe(scene, rng)
+        if observation is None:
+            return
+        reading = timed_read(frame, observation, decode, timer)
+        decided = tracker.update([observation], [reading], frame_index * FRAME_PERIOD)[0]
+        if decided is not None:
+            frames_needed.append(frame_index + 1)
+            break
+    else:
+        frames_needed.append(max_frames + 1)
+    tally.add(lamp_id, mapped, reading, decided)
+
+
+PACKET_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
+    ('span (packets)', [(f'{lo:g}-{hi:g}', replace(PACKET_BASE, span=(lo, hi)))
+                        for lo, hi in [(0.5, 0.7), (0.7, 1.0), (1.0, 1.3), (1.3, 1.6), (1.6, 2.0), (2.0, 3.0)]]),
+    ('rows per chip', [(f'{lo:g}-{hi:g}', replace(PACKET_BASE, rows_per_chip=(lo, hi)))
+                       for lo, hi in [(2.5, 3.0), (3.0, 4.0), (4.0, 5.0), (5.0, 8.0), (8.0, 12.0)]]),
+    ('depth', [(f'{d:g}', replace(PACKET_BASE, depth=(d, d))) for d in (0.3, 0.4, 0.5, 0.7, 1.0)]),
+    ('exposure / chip', [(f'{e:g}', replace(PACKET_BASE, exposure=(e, e))) for e in (0.1, 0.5, 1.0, 1.5, 2.0)]),
+    ('full well (e-, noise)', [(f'{w:g}', replace(PACKET_BASE, full_well=w)) for w in (20000, 4000, 1000, 300)]),
+    ('tilt (deg)', [(f'{t:g}', replace(PACKET_BASE, tilt_deg=(t, t))) for t in (0, 20, 40, 60)]),
+    ('peak DN (255 saturates)', [(f'{p:g}', replace(PACKET_BASE, peak_dn=p)) for p in (100, 200, 300, 450)]),
+]
+TRACK_SPANS = [(0.5, 0.5), (0.5, 0.75), (0.75, 1.0)]
+TONE_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
+    ('span (periods)', [(f'{lo:g}-{hi:g}', replace(TONE_BASE, span=(lo, hi)))
+                        for lo, hi in [(2.0, 3.0), (3.0, 4.0), (4.0, 6.0), (6.0, 10.0)]]),
+    ('exposure (us)', [(f'{e * 1e6:g}', replace(TONE_BASE, exposure=(e, e))) for e in (1e-5, 3e-5, 6e-5, 1.25e-4)]),
+    ('depth', [(f'{d:g}', replace(TONE_BASE, depth=(d, d))) for d in (0.3, 0.5, 1.0)]),
+    ('full well (e-, noise)', [(f'{w:g}', replace(TONE_BASE, full_well=w)) for w in (20000, 1000, 300)]),
+    ('tilt (deg)', [(f'{t:g}', replace(TONE_BASE, tilt_deg=(t, t))) for t in (0, 30, 60)]),
+]
+
+HEADER = f'{"":<26}{"trials":>7}{"correct %":>10}{"unmapped %":>12}{"wrong":>7}'
+
+
+def run_tables(title: str, tables, trial: Callable, per_row: int, rng: np.random.Generator,
+               timer: Timer) -> Tally:
+    total = Tally()
+    print(f'\n== {title} ==  (correct %: among lamps in the map; unmapped %: unmapped lamps recognised)')
+    for name, rows in tables:
+        print(f'\n{name}\n{HEADER}')
+        for label, condition in rows:
+            tally = Tally()
+            for _ in range(per_row):
+                trial(rng, condition, tally, timer)
+            print(tally.row(label))
+            for field_name in ('trials', 'mapped', 'correct', 'unmapped', 'recognised', 'wrong'):
+                setattr(total, field_name, getattr(total, field_name) + getattr(tally, field_name))
+            total.wrong_examples += tally.wrong_examples
+    return total
+
+
+def base_rate(rng: np.random.Generator, condition: Condition, trial: Callable, trials: int, timer: Timer) -> Tally:
+    tally = Tally()
+    for _ in range(trials):
+        trial(rng, condition, tally, timer)
+    return tally
+
+
+def report_time(title: str, timer: Timer) -> float:
+    copy, profile, decode = (np.median(v) * 1e3 for v in (timer.copy, timer.profile, timer.decode))
+    print(f'{title}: median per lamp: decode {decode:.3f} ms, row profile {profile:.3f} ms, ROI copy {copy:.4f} ms '
+          f'(decode / copy {decode / copy:.0f}, profile + decode / copy {(profile + decode) / copy:.0f})')
+    return decode
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--trials', type=int, default=10000, help='single-frame trials per mode (default 10000)')
+    parser.add_argument('--seed', type=int, default=1)
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    packet_rows = sum(len(rows) for _, rows in PACKET_TABLES) + 1
+    tone_rows = sum(len(rows) for _, rows in TONE_TABLES) + 1
+    print(f'map: {len(MAP_IDS)} of {2 ** ID_BITS} packet IDs; {len(TONES)} tones 200 Hz apart from 1 kHz, '
+          f'+-{TOLERANCE_HZ:g} Hz; {UNMAPPED_SHARE:.0%} of lamps carry an ID / frequency not in the map')
+
+    packet_timer, tone_timer = Timer(), Timer()
+    per_row = max(args.trials // packet_rows, 1)
+    packets = run_tables('packet mode, one frame', PACKET_TABLES, packet_trial, per_row, rng, packet_timer)
+    target = base_rate(rng, PACKET_BASE, packet_trial, per_row, packet_timer)
+    packets.trials += target.trials
+    packets.wrong += target.wrong
+    packets.wrong_examples += target.wrong_examples
+    print(f'\n{HEADER}\n' + target.row('TARGET span>=1.3 rpc>=4 d>=0.5'))
+
+    print(f'\n== packet mode, across frames (tracker) ==\n{"span (packets)":<26}{"tracks":>7}'
+          f'{"<=5 fr %":>10}{"median fr":>10}{"unmapped %":>12}{"wrong":>7}')
+    track_results = []
+    for lo, hi in TRACK_SPANS:
+        tally, frames = Tally(), []
+        for _ in range(max(per_row // 2, 1)):
+            track_trial(rng, replace(PACKET_BASE, span=(lo, hi)), tally, frames, packet_timer)
+        frames = np.array(frames)
+        within = 100.0 * np.mean(frames <= 5) if frames.size else 0.0
+        print(f'{f"{lo:g}-{hi:g}":<26}{tally.trials:>7}{within:>10.1f}{np.median(frames):>10.0f}'
+              f'{100.0 * tally.recognised / max(tally.unmapped, 1):>12.1f}{tally.wrong:>7}')
+        track_results.append(within)
+        packets.wrong += tally.wrong
+        packets.wrong_examples += tally.wrong_examples
+
+    per_row = max(args.trials // tone_rows, 1)
+    tones = run_tables('tone mode, one frame', TONE_TABLES, tone_trial, per_row, rng, tone_timer)
+    tone_target = base_rate(rng, replace(TONE_BASE, span=(3.0, 4.0)), tone_trial, per_row, tone_timer)
+    tones.trials += tone_target.trials
+    tones.wrong += tone_target.wrong
+    tones.wrong_examples += tone_target.wrong_examples
+    print(f'\n{HEADER}\n' + tone_target.row('TARGET 3-4 periods'))
+
+    print('\n== time ==')
+    packet_ms = report_time('packet', packet_timer)
+    tone_ms = report_time('tone', tone_timer)
+
+    print('\n== targets ==')
+    rate = 100.0 * target.correct / max(target.mapped, 1)
+    tone_rate = 100.0 * tone_target.correct / max(tone_target.mapped, 1)
+    checks = [
+        (f'packet, one frame, span>=1.3 rpc>=4 depth>=0.5: {rate:.2f} % correct', rate >= 99.0),
+        (f'packet, tracker, span 0.5: {track_results[0]:.1f} % certain within 5 frames', track_results[0] >= 99.0),
+        (f'tone, 3-4 periods, 200 Hz apart: {tone_rate:.2f} % correct', tone_rate >= 99.0),
+        (f'wrong IDs, packet: {packets.wrong} in {packets.trials} single frames + tracks', packets.wrong == 0),
+        (f'wrong IDs, tone: {tones.wrong} in {tones.trials} frames', tones.wrong == 0),
+        (f'decode time: packet {packet_ms:.3f} ms, tone {tone_ms:.3f} ms (<= 0.5)', max(packet_ms, tone_ms) <= 0.5),
+    ]
+    for text, ok in checks:
+        print(f'{"PASS" if ok else "FAIL"}  {text}')
+    for example in (packets.wrong_examples + tones.wrong_examples)[:20]:
+        print(f'wrong: {example}')
+
+
+if __name__ == '__main__':
+    main()
