@@ -21,8 +21,10 @@ _MIN_RIM_SIGMA = 0.01
 _MIN_UNCLIPPED_SHARE = 0.25
 # Clipped lamps brighter than this over the clip level give no observation.
 _MAX_OVEREXPOSURE = 2.5
-# Rows whose neighbours differ by less than this (of the brightest row) count as one stripe.
-_STEADY_TOLERANCE = 0.05
+# Rows whose neighbours differ by less than this (of their level), plus the floor (of the
+# brightest row's), count as one stripe.
+_STEADY_TOLERANCE = 0.04
+_STEADY_FLOOR = 0.01
 # Rows dimmer than this (of the brightest row) carry too little marker signal to use.
 _MIN_MARKER_ROW_FRACTION = 0.1
 
@@ -228,11 +230,16 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     """The marker, fitted on lit, unclipped rows that share their level with a neighbour (blur has not mixed stripes)."""
     if box.seed is None:
         return None
-    profile = row_profile(box.brightness, box.rim.ellipse, box.background)
+    profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
+    if not np.any(profile > 0.0):
+        return None
     # Dim rows still show the marker: anything clearly above the noise takes part. In
     # clipped rows the marker's redness is no longer proportional to the row's level.
-    rows = ((profile > _MIN_MARKER_ROW_FRACTION * profile.max()) & steady_rows(profile, _STEADY_TOLERANCE)
-            & (profile + box.background < options.saturation_level))
+    with np.errstate(invalid='ignore'):
+        brightest = np.nanmax(profile)
+        rows = ((profile > _MIN_MARKER_ROW_FRACTION * brightest)
+                & steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
+                & (profile + box.background < options.saturation_level))
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
                      profile, rows, shape_spread(box.rim.ellipse, focal_length))

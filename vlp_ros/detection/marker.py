@@ -25,6 +25,8 @@ _CONVERGED = 3e-3
 _BLUR_BOUNDS = (0.3, 4.0)
 # Fewest rows through the marker that pin down its position.
 _MIN_MARKER_ROWS = 3
+# Relative error of a row's marker brightness taken as the ratio times the row's measured level.
+_ROW_LEVEL_SPREAD = 0.05
 # The marker's shape differs from its lamp's by up to this factor times the perspective estimate, plus the floor.
 _SHAPE_MARGIN = 1.5
 _SHAPE_FLOOR = 0.005
@@ -157,21 +159,27 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     dof = data.size - params.size - model.linear_count
     if dof <= 0:
         return None
-    _, _, jac = model.evaluate(params, with_shape=True)
-    return MarkerFit(centre, _centre_sigma(jac, cost / dof, shape_spread), float(radius), float(blur), root @ root)
+    _, _, jac, row_terms = model.evaluate(params, with_consider=True)
+    sigma = _centre_sigma(jac, row_terms, cost / dof, shape_spread)
+    return MarkerFit(centre, sigma, float(radius), float(blur), root @ root)
 
 
-def _centre_sigma(jac: np.ndarray, noise_variance: float, shape_spread: float) -> float:
-    """Per-axis standard deviation of the centre: pixel noise plus the unknown shape difference.
+def _centre_sigma(jac: np.ndarray, row_terms: np.ndarray, noise_variance: float, shape_spread: float) -> float:
+    """Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
 
-    The shape is held at the lamp's, so its true difference (of ``shape_spread``)
-    moves the centre by the sensitivity of the fit to it: a consider covariance. It
-    matters when only one side of the marker is lit.
+    The shape is held at the lamp's, and each row's marker brightness at the ratio
+    times the row's measured level. Their true deviations (``shape_spread``, and
+    ``_ROW_LEVEL_SPREAD`` of a row's level) move the centre by the fit's sensitivity
+    to them: a consider covariance. Both matter most when only part of the marker is lit.
+    ``jac`` (N, 6): centre, radius, blur, then the two shape stretches; ``row_terms``
+    (rows, 4): each row's marker term against the first four columns.
     """
     fitted, shape = jac[:, :4], jac[:, 4:]
     inverse = np.linalg.pinv(fitted.T @ fitted)
-    sensitivity = inverse @ fitted.T @ shape
-    covariance = noise_variance * inverse + shape_spread ** 2 * sensitivity @ sensitivity.T
+    shape_effect = inverse @ fitted.T @ shape
+    level_effect = inverse @ row_terms.T
+    covariance = (noise_variance * inverse + shape_spread ** 2 * shape_effect @ shape_effect.T
+                  + _ROW_LEVEL_SPREAD ** 2 * level_effect @ level_effect.T)
     return float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
 
 
@@ -206,8 +214,12 @@ class _MarkerModel:
         self.level = np.broadcast_to(row_level[:, None], data.shape).ravel()
         self.disc_term = (row_level[:, None] * lamp_disc).ravel()
 
-    def evaluate(self, params: np.ndarray, with_shape: bool = False) -> tuple[float, np.ndarray, np.ndarray]:
-        """(cost, residual (N,), Jacobian of the model (N, 4), or (N, 6) ``with_shape``), amplitudes eliminated."""
+    def evaluate(self, params: np.ndarray, with_consider: bool = False) -> tuple:
+        """(cost, residual (N,), Jacobian of the model (N, 4)) with the amplitudes eliminated.
+
+        ``with_consider`` widens the Jacobian by the two shape stretches (N, 6) and adds
+        each row's marker term projected on the first four columns (rows, 4).
+        """
         cx, cy, s, blur = params
         u = ((self.pixels - np.array([cx, cy])) @ self.root).reshape(-1, 2)
         gradient = u @ self.root
@@ -225,9 +237,14 @@ class _MarkerModel:
         # Kaufman's approximation: the marker term's derivatives, minus their part in the basis.
         density = coef[0] * self.level * np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
         columns = [density * gradient[:, 0] / norm, density * gradient[:, 1] / norm, density * gain, -density * z]
-        if with_shape:
+        if with_consider:
             stretch = density * gain / np.maximum(rho, 1e-9)
             columns += [-0.5 * stretch * (u[:, 0] ** 2 - u[:, 1] ** 2), -stretch * u[:, 0] * u[:, 1]]
         jac = np.array(columns)
         jac -= (jac @ basis.T) @ gram_inverse @ basis
-        return float(residual @ residual), residual, jac.T
+        cost = float(residual @ residual)
+        if not with_consider:
+            return cost, residual, jac.T
+        # The columns are orthogonal to the basis, so a row's term needs no projection here.
+        row_terms = (jac[:4] * (coef[0] * basis[0])).reshape(4, self.pixels.shape[0], -1).sum(axis=2).T
+        return cost, residual, jac.T, row_terms

@@ -8,8 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtr
 
-from vlp_ros.ellipse import conic_from_ellipse
+from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
 
 # Plateau samples per row, spread over the middle half of the row's chord.
 _FRACTIONS = np.linspace(0.25, 0.75, 9)
@@ -47,15 +48,17 @@ def row_levels(brightness: np.ndarray, threshold: float, background: float,
     return RowLevels(lit[keep], first[keep], last[keep], plateau[keep])
 
 
-def steady_rows(profile: np.ndarray, tolerance: float) -> np.ndarray:
-    """Rows that share their level with a neighbouring row, within ``tolerance`` of the brightest row.
+def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
+    """Rows that share their level with a neighbouring row within ``tolerance`` of it (plus ``floor``).
 
     Where blur has mixed a row with a neighbour of another level, its level lies between
     the two stripes' and matches neither neighbour; such a row's profile is not its own.
+    Rows of unknown (NaN) level are never steady.
     """
-    padded = np.pad(profile, 1, constant_values=np.inf)
-    closest = np.minimum(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
-    return closest <= tolerance * max(float(profile.max()), 1e-9)
+    padded = np.pad(profile, 1, constant_values=np.nan)
+    closest = np.fmin(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
+    with np.errstate(invalid='ignore'):
+        return closest <= tolerance * np.abs(profile) + floor
 
 
 def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -71,15 +74,23 @@ def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, n
     return (-b - root) / (2.0 * a), (-b + root) / (2.0 * a), discriminant > 0.0
 
 
-def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float) -> np.ndarray:
-    """Every row's level above ``background`` inside ``ellipse`` (array pixels); 0 for rows that miss it."""
+def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float, blur: float) -> np.ndarray:
+    """Every row's level above ``background`` inside ``ellipse`` (array pixels).
+
+    Near the disc's top and bottom the blurred edge dims the disc itself: the
+    plateau is divided by the blurred disc's value at the middle of the chord
+    (Gaussian ``blur``). NaN for rows that miss the ellipse or whose chord middle
+    lies within two blurs of the edge, where that correction would dominate.
+    """
     rows = np.arange(brightness.shape[0])
     left, right, crossed = ellipse_chords(ellipse, rows)
-    crossed &= (left >= 0.0) & (right <= brightness.shape[1] - 1)
-    profile = np.zeros(rows.size)
+    clearance = -geometric_distances(ellipse, np.column_stack([0.5 * (left + right), rows]))
+    crossed &= (left >= 0.0) & (right <= brightness.shape[1] - 1) & (clearance >= 2.0 * blur)
+    profile = np.full(rows.size, np.nan)
     inside = np.flatnonzero(crossed)
     cols = np.rint(left[inside, None] + (right - left)[inside, None] * _FRACTIONS[None, :]).astype(int)
-    profile[inside] = _median_of_rows(brightness[inside[:, None], cols]) - background
+    plateau = _median_of_rows(brightness[inside[:, None], cols]) - background
+    profile[inside] = plateau / ndtr(clearance[inside] / blur)
     return profile
 
 
