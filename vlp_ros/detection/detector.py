@@ -106,12 +106,19 @@ def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> 
     blobs = find_blobs(image, options.step, options.threshold_fraction, options.min_contrast,
                        options.noise_factor, options.max_stripe_rows, options.min_diameter,
                        margin=options.blur_margin + int(np.ceil(0.2 * options.min_diameter)))
-    observations = []
-    for blob in blobs:
-        observation = _observe(image, blob, options)
-        if observation is not None:
-            observations.append(observation)
-    return observations
+    observations = [o for o in (_observe(image, blob, options) for blob in blobs) if o is not None]
+    return _distinct(observations)
+
+
+def _distinct(observations: list[LampObservation]) -> list[LampObservation]:
+    """One observation per lamp: the bands of one lamp split by a long dark stripe both grow to the
+    whole lamp; of observations whose centres lie inside each other, the one with most rim points stays.
+    """
+    kept: list[LampObservation] = []
+    for candidate in sorted(observations, key=lambda o: -len(o.rim_points)):
+        if all(geometric_distances(o.ellipse, candidate.center[None])[0] > 0.0 for o in kept):
+            kept.append(candidate)
+    return kept
 
 
 def _check_image(image: np.ndarray) -> None:
@@ -227,7 +234,10 @@ def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
-    """The marker, fitted on lit, unclipped rows that share their level with a neighbour (blur has not mixed stripes)."""
+    """The marker, fitted on lit, unclipped rows that share their level with a neighbour.
+
+    A row whose level differs from both neighbours' has been mixed with them by blur.
+    """
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
