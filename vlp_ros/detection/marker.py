@@ -3,11 +3,15 @@
 The marker is lit by the lamp, so it is striped like the lamp and vanishes in fully
 dark rows: a centroid of red pixels would follow the stripes. Instead a blurred
 disc of the lamp's own elliptic shape (a small disc in the same plane projects to
-nearly the same ellipse, scaled) is fitted to the redness R - max(G, B) with a
-free amplitude per row: whatever a row's brightness, or its clipping, the marker's
-position is carried by where it starts and ends in each row and by how its chord
-widths change from row to row. The lamp's own redness (a tinted white) enters each
-row as a second amplitude times the blurred disc of the lamp.
+nearly the same ellipse, scaled) is fitted to the redness 2R - G - B, each row's
+marker brightness being one ratio times that row's measured lamp level: a lit row
+without red says the marker is not there, a dim row counts for less, and the rows
+that are lit carry the position through where the marker starts and ends in them
+and through how much of each edge row it covers. The lamp's own redness (a tinted
+white) enters each row as a second ratio times the blurred disc of the lamp.
+The result is the centre of the marker's image ellipse; it differs from the
+projection of the marker's centre by perspective, ~(marker / lamp radius)^2 times
+the same offset for the lamp (hundredths of a pixel).
 """
 from __future__ import annotations
 

@@ -4,7 +4,9 @@ A rolling shutter gives every row of the lamp one brightness, so the left and
 right ends of each lit row are true disc edges while the tops and bottoms of the
 stripes are not. Each row is normalised on its own: the edge is where the row
 crosses half-way between the background and that row's plateau inside the
-disc, which neither the modulation nor a symmetric blur can move.
+disc, which neither the modulation nor a symmetric blur can move. A clipped
+row's plateau is not its brightness, so its crossing lies outside the edge:
+``clipped_edge_offset`` measures by how much.
 """
 from __future__ import annotations
 
@@ -25,7 +27,8 @@ _MAX_POOLED_ROWS = 200
 
 @dataclass(frozen=True)
 class RimFit:
-    """The ellipse through the kept rim points, their robust spread across the edge (px)."""
+    """The ellipse through the kept rim points, their robust spread across the edge (px), and
+    how many points were left after grazing rows were dropped (before outlier rejection)."""
 
     ellipse: np.ndarray
     points: np.ndarray
