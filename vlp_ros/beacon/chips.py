@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 _COARSE_PHASES = 6
-# Largest drift of the coarse period grid across the window, in chips.
+# Chips of the window the coarse grid looks at, and the largest drift of its period steps across them.
+_FIRST_CHIPS = 24
 _COARSE_DRIFT = 0.3
 # The fine grid: 5 x 5 points a quarter of the coarse steps apart, around the coarse best.
 _FINE_STEPS = np.arange(-2, 3) / 4.0
@@ -49,12 +50,11 @@ class _Cumulative:
         self.totals = np.zeros((4, self.size + 1))
         np.cumsum(rows[:, :-1], axis=1, out=self.totals[:, 1:])
 
-    def at(self, u: np.ndarray, fields: int) -> list[np.ndarray]:
-        """The first ``fields`` cumulative sums up to positions ``u``."""
+    def at(self, u: np.ndarray, fields: int) -> np.ndarray:
+        """The first ``fields`` cumulative sums up to positions ``u`` (stacked on a new first axis)."""
         u = np.clip(u, 0.0, self.size)
         i = u.astype(np.intp)
-        frac = u - i
-        return [np.take(self.totals[f], i) + frac * np.take(self.rows[f], i) for f in range(fields)]
+        return self.totals[:fields, i] + (u - i) * self.rows[:fields, i]
 
 
 def noise_variance(z: np.ndarray, w: np.ndarray) -> float:
@@ -89,22 +89,28 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
 
 
 def _search_grid(cum: _Cumulative, period: float, tolerance: float, sigma2: float) -> tuple[float, float]:
-    step = _COARSE_DRIFT * period / cum.size
+    """A coarse grid on the window's first chips, then a fine one around its best on the whole
+    window (a period error drifts the grid in proportion to the rows it spans)."""
+    end = min(float(cum.size), _FIRST_CHIPS * period)
+    step = _COARSE_DRIFT * period / end
     count = int(np.ceil(tolerance / step))
     phase_step = period / _COARSE_PHASES
-    best = _best_grid(cum, period * (1.0 + step * np.arange(-count, count + 1)),
+    best = _best_grid(cum, end, period * (1.0 + step * np.arange(-count, count + 1)),
                       phase_step * np.arange(_COARSE_PHASES), sigma2)
-    return _best_grid(cum, best[0] * (1.0 + step * _FINE_STEPS), best[1] + phase_step * _FINE_STEPS, sigma2)
+    return _best_grid(cum, float(cum.size), best[0] * (1.0 + step * _FINE_STEPS),
+                      best[1] + phase_step * _FINE_STEPS, sigma2)
 
 
-def _best_grid(cum: _Cumulative, periods: np.ndarray, phases: np.ndarray, sigma2: float) -> tuple[float, float]:
-    """The (period, phase) pair whose chip-wise constant fit captures most energy beyond noise."""
+def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.ndarray,
+               sigma2: float) -> tuple[float, float]:
+    """The (period, phase) pair whose chip-wise constant fit of rows [0, end) captures most energy
+    beyond noise."""
     p = np.repeat(periods, len(phases))[:, None]
     f = np.tile(phases, len(periods))[:, None] % p
-    bounds = f + p * np.arange(-1, int(np.ceil(cum.size / periods.min())) + 2)
-    weight, total = (np.diff(v, axis=1) for v in cum.at(bounds, 2))
+    bounds = np.minimum(f + p * np.arange(-1.0, np.ceil(end / periods.min()) + 2.0), end)
+    weight, total = np.diff(cum.at(bounds, 2), axis=2)
     # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
-    energy = (total * total / (weight + 1e-12)).sum(axis=1) - sigma2 * np.count_nonzero(weight > 1e-9, axis=1)
+    energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=1)
     k = int(np.argmax(energy))
     return float(p[k, 0]), float(f[k, 0])
 
@@ -114,7 +120,7 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
     count = int(np.ceil((cum.size - phase) / period)) - first
     starts = phase + period * np.arange(first, first + count)
     ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
-    weight, total, square, rows = (e[count:] - e[:count] for e in ends)
+    weight, total, square, rows = ends[:, count:] - ends[:, :count]
     filled = weight > 1e-9
     mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
     # Within-chip scatter measures the noise where there is enough of it.

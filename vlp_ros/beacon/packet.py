@@ -22,6 +22,8 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReadi
                                     reading)
 
 MIN_CHIPS = 6
+# Beyond this many packets more rows add little but time: the central ones are used.
+MAX_PACKETS = 2.3
 # A best fit worse than this tail probability of its chi-square means the lamp is not sending packets.
 MISFIT_PROBABILITY = 1e-6
 
@@ -55,13 +57,13 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
         raise ValueError(f'id_bits must lie in 1..16, got {id_bits}')
     if exposure is not None and not exposure >= 0.0:
         raise ValueError(f'exposure must not be negative, got {exposure}')
-    candidates = np.arange(2 ** id_bits)
-    mapped = _mapped(candidates, known_ids)
-    prior = log_prior(mapped, unmapped_weight)
+    candidates, mapped, prior = _hypotheses(id_bits, None if known_ids is None else tuple(known_ids),
+                                            unmapped_weight)
     period = 1.0 / (chip_rate * row_time)
     margin = None if exposure is None else 0.5 * exposure / row_time + 0.25
-    levels = chip_levels(modulation(profile), np.asarray(profile.weights, dtype=float), period,
-                         timing_tolerance, margin)
+    z, w = _central_rows(modulation(profile), np.asarray(profile.weights, dtype=float),
+                         MAX_PACKETS * packet_length(id_bits) * period)
+    levels = chip_levels(z, w, period, timing_tolerance, margin)
     if levels is None:
         return no_evidence(candidates, mapped, prior, 'too few rows for a chip grid')
     filled = np.isfinite(levels.variances)
@@ -75,19 +77,40 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     return reading(candidates, mapped, log_likelihoods, prior, min_confidence)
 
 
+def _central_rows(z: np.ndarray, w: np.ndarray, rows: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lamp's rows (those with weight), cut to the central ``rows`` when there are more."""
+    used = np.flatnonzero(w > 0)
+    if used.size == 0:
+        return z[:0], w[:0]
+    first, last = int(used[0]), int(used[-1]) + 1
+    excess = last - first - int(np.ceil(rows))
+    if excess > 0:
+        first, last = first + excess // 2, last - (excess - excess // 2)
+    return z[first:last], w[first:last]
+
+
 @lru_cache(maxsize=256)
 def _misfit_limit(dof: int) -> float:
     return float(chi2.isf(MISFIT_PROBABILITY, dof))
 
 
-def _mapped(candidates: np.ndarray, known_ids: Iterable[int] | None) -> np.ndarray:
+@lru_cache(maxsize=16)
+def _hypotheses(id_bits: int, known_ids: tuple[int, ...] | None,
+                unmapped_weight: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every ID, which of them the map holds, and their log prior (read-only, shared between calls)."""
+    candidates = np.arange(2 ** id_bits)
     if known_ids is None:
-        return np.ones(len(candidates), dtype=bool)
-    known = np.fromiter(known_ids, dtype=int)
-    outside = known[(known < 0) | (known >= len(candidates))]
-    if outside.size:
-        raise ValueError(f'known ids {outside.tolist()} do not fit in {len(candidates).bit_length() - 1} bits')
-    return np.isin(candidates, known)
+        mapped = np.ones(len(candidates), dtype=bool)
+    else:
+        known = np.array(known_ids, dtype=int)
+        outside = known[(known < 0) | (known >= len(candidates))]
+        if outside.size:
+            raise ValueError(f'known ids {outside.tolist()} do not fit in {id_bits} bits')
+        mapped = np.isin(candidates, known)
+    prior = log_prior(mapped, unmapped_weight)
+    for array in (candidates, mapped, prior):
+        array.flags.writeable = False
+    return candidates, mapped, prior
 
 
 def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: int) -> tuple[np.ndarray, float]:
@@ -100,25 +123,24 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     a preamble's run of bright chips leans any envelope fitted through the stripes.
     """
     signs, fold = _codebook(id_bits)
-    length = signs.shape[1]
+    ids, length = signs.shape
     t = (k - k.mean()) / max(0.5 * float(np.ptp(k)), 1.0)
-    powers = np.stack([v, v * t, v * t * t, v * t ** 3])
+    basis = np.stack([v, v * t, v * t * t])
     # Baseline-only normal equations (the same for every hypothesis).
-    inverse = np.linalg.inv(np.array([[powers[i + j].sum() if i + j < 4 else (powers[2] * t * t).sum()
-                                       for j in range(3)] for i in range(3)]))
-    moments = powers[:3] @ x
-    weights = inverse @ moments
-    baseline_rss = v @ (x * x) - moments @ weights
-    phase = k % length
-    folded = np.concatenate([np.bincount(phase, weights=w, minlength=length)[fold]
-                             for w in (*powers[:3], v * x)], axis=1)
-    sums = (signs @ folded).reshape(len(signs), 4, length).transpose(1, 0, 2)
-    cross, xs = sums[:3], sums[3]
+    inverse = np.linalg.inv(basis @ np.stack([np.ones_like(t), t, t * t]).T)
+    moments = basis @ x
+    baseline = inverse @ moments
+    baseline_rss = v @ (x * x) - moments @ baseline
+    # Per packet position and shift: sums of the basis and of v x over the chips that land there.
+    columns = np.concatenate([basis, (v * x)[None]])
+    folded = np.bincount((k % length + length * np.arange(4)[:, None]).ravel(), weights=columns.ravel(),
+                         minlength=4 * length).reshape(4, length)[:, fold]
+    sums = (signs @ folded.transpose(1, 0, 2).reshape(length, 4 * length)).reshape(ids, 4, length)
+    cross = sums[:, :3].transpose(1, 0, 2).reshape(3, -1)
     # Schur complement of the baseline block: what the signs add beyond the baseline.
-    schur = v.sum() - np.einsum('ihl,ij,jhl->hl', cross, inverse, cross)
-    target = xs - np.tensordot(weights, cross, axes=1)
-    gain = np.where((target > 0.0) & (schur > 1e-9 * v.sum()), target * target / np.maximum(schur, 1e-300), 0.0)
-    rss = baseline_rss - gain
+    schur = np.maximum(v.sum() - (cross * (inverse @ cross)).sum(axis=0), 1e-12 * v.sum())
+    target = sums[:, 3].ravel() - baseline @ cross
+    rss = (baseline_rss - np.where(target > 0.0, target * target / schur, 0.0)).reshape(ids, length)
     best = rss.min(axis=1)
     log_likelihoods = -0.5 * best + np.log(np.exp(-0.5 * (rss - best[:, None])).sum(axis=1) / length)
     return log_likelihoods, float(best.min())

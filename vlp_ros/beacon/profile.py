@@ -14,10 +14,6 @@ import numpy as np
 
 from vlp_ros.observation import LampObservation
 
-# Relative weights of B, G, R in luma (ITU-R BT.601, as cv2.COLOR_BGR2GRAY).
-_LUMA_BGR = np.array([0.114, 0.587, 0.299], dtype=np.float32)
-
-
 @dataclass(frozen=True)
 class RowProfile:
     """Mean brightness of one lamp's usable pixels, one value per frame row.
@@ -60,42 +56,57 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
     roi = image[y0:y1, x0:x1]
     if ceiling is None and np.issubdtype(image.dtype, np.integer):
         ceiling = float(np.iinfo(image.dtype).max)
-    if roi.ndim == 3:
-        luma = roi.astype(np.float32) @ _LUMA_BGR
-        clipped = roi.max(axis=2) >= ceiling if ceiling is not None else None
-    else:
-        luma = roi.astype(np.float32)
-        clipped = roi >= ceiling if ceiling is not None else None
-    counts = mask.sum(axis=1).astype(float)
-    sums = np.einsum('ij,ij->i', luma, mask, dtype=np.float64)
+    luma = cv2.cvtColor(roi, cv2.COLOR_BGR2GRAY) if roi.ndim == 3 else roi
+    if luma.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        luma = luma.astype(np.float32)
+    counts = _row_sums(mask)
+    sums = _row_sums(cv2.bitwise_and(luma, luma, mask=mask))
     valid = np.maximum(counts, 1.0)
-    saturated = (np.zeros_like(counts) if clipped is None
-                 else np.count_nonzero(clipped & mask.astype(bool), axis=1) / valid)
+    saturated = np.zeros_like(counts)
+    if ceiling is not None and roi.max() >= ceiling:
+        peak = roi.max(axis=2) if roi.ndim == 3 else roi
+        saturated = _row_sums(((peak >= ceiling) & (mask > 0)).astype(np.uint8)) / valid
     return RowProfile(sums / valid, counts, saturated, y0)
+
+
+def _row_sums(plane: np.ndarray) -> np.ndarray:
+    # Integer sums are exact and many times faster than float64 ones in OpenCV.
+    depth = cv2.CV_32S if plane.dtype in (np.uint8, np.uint16) else cv2.CV_32F
+    return cv2.reduce(plane, 1, cv2.REDUCE_SUM, dtype=depth).ravel().astype(float)
 
 
 def _usable_pixels(observation: LampObservation, shape: tuple[int, int], edge_margin: int,
                    marker_margin: int) -> np.ndarray:
-    """float32 0/1 mask over the bbox: the disc shrunk away from its edge, minus the grown marker."""
+    """uint8 0/1 mask over the bbox: the disc shrunk away from its edge, minus the grown marker."""
     disc = np.asarray(observation.disc_mask)
     if disc.shape != shape:
         raise ValueError(f'disc_mask shape {disc.shape} does not match the bbox size {shape}')
-    mask = disc.astype(np.uint8)
+    mask = disc.view(np.uint8) if disc.dtype == bool else (disc != 0).astype(np.uint8)
     if edge_margin > 0:
         mask = cv2.erode(mask, _disc_kernel(edge_margin), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    else:
+        mask = mask.copy()
     if observation.marker_mask is not None:
         marker = np.asarray(observation.marker_mask)
         if marker.shape != shape:
             raise ValueError(f'marker_mask shape {marker.shape} does not match the bbox size {shape}')
-        marker = marker.astype(np.uint8)
-        if marker_margin > 0:
-            marker = cv2.dilate(marker, _disc_kernel(marker_margin))
-        mask &= 1 - marker
-    return mask.astype(np.float32)
+        marker = marker.view(np.uint8) if marker.dtype == bool else (marker != 0).astype(np.uint8)
+        # Only the marker's own box (grown by the margin) can change.
+        x, y, w, h = cv2.boundingRect(marker)
+        if w > 0:
+            x0, y0 = max(x - marker_margin, 0), max(y - marker_margin, 0)
+            x1, y1 = min(x + w + marker_margin, shape[1]), min(y + h + marker_margin, shape[0])
+            grown = marker[y0:y1, x0:x1]
+            if marker_margin > 0:
+                grown = cv2.dilate(grown, _disc_kernel(marker_margin), borderType=cv2.BORDER_CONSTANT,
+                                   borderValue=0)
+            mask[y0:y1, x0:x1] &= 1 - grown
+    return mask
 
 
 def _disc_kernel(radius: int) -> np.ndarray:
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    # A square: separable, so several times faster than a disc, and a pixel more cautious on diagonals.
+    return cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1))
 
 
 def modulation(profile: RowProfile, period: float | None = None, degree: int = 2) -> np.ndarray:

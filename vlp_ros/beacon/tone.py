@@ -11,7 +11,7 @@ against "some other frequency", each band as likely per hertz as any other.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import log_ndtr
+from scipy.special import stdtr
 
 from vlp_ros.beacon.profile import RowProfile, modulation
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
@@ -28,6 +28,8 @@ _START_PHASES = np.array([-0.1, 0.0, 0.1])
 _KAPPA_RANGE = (0.005, 0.5)
 # Rows on each side that a row's value may borrow from (demosaicing, blur after read-out).
 _MIX_ROWS = 2
+# How well an edge that no row straddles is placed, in rows (a uniform error over one row).
+_EDGE_QUANTUM = 0.3
 
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
@@ -75,8 +77,12 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     estimate = fit.square_wave(*start)
     if estimate is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
-    frequency, sigma = estimate[0] / fit.duration, estimate[1] / fit.duration
-    log_mass = _log_band_masses(frequency, sigma, centres - tolerance_hz, centres + tolerance_hz, search)
+    cycles, sigma, dof, exposure_rows = estimate
+    if exposure_rows < 1.0:
+        # No row straddles most edges: they are known to a row, and so is the period.
+        sigma = np.hypot(sigma, _EDGE_QUANTUM * cycles / len(w))
+    log_mass = _log_band_masses(cycles / fit.duration, sigma / fit.duration, dof,
+                                centres - tolerance_hz, centres + tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
 
 
@@ -137,21 +143,21 @@ class _ToneFit:
             return None
         return cycles, float(np.arctan2(-a, b) / (2.0 * np.pi))
 
-    def square_wave(self, cycles: float, phase: float) -> tuple[float, float] | None:
-        """(cycles, standard deviation) of the exposure-smeared square wave, fitted from a sinusoid's start.
+    def square_wave(self, cycles: float, phase: float) -> tuple[float, float, int, float] | None:
+        """(cycles, standard deviation, degrees of freedom, exposure in rows) of the exposure-smeared
+        square wave, fitted from a sinusoid's start.
 
         A row sees the square wave averaged over its exposure (kappa, a fraction of
         the period), exactly: the difference of the wave's integral, a triangle wave.
         Demosaicing, blur applied after read-out and the like mix each row with its
-        neighbours, so the template is any symmetric mix of the rows up to two away
-        (three linear amplitudes). Levenberg-Marquardt over frequency, phase and
-        kappa, with envelope and amplitudes solved exactly at every step (variable
-        projection).
+        neighbours, so the template is any symmetric mix of a row and the next ones
+        (linear amplitudes). Levenberg-Marquardt over frequency, phase and kappa,
+        with envelope and amplitudes solved exactly at every step (variable projection).
         """
         kappas = np.repeat(_START_KAPPAS, len(_START_PHASES))
         starts = np.column_stack([np.full(len(kappas), cycles),
                                   phase + 0.5 * kappas + np.tile(_START_PHASES, len(_START_KAPPAS)), kappas])
-        params = starts[int(np.argmin([self._projected(p)[0] for p in starts]))]
+        params = starts[int(np.argmin(self._fit(starts)[0]))]
         rss, residual, jacobian = self._projected(params)
         damping = 1e-3
         for _ in range(_MAX_ITERATIONS):
@@ -161,7 +167,7 @@ class _ToneFit:
             trial[2] = np.clip(trial[2], *_KAPPA_RANGE)
             trial_rss, trial_residual, trial_jacobian = self._projected(trial)
             if trial_rss < rss:
-                converged = rss - trial_rss < 1e-7 * rss
+                converged = rss - trial_rss < 1e-6 * rss
                 params, rss, residual, jacobian = trial, trial_rss, trial_residual, trial_jacobian
                 damping = max(damping / 4.0, 1e-9)
                 if converged:
@@ -173,36 +179,42 @@ class _ToneFit:
         others = jacobian[:, 1:]
         leftover = jacobian[:, 0] - others @ np.linalg.lstsq(others, jacobian[:, 0], rcond=1e-10)[0]
         information = float(leftover @ leftover)
-        dof = len(self.y) - 3 - 2 * _MIX_ROWS - 1 - 3
+        dof = len(self.y) - 3 - (_MIX_ROWS + 1) - 3
         variance = rss / max(dof, 1) / information if information > 0.0 else np.inf
-        if not np.isfinite(variance):
+        if not (np.isfinite(variance) and dof >= 1):
             return None
-        return float(params[0]), float(np.sqrt(variance))
+        return float(params[0]), float(np.sqrt(variance)), dof, float(params[2] * len(self.y) / params[0])
+
+    def _fit(self, params: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Best envelope and row mix for each parameter set (S, 3): residual sums of squares (S,),
+        and the pieces the Jacobian needs."""
+        cycles, phase, kappa = (params[:, i, None, None] for i in range(3))
+        offsets = np.arange(-_MIX_ROWS, _MIX_ROWS + 1)
+        # Rows r + j for every offset j: time in window lengths, as a row's value borrows from them.
+        tau = self.tau[None, :] + offsets[:, None] / len(self.y)
+        theta = cycles * tau - phase
+        mean = (_triangle(theta + kappa) - _triangle(theta)) / kappa
+        ring = np.abs(offsets)
+        templates = np.stack([mean[:, ring == j].sum(axis=1) for j in range(_MIX_ROWS + 1)], axis=2)
+        templates = self._residual(templates * self.sqrt_w[:, None])
+        gram = templates.transpose(0, 2, 1) @ templates
+        mix = np.linalg.solve(gram + 1e-12 * np.eye(_MIX_ROWS + 1), (self.y @ templates)[..., None])[..., 0]
+        residual = self.y - (templates @ mix[..., None])[..., 0]
+        return (residual * residual).sum(axis=1), residual, templates, gram, mix, theta, tau, mean
 
     def _projected(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase, kappa)
         with the best envelope and row mix."""
-        cycles, phase, kappa = params
-        n = len(self.y)
-        offsets = np.arange(-_MIX_ROWS, _MIX_ROWS + 1)
-        # Rows r + j for every offset j: time in periods, and the window position it moves with.
-        tau = self.tau[None, :] + offsets[:, None] / n
-        theta = cycles * tau - phase
-        mean = (_triangle(theta + kappa) - _triangle(theta)) / kappa
+        rss, residual, templates, gram, mix, theta, tau, mean = (v[0] for v in self._fit(params[None]))
+        kappa = params[2]
         late, early = _square(theta + kappa), _square(theta)
-        derivatives = [(late - early) / kappa * tau, (early - late) / kappa, (late - mean) / kappa]
-        fold = [np.abs(offsets) == j for j in range(_MIX_ROWS + 1)]
-        templates = self._residual(np.column_stack([mean[m].sum(axis=0) for m in fold]) * self.sqrt_w[:, None])
-        gram = templates.T @ templates
-        try:
-            mix = np.linalg.solve(gram, templates.T @ self.y)
-        except np.linalg.LinAlgError:
-            return float('inf'), self.y, np.zeros((n, 3))
-        residual = self.y - templates @ mix
-        weights = mix[np.abs(offsets)]
-        jacobian = self._residual(np.column_stack([weights @ d for d in derivatives]) * self.sqrt_w[:, None])
-        jacobian -= templates @ np.linalg.solve(gram, templates.T @ jacobian)
-        return float(residual @ residual), residual, jacobian
+        weights = mix[np.abs(np.arange(-_MIX_ROWS, _MIX_ROWS + 1))]
+        slope = (late - early) / kappa
+        derivatives = np.stack([weights @ (slope * tau), -(weights @ slope), weights @ ((late - mean) / kappa)],
+                               axis=1)
+        jacobian = self._residual(derivatives * self.sqrt_w[:, None])
+        jacobian -= templates @ np.linalg.solve(gram + 1e-12 * np.eye(_MIX_ROWS + 1), templates.T @ jacobian)
+        return float(rss), residual, jacobian
 
 
 def _triangle(x: np.ndarray) -> np.ndarray:
@@ -215,24 +227,18 @@ def _square(x: np.ndarray) -> np.ndarray:
     return np.where(x - np.floor(x) < 0.5, 1.0, -1.0)
 
 
-def _log_band_masses(frequency: float, sigma: float, low: np.ndarray, high: np.ndarray,
+def _log_band_masses(frequency: float, scale: float, dof: int, low: np.ndarray, high: np.ndarray,
                      search: tuple[float, float]) -> np.ndarray:
-    """log P(f in each band) and, last, log P(f in none) for f ~ N(frequency, sigma^2) cut to the
-    ``search`` range: a frequency outside it would have shown as another peak."""
-    edges = np.clip(np.concatenate([low, high, search]), search[0], search[1])
-    cdf = log_ndtr((edges - frequency) / sigma)
-    upper = log_ndtr((frequency - edges) / sigma)
-    # Mass between two edges from whichever tail is smaller, in logs so that far bands stay finite.
-    count = len(low)
-    band = _log_between(cdf[:count], cdf[count:2 * count], upper[:count], upper[count:2 * count])
-    total = _log_between(cdf[-2:-1], cdf[-1:], upper[-2:-1], upper[-1:])[0]
-    inside = float(np.exp(band - total).sum())
-    outside = np.log1p(-inside) if inside < 1.0 else -np.inf
-    return np.append(band - total, max(outside, -700.0))
+    """log P(f in each band) and, last, log P(f in none), for f following Student's t (the noise
+    level is itself estimated, from ``dof`` residual degrees of freedom) around ``frequency``, cut
+    to the ``search`` range: a frequency outside it would have shown as another peak."""
+    def mass(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # From whichever tail is smaller, so that far bands keep their (tiny) mass.
+        a, b = (np.clip(v, search[0], search[1]) for v in (a, b))
+        za, zb = (a - frequency) / scale, (b - frequency) / scale
+        return np.where(za > 0.0, stdtr(dof, -za) - stdtr(dof, -zb), stdtr(dof, zb) - stdtr(dof, za))
 
-
-def _log_between(cdf_lo: np.ndarray, cdf_hi: np.ndarray, sf_lo: np.ndarray, sf_hi: np.ndarray) -> np.ndarray:
-    """log(F(hi) - F(lo)) from log F (``cdf_*``) or log(1 - F) (``sf_*``), whichever is more exact."""
-    left = cdf_hi + np.log(-np.expm1(np.minimum(cdf_lo - cdf_hi, -1e-300)))
-    right = sf_lo + np.log(-np.expm1(np.minimum(sf_hi - sf_lo, -1e-300)))
-    return np.where(sf_lo < cdf_hi, right, left)
+    total = float(mass(np.array([search[0]]), np.array([search[1]]))[0])
+    band = np.maximum(mass(low, high), 1e-300) / max(total, 1e-300)
+    outside = max(1.0 - float(band.sum()), 1e-300)
+    return np.log(np.append(band, outside))
