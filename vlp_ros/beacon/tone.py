@@ -20,11 +20,11 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
 # Evidence (nats) by which a sinusoid must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
-_MAX_ITERATIONS = 12
+_MAX_ITERATIONS = 8
 # Exposure as a fraction of the tone's period: where the fit may start, and its bounds. Longer
 # exposures look the same: kappa and kappa + 1 give one shape, 1 - kappa its mirror image.
 _START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.45])
-_START_PHASES = np.array([-0.1, 0.0, 0.1])
+_START_PHASES = np.array([0.0])
 _KAPPA_RANGE = (0.005, 0.5)
 # Rows on each side that a row's value may borrow from (demosaicing, blur after read-out).
 _MIX_ROWS = 2
@@ -34,12 +34,13 @@ _EDGE_QUANTUM = 0.3
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
                 unmapped_weight: float = UNMAPPED_WEIGHT, min_confidence: float = MIN_CONFIDENCE,
-                min_periods: float = 1.5) -> BeaconReading:
+                min_periods: float = 2.8) -> BeaconReading:
     """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within ``tolerance_hz``.
 
     A frequency outside every band counts for the candidate ``UNMAPPED`` (prior
     ``unmapped_weight`` per hertz relative to the bands). Fewer than
-    ``min_periods`` stripe periods in view give no evidence.
+    ``min_periods`` stripe periods in view give no evidence: the envelope cannot be
+    told from the stripes over less.
     """
     if not row_time > 0.0:
         raise ValueError(f'row_time must be positive, got {row_time}')
@@ -65,7 +66,9 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
         return no_evidence(candidates, mapped, prior, 'too few rows')
     window = slice(used[0], used[-1] + 1)
     w = w[window]
-    fit = _ToneFit(modulation(profile)[window], w, row_time)
+    values = np.asarray(profile.values, dtype=float)[window]
+    # A first look needs no envelope beyond the fit's own (quadratic) one.
+    fit = _ToneFit(values / np.average(values, weights=w) - 1.0, w, row_time)
     search = (0.5 * centres.min(), min(1.5 * centres.max(), 0.9 * nyquist))
     start = fit.start(search[0] * fit.duration, search[1] * fit.duration)
     if start is None:
@@ -73,7 +76,7 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if start[0] < min_periods:
         return no_evidence(candidates, mapped, prior, f'fewer than {min_periods} stripe periods in view')
     # The envelope through the stripes leans on them; one over whole periods does not.
-    fit = _ToneFit(modulation(profile, period=len(w) / start[0])[window], w, row_time)
+    fit.set_profile(modulation(profile, period=len(w) / start[0])[window])
     estimate = fit.square_wave(*start)
     if estimate is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
@@ -81,6 +84,8 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if exposure_rows < 1.0:
         # No row straddles most edges: they are known to a row, and so is the period.
         sigma = np.hypot(sigma, _EDGE_QUANTUM * cycles / len(w))
+    if sigma / fit.duration > search[1] - search[0]:
+        return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
     log_mass = _log_band_masses(cycles / fit.duration, sigma / fit.duration, dof,
                                 centres - tolerance_hz, centres + tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
@@ -100,6 +105,10 @@ class _ToneFit:
         basis = np.stack([np.ones_like(u), u, u * u], axis=1) * self.sqrt_w[:, None]
         # Orthonormal envelope basis: projecting it out leaves what the tone must explain.
         self.envelope, _ = np.linalg.qr(basis)
+        self.set_profile(z)
+
+    def set_profile(self, z: np.ndarray) -> None:
+        """Fit another profile over the same rows and weights."""
         self.y = self._residual(z * self.sqrt_w)
         self.null_rss = float(self.y @ self.y)
 
@@ -120,8 +129,8 @@ class _ToneFit:
     def start(self, low: float, high: float) -> tuple[float, float] | None:
         """(cycles, phase) of the best sinusoid between ``low`` and ``high`` cycles per window.
 
-        None unless it beats the envelope alone by MIN_TONE_EVIDENCE. The FFT's peak
-        is refined by parabolas through exact fits on ever finer grids.
+        None unless it beats the envelope alone by MIN_TONE_EVIDENCE. The FFT's peak is
+        only a start: the square-wave fit refines it.
         """
         n = len(self.y)
         size = _PAD * int(2 ** np.ceil(np.log2(n)))
@@ -130,13 +139,14 @@ class _ToneFit:
         inside = np.flatnonzero((bins >= low) & (bins <= high))
         if inside.size == 0:
             return None
-        cycles, step = bins[inside[np.argmax(spectrum[inside])]], bins[1]
-        for _ in range(2):
-            rss = self.sinusoid(np.maximum(cycles + step * np.array([-1.0, 0.0, 1.0]), 0.5 * bins[1]))[0]
-            curvature = rss[0] - 2.0 * rss[1] + rss[2]
-            if curvature > 0.0:
-                cycles += float(np.clip(-0.5 * step * (rss[2] - rss[0]) / curvature, -step, step))
-            step /= 4.0
+        peak = int(inside[np.argmax(spectrum[inside])])
+        cycles = bins[peak]
+        if 0 < peak < len(spectrum) - 1:
+            # Parabola through the log spectrum around the peak (a Gaussian-like lobe).
+            left, centre, right = np.log(spectrum[peak - 1:peak + 2] + 1e-300)
+            curvature = left - 2.0 * centre + right
+            if curvature < 0.0:
+                cycles += bins[1] * float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5))
         rss, a, b = (float(v[0]) for v in self.sinusoid(np.array([cycles])))
         sigma2 = max(rss / max(n - 5, 1), 1e-15 * self.null_rss, 1e-300)
         if (self.null_rss - rss) / (2.0 * sigma2) < MIN_TONE_EVIDENCE:

@@ -214,7 +214,8 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
 
 def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, frames_needed: list[int],
                 timer: Timer, max_frames: int = 10) -> None:
-    """Follow one lamp over frames until its ID is certain (or ``max_frames``); log when it was."""
+    """Follow one lamp over frames until its ID is certain (or ``max_frames``); log when it was
+    (for lamps in the map)."""
     lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)))
     scene, decode = packet_setup(rng, condition, lamp_id)
     tracker = EvidenceTracker(MAP_IDS)
@@ -226,10 +227,9 @@ def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, fr
         reading = timed_read(frame, observation, decode, timer)
         decided = tracker.update([observation], [reading], frame_index * FRAME_PERIOD)[0]
         if decided is not None:
-            frames_needed.append(frame_index + 1)
             break
-    else:
-        frames_needed.append(max_frames + 1)
+    if mapped:
+        frames_needed.append(frame_index + 1 if decided is not None else max_frames + 1)
     tally.add(lamp_id, mapped, reading, decided)
 
 
