@@ -1,8 +1,9 @@
 """Shared harness for tests that start the real vlp_ros executables as separate processes.
 
 Isolation: every test run holds its own ROS_DOMAIN_ID (a lock file per domain, so
-concurrent runs on one machine never share one), discovery stays on loopback, logs
-go under build/, and every process a test starts is stopped by PID afterwards.
+concurrent runs on one machine never share one), DDS traffic stays on loopback and
+shared memory (config/fastdds_loopback.xml), logs go under build/, and every
+process a test starts is stopped by PID afterwards.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / 'shared' / 'data'
+LOOPBACK_PROFILE = ROOT / 'config' / 'fastdds_loopback.xml'
 _domain_lock = None
 
 
@@ -39,8 +41,11 @@ def _claim_domain_id() -> int:
 def pytest_configure(config: pytest.Config) -> None:
     # Set before any rclpy.init in this process and inherited by every child.
     os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    os.environ['FASTDDS_BUILTIN_TRANSPORTS'] = 'LARGE_DATA'
+    # Not ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: it swaps in transports that drop
+    # camera-sized best-effort messages (see the profile's comment).
+    os.environ.pop('ROS_AUTOMATIC_DISCOVERY_RANGE', None)
+    os.environ.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
+    os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] = str(LOOPBACK_PROFILE)
     os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
     log_dir = ROOT / 'build' / 'test_logs' / str(os.getpid())
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -56,13 +61,13 @@ def executable(name: str) -> Path:
 class RosProcess:
     """A started executable whose output is kept in files for assertions and failure reports."""
 
-    def __init__(self, args: list[str], workdir: Path, label: str) -> None:
+    def __init__(self, args: list[str], workdir: Path, label: str, env: dict[str, str] | None = None) -> None:
         self.args = args
         self.stdout_path = workdir / f'{label}.stdout'
         self.stderr_path = workdir / f'{label}.stderr'
         with open(self.stdout_path, 'wb') as out, open(self.stderr_path, 'wb') as err:
             self.popen = subprocess.Popen(args, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
-                                          start_new_session=True)
+                                          start_new_session=True, env=env)
 
     @property
     def pid(self) -> int:
@@ -98,12 +103,12 @@ class RosProcess:
 
 @pytest.fixture
 def start_process(tmp_path: Path) -> Iterator[Callable[..., RosProcess]]:
-    """start_process('locator', '--ros-args', ...) runs an installed executable; all are stopped after the test."""
+    """start_process('locator', '--ros-args', ..., env=None) runs an installed executable; all are stopped after the test."""
     started: list[RosProcess] = []
 
-    def start(name: str, *args: str) -> RosProcess:
+    def start(name: str, *args: str, env: dict[str, str] | None = None) -> RosProcess:
         path = executable(name)
-        process = RosProcess([str(path), *map(str, args)], tmp_path, f'{name}{len(started)}')
+        process = RosProcess([str(path), *map(str, args)], tmp_path, f'{name}{len(started)}', env)
         started.append(process)
         return process
 

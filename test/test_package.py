@@ -26,7 +26,8 @@ def test_ros2_run_resolves_installed_executable(name: str) -> None:
 
 def _write_params(tmp_path, node_name: str, frame: str):
     path = tmp_path / 'params.yaml'
-    path.write_text(f'{node_name}:\n  ros__parameters:\n    map_frame: {frame}\n')
+    path.write_text(f'{node_name}:\n  ros__parameters:\n    map_frame: {frame}\n'
+                    '    leds: {names: [a], a: {id: 1, position: [0, 0, 2], radius: 0.05}}\n')
     return path
 
 

@@ -1,21 +1,230 @@
-"""The `locator` node: camera images in, camera poses out."""
+"""The `locator` node: camera images in, camera poses out.
+
+Callbacks only keep the newest frame; one worker thread decodes it, hands it to
+the ROS-free pipeline (vlp_ros.pipeline) and publishes. Frames that arrive while
+the worker is busy replace the waiting one, so latency never grows.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from collections import deque
+
+import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Pose as PoseMsg
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
+from std_msgs.msg import Header
+
+from vlp_ros.camera import CameraModel
+from vlp_ros.frame_stats import FrameStats
+from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
+from vlp_ros.image_message import MessageFormatError, parse_compressed_image, parse_image
+from vlp_ros.locator_config import ConfigError, settings_from_parameters
+from vlp_ros.nodes.diagnostics import diagnostic_array
+from vlp_ros.nodes.parameters import declare_locator_parameters
+from vlp_ros.pipeline import FrameResult, Pipeline
+from vlp_ros.pose import Pose
+
+THROTTLE_S = 5.0
 
 
 class Locator(Node):
     def __init__(self) -> None:
         super().__init__('vlp_locator')
-        self.declare_parameter('map_frame', 'map')
+        self.settings = settings_from_parameters(declare_locator_parameters(self))
+        self.pipeline = Pipeline(self.settings)
+        self.stats = FrameStats()
+        self._camera: CameraModel | None = None
+        self._imu: deque[tuple[int, np.ndarray]] = deque(maxlen=400)
+        self._imu_to_camera = Rotation.from_quat(self.settings.imu_rotation).as_matrix()
+        self._pending: tuple[bytes, float] | None = None
+        self._wake = threading.Condition()
+        self._running = True
+
+        self.pose_pub = self.create_publisher(PoseStamped, 'vlp/pose', 10)
+        self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', 10)
+        # One Header per processed frame (stamp = image stamp, frame_id = outcome), so a
+        # player can wait for each frame to be answered even when it yields no pose.
+        self.processed_pub = self.create_publisher(Header, 'vlp/processed', 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._subscribe()
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name='vlp_locator_worker', daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f'locating with {len(self.settings.lamps)} lamps ({self.settings.beacon.mode} beacon, '
+            f'{self.settings.solver} solver) on {self._image_topic}')
+
+    def _subscribe(self) -> None:
+        reliability = (ReliabilityPolicy.RELIABLE if self.settings.qos_reliability == 'reliable'
+                       else ReliabilityPolicy.BEST_EFFORT)
+        qos = QoSProfile(depth=self.settings.qos_depth, reliability=reliability)
+        if reliability == ReliabilityPolicy.BEST_EFFORT:
+            self._warn_without_large_data_transport()
+        if self.settings.image_transport == 'compressed':
+            # Derived from the resolved name so that remapping image_raw moves it too.
+            self._image_topic = self.resolve_topic_name('image_raw') + '/compressed'
+            self.create_subscription(CompressedImage, self._image_topic, self._on_frame, qos, raw=True)
+        else:
+            self._image_topic = self.resolve_topic_name('image_raw')
+            self.create_subscription(Image, 'image_raw', self._on_frame, qos, raw=True)
+        # Best effort matches both reliable and best-effort publishers.
+        self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, qos_profile_sensor_data)
+        if self.settings.imu_enabled:
+            self.create_subscription(Imu, 'imu', self._on_imu, QoSProfile(
+                depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
+
+    def _warn_without_large_data_transport(self) -> None:
+        large_data = os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', '').upper().startswith('LARGE_DATA')
+        # A profiles file means the transports were configured on purpose (e.g. config/fastdds_loopback.xml).
+        profiles = os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE') or os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+        if not (large_data or profiles):
+            self.get_logger().warning(
+                '\n*** FASTDDS_BUILTIN_TRANSPORTS is not LARGE_DATA: with Fast DDS defaults a best-effort '
+                'subscriber silently receives NOTHING for images over ~512 KB. ***\n'
+                '*** export FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA (or source scripts/setup_env.sh) for '
+                'this node and the camera driver, or set qos.reliability: reliable. ***')
+
+    def _on_frame(self, raw: bytes) -> None:
+        self.stats.frame_received()
+        with self._wake:
+            if self._pending is not None:
+                self.stats.superseded += 1
+            self._pending = (raw, time.monotonic())
+            self._wake.notify()
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        if msg.k[0] <= 0.0:
+            return
+        if msg.distortion_model not in ('plumb_bob', '') and any(msg.d):
+            self.get_logger().error(
+                f'camera_info distortion model {msg.distortion_model!r} is not supported (plumb_bob only)',
+                throttle_duration_sec=THROTTLE_S)
+            return
+        self._camera = CameraModel(msg.width, msg.height, np.array(msg.k), np.array(msg.d[:5]))
+
+    def _on_imu(self, msg: Imu) -> None:
+        a = msg.linear_acceleration
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self._imu.append((stamp, self._imu_to_camera @ np.array([a.x, a.y, a.z])))
+
+    def _up_from_imu(self, stamp_ns: int) -> np.ndarray | None:
+        """Measured up direction in the camera frame from the IMU sample nearest the image stamp."""
+        if not self.settings.imu_enabled or not self._imu:
+            return None
+        sample_stamp, specific_force = min(self._imu, key=lambda s: abs(s[0] - stamp_ns))
+        if abs(sample_stamp - stamp_ns) > self.settings.imu_max_age * 1e9:
+            return None
+        norm = np.linalg.norm(specific_force)
+        return specific_force / norm if norm > 1.0 else None
+
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while self._pending is None and self._running:
+                    self._wake.wait(0.5)
+                if not self._running:
+                    return
+                raw, received = self._pending
+                self._pending = None
+            try:
+                self._process(raw, received)
+            except Exception as err:  # a bad frame must never take the node down
+                self.stats.frame_dropped('internal_error')
+                self.get_logger().error(f'frame dropped after an internal error: {err!r}',
+                                        throttle_duration_sec=THROTTLE_S)
+
+    def _process(self, raw: bytes, received: float) -> None:
+        try:
+            if self.settings.image_transport == 'compressed':
+                msg = parse_compressed_image(raw)
+                decode = decode_compressed
+            else:
+                msg = parse_image(raw)
+                decode = pixels_of
+            pixels = decode(msg)
+        except (MessageFormatError, ImageConversionError) as err:
+            self.stats.frame_dropped('bad_frame')
+            self.get_logger().error(f'frame dropped: {err}', throttle_duration_sec=THROTTLE_S)
+            return
+        camera = self._camera
+        if camera is None:
+            self.stats.frame_dropped('no_camera_info')
+            self.get_logger().warning('no valid camera_info yet (K[0] > 0): frames are skipped',
+                                      throttle_duration_sec=THROTTLE_S)
+            return
+        if (camera.width, camera.height) != (pixels.shape[1], pixels.shape[0]):
+            self.stats.frame_dropped('size_mismatch')
+            self.get_logger().error(
+                f'frame dropped: image is {pixels.shape[1]}x{pixels.shape[0]} but camera_info says '
+                f'{camera.width}x{camera.height}', throttle_duration_sec=THROTTLE_S)
+            return
+        result = self.pipeline.process(pixels, camera, msg.stamp_ns * 1e-9, self._up_from_imu(msg.stamp_ns))
+        self._publish(result, msg.stamp_ns)
+        self.stats.ids_seen(result.decoded_ids, result.unknown_ids)
+        self.stats.frame_processed(result.outcome, time.monotonic() - received)
+
+    def _publish(self, result: FrameResult, stamp_ns: int) -> None:
+        header = Header(frame_id=self.settings.map_frame)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        if result.pose is not None:
+            self.pose_pub.publish(PoseStamped(header=header, pose=_pose_message(result.pose)))
+            with_cov = PoseWithCovarianceStamped(header=header)
+            with_cov.pose.pose = _pose_message(result.pose)
+            with_cov.pose.covariance = _covariance_of(result.pose)
+            self.pose_cov_pub.publish(with_cov)
+        processed = Header(stamp=header.stamp, frame_id=result.outcome)
+        self.processed_pub.publish(processed)
+
+    def _publish_diagnostics(self) -> None:
+        array = diagnostic_array(self.stats, self._camera is not None, self._image_topic)
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
+
+    def stop(self) -> None:
+        with self._wake:
+            self._running = False
+            self._wake.notify()
+        self._worker.join(timeout=5.0)
+
+
+def _pose_message(pose: Pose) -> PoseMsg:
+    msg = PoseMsg()
+    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in pose.position)
+    q = pose.quaternion_xyzw()
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (float(v) for v in q)
+    return msg
+
+
+def _covariance_of(pose: Pose) -> list[float]:
+    """Row-major 6x6; -1 in the first element marks an unknown covariance (REP 145 style)."""
+    if pose.covariance is None:
+        return [-1.0] + [0.0] * 35
+    return [float(v) for v in np.asarray(pose.covariance).reshape(36)]
 
 
 def main(args: list[str] | None = None) -> None:
     rclpy.init(args=args)
-    node = Locator()
+    try:
+        node = Locator()
+    except ConfigError as err:
+        print(f'[vlp_locator] parameter error: {err}', file=sys.stderr)
+        rclpy.try_shutdown()
+        sys.exit(2)
     try:
         rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        node.stop()
         node.destroy_node()
         rclpy.try_shutdown()

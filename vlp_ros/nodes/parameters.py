@@ -1,0 +1,74 @@
+"""Declaring the locator's parameters on a node and reading them back as plain values."""
+from __future__ import annotations
+
+import array
+import copy
+
+from typing import Any
+
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from vlp_ros.locator_config import LAMP_PARAMETERS, PARAMETERS, ConfigError, ParameterSpec
+
+_STATIC_TYPES = {
+    'string': Parameter.Type.STRING,
+    'string_array': Parameter.Type.STRING_ARRAY,
+    'integer': Parameter.Type.INTEGER,
+    'bool': Parameter.Type.BOOL,
+}
+_INTEGER_RANGES = {'beacon.id_bits': (1, 16), 'qos.depth': (1, 1000)}
+# Parameters every rclpy node may be given besides its own.
+_INFRASTRUCTURE = ('use_sim_time', 'start_type_description_service', 'qos_overrides.')
+
+
+def _descriptor(name: str, spec: ParameterSpec) -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(name=name, description=spec.description, read_only=True)
+    if spec.kind in ('number', 'number_array'):
+        # Dynamic so that integers in a params file are accepted where doubles are meant.
+        descriptor.dynamic_typing = True
+    else:
+        descriptor.type = _STATIC_TYPES[spec.kind].value
+    if name in _INTEGER_RANGES:
+        low, high = _INTEGER_RANGES[name]
+        descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=1)]
+    return descriptor
+
+
+def _declare(node: Node, name: str, spec: ParameterSpec) -> Any:
+    descriptor = _descriptor(name, spec)
+    default = spec.default
+    if default is None or default == []:
+        # No value to infer a type from: declare the type (static) or nothing (dynamic).
+        default = _STATIC_TYPES.get(spec.kind)
+    try:
+        value = node.declare_parameter(name, default, descriptor).value
+    except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+        raise ConfigError(name, str(err).splitlines()[0]) from err
+    if value is None:
+        return copy.deepcopy(spec.default)
+    return list(value) if isinstance(value, (tuple, array.array)) else value
+
+
+def declare_locator_parameters(node: Node) -> dict[str, Any]:
+    """Declare every locator parameter (lamps as listed in leds.names) and return their values.
+
+    Overrides that match no declared parameter are returned too when they look like
+    lamp fields (so the validation can name a misspelt lamp) and rejected otherwise.
+    """
+    values = {spec.name: _declare(node, spec.name, spec) for spec in PARAMETERS}
+    for lamp in values['leds.names'] or []:
+        for spec in LAMP_PARAMETERS:
+            name = f'leds.{lamp}.{spec.name}'
+            values[name] = _declare(node, name, spec)
+    # rclpy has no public API listing the overrides it was given (only declared ones).
+    for name, parameter in node._parameter_overrides.items():
+        if name in values or name.startswith(_INFRASTRUCTURE):
+            continue
+        if name.startswith('leds.'):
+            values[name] = parameter.value
+        else:
+            raise ConfigError(name, 'unknown parameter (a typo?)')
+    return values

@@ -1,0 +1,97 @@
+"""One frame to one pose: detection, beacon decoding, solving and disambiguation (ROS-free).
+
+This is everything the locator node does between converting an image and
+publishing; the evaluation tools call it the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, row_profile
+from vlp_ros.beacon.evidence import EvidenceTracker
+from vlp_ros.camera import CameraModel
+from vlp_ros.detection import detect_lamps
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.locator_config import LocatorSettings
+from vlp_ros.observation import LampObservation
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
+from vlp_ros.solvers.candidates import Choice
+from vlp_ros.solvers.fusion import solve_lamps
+from vlp_ros.solvers.paper import solve_lamp_paper
+
+NO_LAMP = 'no_lamp'
+NO_ID = 'no_id'
+UNKNOWN_ID = 'unknown_id'
+
+
+@dataclass
+class FrameResult:
+    """``outcome`` is 'pose' when ``pose`` is set, else why there is none."""
+
+    pose: Pose | None
+    outcome: str
+    decoded_ids: list[int] = field(default_factory=list)
+    unknown_ids: int = 0
+    lamps_detected: int = 0
+    detail: str = ''
+
+
+class Pipeline:
+    """Stateful across frames: beacon evidence per tracked lamp, and the last pose for continuity."""
+
+    def __init__(self, settings: LocatorSettings) -> None:
+        self.settings = settings
+        self.tracker = EvidenceTracker(known_ids=settings.lamps.ids)
+        self._recent: tuple[Pose, float] | None = None
+
+    def process(self, image: np.ndarray, camera: CameraModel, stamp: float,
+                gravity_up: np.ndarray | None = None) -> FrameResult:
+        """Pose of the camera for one bgr8/mono8 frame taken at ``stamp`` (s)."""
+        observations = detect_lamps(image)
+        if not observations:
+            return FrameResult(None, NO_LAMP)
+        readings = [self._read_beacon(image, obs) for obs in observations]
+        ids = self.tracker.update(observations, readings, stamp)
+        pairs = [(obs, self.settings.lamps.get(i)) for obs, i in zip(observations, ids)
+                 if i is not None and i in self.settings.lamps]
+        unknown = sum(r.unknown for r in readings)
+        decoded = [lamp.id for _, lamp in pairs]
+        if not pairs:
+            outcome = UNKNOWN_ID if unknown else NO_ID
+            return FrameResult(None, outcome, decoded, unknown, len(observations))
+        choice = self._solve(pairs, camera, stamp, gravity_up)
+        if choice.pose is None:
+            return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail)
+        self._recent = (choice.pose, stamp)
+        return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value)
+
+    def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
+        beacon = self.settings.beacon
+        profile = row_profile(image, observation)
+        if beacon.mode == 'tone':
+            return decode_tone(profile, beacon.row_time, self.settings.lamps.frequencies(),
+                               beacon.frequency_tolerance)
+        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self.settings.lamps.ids)
+
+    def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
+        s = self.settings
+        up = []
+        if s.prior_up is not None:
+            up.append((s.prior_up, s.prior_tolerance))
+        if gravity_up is not None:
+            up.append((np.asarray(gravity_up, dtype=float), s.imu_tolerance))
+        recent = None
+        if self._recent is not None and 0.0 <= stamp - self._recent[1] <= s.continuity_max_age:
+            recent = self._recent[0]
+        return DisambiguationHints(up_in_camera=up, recent_pose=recent, recent_gate_m=s.continuity_gate)
+
+    def _solve(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
+               gravity_up: np.ndarray | None) -> Choice:
+        if self.settings.solver == 'paper':
+            observation, lamp = max(pairs, key=lambda pair: pair[0].ellipse[2])
+            # The paper's two mirror solutions are told apart by the same hints as ours.
+            return choose_candidate(solve_lamp_paper(observation, lamp, camera), self._hints(stamp, gravity_up))
+        return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))
