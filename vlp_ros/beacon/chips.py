@@ -50,11 +50,13 @@ class _Cumulative:
         self.totals = np.zeros((4, self.size + 1))
         np.cumsum(rows[:, :-1], axis=1, out=self.totals[:, 1:])
 
-    def at(self, u: np.ndarray, fields: int) -> np.ndarray:
-        """The first ``fields`` cumulative sums up to positions ``u`` (stacked on a new first axis)."""
+    def at(self, u: np.ndarray, fields: int) -> list[np.ndarray]:
+        """The first ``fields`` cumulative sums up to positions ``u``."""
         u = np.clip(u, 0.0, self.size)
         i = u.astype(np.intp)
-        return self.totals[:fields, i] + (u - i) * self.rows[:fields, i]
+        frac = u - i
+        # np.take: several times faster than fancy indexing for these sizes.
+        return [np.take(self.totals[f], i) + frac * np.take(self.rows[f], i) for f in range(fields)]
 
 
 def noise_variance(z: np.ndarray, w: np.ndarray) -> float:
@@ -108,7 +110,7 @@ def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.nda
     p = np.repeat(periods, len(phases))[:, None]
     f = np.tile(phases, len(periods))[:, None] % p
     bounds = np.minimum(f + p * np.arange(-1.0, np.ceil(end / periods.min()) + 2.0), end)
-    weight, total = np.diff(cum.at(bounds, 2), axis=2)
+    weight, total = (v[:, 1:] - v[:, :-1] for v in cum.at(bounds, 2))
     # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
     energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=1)
     k = int(np.argmax(energy))
@@ -120,7 +122,7 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
     count = int(np.ceil((cum.size - phase) / period)) - first
     starts = phase + period * np.arange(first, first + count)
     ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
-    weight, total, square, rows = ends[:, count:] - ends[:, :count]
+    weight, total, square, rows = (e[count:] - e[:count] for e in ends)
     filled = weight > 1e-9
     mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
     # Within-chip scatter measures the noise where there is enough of it.

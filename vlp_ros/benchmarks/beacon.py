@@ -75,16 +75,18 @@ class Tally:
     wrong: int = 0
     wrong_examples: list[str] = field(default_factory=list)
 
-    def add(self, true_id: int, mapped: bool, reading: BeaconReading, lamp_id: int | None = None) -> None:
-        decided = reading.lamp_id if lamp_id is None else lamp_id
+    def add(self, true_id: int, mapped: bool, decided: int | None, unknown: bool, confidence: float) -> None:
         self.trials += 1
         self.mapped += mapped
         self.unmapped += not mapped
         self.correct += mapped and decided == true_id
-        self.recognised += (not mapped) and reading.unknown
+        self.recognised += (not mapped) and unknown
         if decided is not None and (decided != true_id or not mapped):
             self.wrong += 1
-            self.wrong_examples.append(f'{true_id}->{decided} ({reading.confidence:.6f})')
+            self.wrong_examples.append(f'{true_id}->{decided} ({confidence:.6f})')
+
+    def add_reading(self, true_id: int, mapped: bool, reading: BeaconReading) -> None:
+        self.add(true_id, mapped, reading.lamp_id, reading.unknown, reading.confidence)
 
     def row(self, label: str) -> str:
         rate = 100.0 * self.correct / max(self.mapped, 1)
@@ -172,7 +174,7 @@ def packet_trial(rng: np.random.Generator, condition: Condition, tally: Tally, t
     scene, decode = packet_setup(rng, condition, lamp_id)
     frame, observation = observe(scene, rng)
     if observation is not None:
-        tally.add(lamp_id, mapped, timed_read(frame, observation, decode, timer))
+        tally.add_reading(lamp_id, mapped, timed_read(frame, observation, decode, timer))
 
 
 def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int) -> tuple[Scene, Callable]:
@@ -209,7 +211,7 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
     if observation is not None:
         reading = timed_read(frame, observation,
                              lambda profile: decode_tone(profile, nominal_row_time, TONES, TOLERANCE_HZ), timer)
-        tally.add(lamp_id, mapped, reading)
+        tally.add_reading(lamp_id, mapped, reading)
 
 
 def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, frames_needed: list[int],
@@ -219,7 +221,7 @@ def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, fr
     lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)))
     scene, decode = packet_setup(rng, condition, lamp_id)
     tracker = EvidenceTracker(MAP_IDS)
-    decided, reading = None, None
+    decided = None
     for frame_index in range(max_frames):
         frame, observation = observe(scene, rng)
         if observation is None:
@@ -230,7 +232,8 @@ def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, fr
             break
     if mapped:
         frames_needed.append(frame_index + 1 if decided is not None else max_frames + 1)
-    tally.add(lamp_id, mapped, reading, decided)
+    decision = tracker.decisions[0]
+    tally.add(lamp_id, mapped, decided, decision.unknown, decision.confidence)
 
 
 PACKET_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
