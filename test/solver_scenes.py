@@ -44,3 +44,14 @@ def observe(lamp: Lamp, pose: Pose, camera: CameraModel, rim_count: int = 120, r
             with_marker: bool = True) -> LampObservation:
     """The lamp's exactly projected rim points and marker, plus Gaussian noise of the stated sigmas if ``rng``."""
     return synthetic_observation(lamp, pose, camera, rim_count, rim_sigma, marker_sigma, rng, with_marker)
+
+
+def measured_up(pose: Pose, sigma: float = 0.0, rng: np.random.Generator | None = None,
+                error: np.ndarray = np.zeros(2)) -> np.ndarray:
+    """``pose``'s up direction in the camera, turned by ``error`` (rad, about two fixed axes
+    perpendicular to it) plus N(0, sigma) about each of them if ``rng``."""
+    up = pose.up_in_camera()
+    first = np.cross(up, [1.0, 0.0, 0.0])
+    first /= np.linalg.norm(first)
+    turn = np.asarray(error, dtype=float) + (rng.normal(0.0, sigma, 2) if rng is not None else 0.0)
+    return Rotation.from_rotvec(turn[0] * first + turn[1] * np.cross(up, first)).apply(up)

@@ -4,8 +4,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from solver_scenes import camera_4k, looking_up, observe, small_lamp
-from vlp_ros.solvers.ambiguity import COST_GAP, DisambiguationHints, choose_candidate
+from solver_scenes import camera_4k, looking_up, measured_up, observe, small_lamp
+from vlp_ros.solvers.ambiguity import COST_GAP, DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.perspective import solve_lamp
 
@@ -40,6 +40,44 @@ def test_gravity_picks_the_candidate_whose_up_agrees(pair) -> None:
     assert _angle(twin.pose.up_in_camera(), up) > np.radians(10.0)
     choice = choose_candidate([twin, right], DisambiguationHints(up_in_camera=[(9.81 * up, np.radians(5.0))]))
     assert choice.pose is right.pose and choice.reason is Reason.UP_DIRECTION
+
+
+def test_measured_gravity_leaves_no_competitive_candidate_that_disagrees() -> None:
+    lamp = small_lamp()
+    sigma = np.radians(0.5)
+    rng = np.random.default_rng(12)
+    observation = observe(lamp, TRUTH, camera_4k(), rng=rng)
+    # The gate alone is too wide to reject the twin (it is ~20 degrees off): only the measurement tells.
+    hints = DisambiguationHints(up_in_camera=[UpHint(measured_up(TRUTH, sigma, rng), np.radians(30.0), sigma)])
+    candidates = solve_lamp(observation, lamp, camera_4k(), hints.up_measurements())
+    assert all(c.cost > candidates[0].cost + COST_GAP for c in candidates[1:])
+    choice = choose_candidate(candidates, hints)
+    assert choice.ok and choice.pose.position_error(TRUTH) < 0.02
+
+
+def test_a_measured_up_still_gates(pair) -> None:
+    # Gravity 10 degrees off, away from the twin, gated at 5 degrees: the lamp contradicts it,
+    # so it is left out of the fit, and then no candidate passes its gate.
+    lamp = small_lamp()
+    right, twin = pair
+    up = TRUTH.up_in_camera()
+    away = up - (twin.pose.up_in_camera() - up)
+    away -= (away @ up) * up
+    off = np.cos(np.radians(10.0)) * up - np.sin(np.radians(10.0)) * away / np.linalg.norm(away)
+    hints = DisambiguationHints(up_in_camera=[UpHint(off, np.radians(5.0), np.radians(0.5))])
+    observation = observe(lamp, TRUTH, camera_4k(), rng=np.random.default_rng(11))
+    choice = choose_candidate(solve_lamp(observation, lamp, camera_4k(), hints.up_measurements()), hints)
+    assert choice.pose is None and choice.reason is Reason.NO_CANDIDATE_AGREES
+
+
+def test_up_hints_as_tuples_and_their_measurements() -> None:
+    hints = DisambiguationHints(up_in_camera=[(np.array([0.0, 0.0, 2.0]), 0.3),
+                                              (np.array([0.0, 1.0, 1.0]), 0.2, 0.01)])
+    assert all(isinstance(hint, UpHint) for hint in hints.up_in_camera)
+    assert np.allclose(hints.up_in_camera[0].vector, [0.0, 0.0, 1.0])
+    assert hints.up_in_camera[0].measurement is None
+    (measurement,) = hints.up_measurements()
+    assert measurement.sigma == 0.01 and np.allclose(measurement.direction, np.array([0.0, 1.0, 1.0]) / np.sqrt(2))
 
 
 def test_a_hint_both_candidates_satisfy_does_not_decide(pair) -> None:
@@ -105,9 +143,12 @@ def test_single_and_coincident_candidates_need_no_hint(pair) -> None:
 
 
 def test_bad_hints_raise() -> None:
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='direction'):
         DisambiguationHints(up_in_camera=[(np.zeros(3), 0.1)])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match='tolerance'):
         DisambiguationHints(up_in_camera=[(np.array([0.0, 0.0, 1.0]), 0.0)])
+    for sigma in (0.0, -0.01, float('nan')):
+        with pytest.raises(ValueError, match='sigma'):
+            UpHint(np.array([0.0, 0.0, 1.0]), 0.3, sigma)
     with pytest.raises(ValueError):
         DisambiguationHints(recent_gate_m=-1.0)

@@ -4,9 +4,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, observe, small_lamp
+from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
 from vlp_ros.lamp_map import Lamp
-from vlp_ros.solvers.ambiguity import DisambiguationHints
+from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.fusion import pnp_starts, solve_lamps
 
@@ -59,6 +59,22 @@ def test_hints_still_veto_a_multi_lamp_pose() -> None:
     hints = DisambiguationHints(up_in_camera=[(-WIDE_TRUTH.up_in_camera(), np.radians(10.0))])
     choice = solve_lamps(_pairs(2, (True, True)), camera_wide(), hints)
     assert choice.pose is None and choice.reason is Reason.NO_CANDIDATE_AGREES
+
+
+def test_measured_gravity_joins_the_joint_fit_unless_the_lamps_contradict_it() -> None:
+    sigma = np.radians(0.5)
+    pairs = _pairs(2, (True, True), np.random.default_rng(7))
+    plain = solve_lamps(pairs, camera_wide(), NO_HINTS).pose
+    exact = DisambiguationHints(up_in_camera=[UpHint(WIDE_TRUTH.up_in_camera(), 0.35, sigma)])
+    measured = solve_lamps(pairs, camera_wide(), exact)
+    assert measured.reason is Reason.MULTI_LAMP
+    # More information: the tilt's variance shrinks.
+    assert np.trace(measured.pose.covariance[3:5, 3:5]) < np.trace(plain.covariance[3:5, 3:5])
+    wrong = DisambiguationHints(up_in_camera=[UpHint(measured_up(WIDE_TRUTH, error=np.radians([8.0, 0.0])), 0.35,
+                                                     sigma)])
+    accelerating = solve_lamps(pairs, camera_wide(), wrong)
+    assert accelerating.reason is Reason.MULTI_LAMP
+    assert accelerating.pose.position_error(plain) == 0.0
 
 
 def test_swapped_identities_are_inconsistent() -> None:

@@ -3,12 +3,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, observe, small_lamp
+from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
 from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse
 from vlp_ros.lamp_map import Lamp
+from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.circle_pose import circle_poses
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp
+from vlp_ros.solvers.up_measurement import UpMeasurement
 
 # (camera position, tilt) seeing small_lamp() at (0, 0, 2) with the 4K camera.
 SCENES_4K = {
@@ -119,6 +121,55 @@ def test_exactly_frontal_view_without_noise_gives_no_first_order_pose() -> None:
     closed = closed_form_poses(LampMeasurement.from_observation(observation, lamp, camera_4k()))
     assert min(p.position_error(truth) for p in closed) < 1e-6
     assert solve_lamp(observation, lamp, camera_4k()) == []
+
+
+def _chosen_errors(truth, sigma: float, measured: bool, trials: int, seed: int) -> list[float]:
+    lamp = small_lamp()
+    rng = np.random.default_rng(seed)
+    errors = []
+    for _ in range(trials):
+        observation = observe(lamp, truth, camera_4k(), rim_sigma=0.2, marker_sigma=0.2, rng=rng)
+        hint = UpHint(measured_up(truth, sigma, rng), 0.35, sigma if measured else None)
+        hints = DisambiguationHints(up_in_camera=[hint])
+        candidates = solve_lamp(observation, lamp, camera_4k(), hints.up_measurements())
+        if measured:
+            assert len(candidates) == 1
+        errors.append(choose_candidate(candidates, hints).pose.position_error(truth))
+    return errors
+
+
+def test_measured_gravity_fixes_the_near_frontal_view() -> None:
+    # 3 degrees off the lamp's axis: the rim alone leaves the tilt loose and the merged
+    # pair is off by ~ 2 m * 3 degrees; a 0.5 degree gravity measurement brings that down to
+    # what its own error allows (2 m * 0.5 degree * sqrt(pi / 2) ~ 2.2 cm on average), a
+    # 0.1 degree one below a centimetre.
+    truth = looking_up((0.1, 0.0, 0.0), (0.0, 0.05, 0.3))
+    gated = np.mean(_chosen_errors(truth, np.radians(0.5), measured=False, trials=20, seed=5))
+    measured = np.mean(_chosen_errors(truth, np.radians(0.5), measured=True, trials=20, seed=5))
+    precise = np.mean(_chosen_errors(truth, np.radians(0.1), measured=True, trials=20, seed=5))
+    assert measured < min(0.25 * gated, 0.025)
+    assert precise < 0.01
+
+
+def test_exactly_frontal_view_with_measured_gravity_gives_the_pose() -> None:
+    lamp = small_lamp()
+    truth = looking_up((0.0, 0.0, 0.0))
+    up = [UpMeasurement(truth.up_in_camera(), np.radians(0.5))]
+    candidates = solve_lamp(observe(lamp, truth, camera_4k()), lamp, camera_4k(), up)
+    assert len(candidates) == 1
+    assert candidates[0].pose.position_error(truth) < 1e-6
+
+
+def test_a_gravity_measurement_the_lamp_contradicts_is_left_out() -> None:
+    # An accelerating phone: "gravity" 10 degrees off would pull the pose by ~3 cm.
+    lamp = small_lamp()
+    truth = looking_up(*SCENES_4K['oblique'])
+    observation = observe(lamp, truth, camera_4k(), rng=np.random.default_rng(9))
+    wrong = [UpMeasurement(measured_up(truth, error=np.radians([10.0, 0.0])), np.radians(0.5))]
+    alone = solve_lamp(observation, lamp, camera_4k())
+    with_wrong = solve_lamp(observation, lamp, camera_4k(), wrong)
+    assert [c.pose.position_error(a.pose) for c, a in zip(with_wrong, alone)] == [0.0] * len(alone)
+    assert len(with_wrong) == len(alone) == 2
 
 
 def test_bad_inputs_raise() -> None:

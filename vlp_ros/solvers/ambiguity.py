@@ -2,9 +2,10 @@
 
 One circle and its marker are explained equally well by two poses. What may
 separate them: a known up direction in the camera frame (a static mounting
-prior, or gravity from an IMU at rest), continuity with a recent pose of the
-same camera, other lamps in the frame (``fusion``), and, only when the gap is
-overwhelming, the fit itself. Every hint must accept the chosen candidate and
+prior, or gravity from an IMU at rest; given a sigma it is also a measurement
+in the fit, which then mostly leaves one candidate), continuity with a recent
+pose of the same camera, other lamps in the frame (``fusion``), and, only when
+the gap is overwhelming, the fit itself. Every hint must accept the chosen candidate and
 reject the others it rules out; otherwise no pose is returned and the reason
 says why.
 
@@ -26,40 +27,57 @@ import numpy as np
 
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
+from vlp_ros.solvers.up_measurement import UpMeasurement, unit_direction
 
 COST_GAP = 40.0
+
+
+@dataclass(frozen=True, eq=False)
+class UpHint:
+    """Where map +z points in the camera optical frame, from one source (a static mounting
+    prior, or the IMU's gravity: an accelerometer at rest measures +g along up; any
+    non-zero length). ``tolerance`` (rad) gates: no pose whose up is farther from
+    ``vector`` is ever chosen. ``sigma`` (rad), when known, is the standard deviation of
+    ``vector``'s error about each of the two axes perpendicular to it; the direction is
+    then also a measurement in the pose fit (``UpMeasurement``), not only a gate."""
+
+    vector: np.ndarray
+    tolerance: float
+    sigma: float | None = None
+    measurement: UpMeasurement | None = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.tolerance < np.pi:
+            raise ValueError(f'up tolerance must be in (0, pi) rad, got {self.tolerance}')
+        object.__setattr__(self, 'vector', unit_direction(self.vector))
+        object.__setattr__(self, 'tolerance', float(self.tolerance))
+        object.__setattr__(self, 'measurement', None if self.sigma is None else UpMeasurement(self.vector, self.sigma))
 
 
 @dataclass
 class DisambiguationHints:
     """What is known about the pose besides the lamps.
 
-    ``up_in_camera``: (where map +z points in the camera optical frame, tolerance in rad)
-    per source, e.g. a static mounting prior and the IMU's gravity (an accelerometer at
-    rest measures +g along up). ``recent_pose``: a recent pose of this camera, taken
+    ``up_in_camera``: one ``UpHint`` per source, or its fields as a tuple
+    ``(vector, tolerance[, sigma])``. ``recent_pose``: a recent pose of this camera, taken
     ``recent_age`` seconds ago; it counts when ``recent_age <= recent_max_age`` and then
     accepts candidates within ``recent_gate_m`` of it.
     """
 
-    up_in_camera: list[tuple[np.ndarray, float]] = field(default_factory=list)
+    up_in_camera: list[UpHint] = field(default_factory=list)
     recent_pose: Pose | None = None
     recent_gate_m: float = 0.5
     recent_age: float = 0.0
     recent_max_age: float = float('inf')
 
     def __post_init__(self) -> None:
-        checked = []
-        for direction, tolerance in self.up_in_camera:
-            d = np.asarray(direction, dtype=float).reshape(3)
-            norm = np.linalg.norm(d)
-            if not (np.isfinite(norm) and norm > 0.0):
-                raise ValueError(f'up direction {d} is not a finite non-zero vector')
-            if not 0.0 < tolerance < np.pi:
-                raise ValueError(f'up tolerance must be in (0, pi) rad, got {tolerance}')
-            checked.append((d / norm, float(tolerance)))
-        self.up_in_camera = checked
+        self.up_in_camera = [hint if isinstance(hint, UpHint) else UpHint(*hint) for hint in self.up_in_camera]
         if not self.recent_gate_m > 0.0:
             raise ValueError(f'recent_gate_m must be positive, got {self.recent_gate_m}')
+
+    def up_measurements(self) -> list[UpMeasurement]:
+        """The up hints that have a sigma, as measurements for the pose fit."""
+        return [hint.measurement for hint in self.up_in_camera if hint.measurement is not None]
 
 
 def choose_candidate(candidates: list[PoseCandidate], hints: DisambiguationHints,
@@ -105,9 +123,9 @@ def overwhelming_winner(candidates: list[PoseCandidate]) -> int | None:
 
 def _hint_tests(hints: DisambiguationHints) -> list[tuple[Reason, str, Callable[[Pose], bool]]]:
     tests = []
-    for k, (up, tolerance) in enumerate(hints.up_in_camera):
-        def accepts_up(pose: Pose, up=up, tolerance=tolerance) -> bool:
-            return _angle(pose.up_in_camera(), up) <= tolerance
+    for k, hint in enumerate(hints.up_in_camera):
+        def accepts_up(pose: Pose, hint=hint) -> bool:
+            return _angle(pose.up_in_camera(), hint.vector) <= hint.tolerance
         tests.append((Reason.UP_DIRECTION, f'up direction hint {k}', accepts_up))
     recent = hints.recent_pose
     if recent is not None and hints.recent_age <= hints.recent_max_age:

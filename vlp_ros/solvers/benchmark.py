@@ -23,6 +23,7 @@ from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp
 from vlp_ros.solvers.synthetic import synthetic_observation
+from vlp_ros.solvers.up_measurement import UpMeasurement
 
 
 def median_seconds(run: Callable[[], object], repeats: int) -> float:
@@ -47,6 +48,7 @@ def cases(rng: np.random.Generator) -> dict[str, Callable[[], object]]:
     dense = synthetic_observation(lamp, pose, camera_4k, rim_count=560, rng=rng)
     measurement = LampMeasurement.from_observation(sparse, lamp, camera_4k)
     start = closed_form_poses(measurement)[0]
+    gravity = [UpMeasurement(pose.up_in_camera(), np.radians(0.5))]
 
     def scipy_reference() -> object:
         return least_squares(lambda d: measurement.linearize(*perturbed(start, d))[0], np.zeros(6), method='lm')
@@ -67,6 +69,7 @@ def cases(rng: np.random.Generator) -> dict[str, Callable[[], object]]:
         'closed form (cone, both circles, marker yaw), 1 lamp': lambda: closed_form_poses(measurement),
         'solve_lamp (2 candidates refined), 120 rim pts': lambda: solve_lamp(sparse, lamp, camera_4k),
         'solve_lamp (2 candidates refined), 560 rim pts': lambda: solve_lamp(dense, lamp, camera_4k),
+        'solve_lamp with measured gravity, 120 rim pts': lambda: solve_lamp(sparse, lamp, camera_4k, gravity),
     }
     for count in range(2, len(visible) + 1):
         table[f'solve_lamps, {count} wide-angle lamps, 180 rim pts each'] = (

@@ -42,3 +42,27 @@ def nees(estimate: Pose, truth: Pose) -> float:
         raise ValueError('the estimate has no covariance')
     error = estimate.error_vector(truth)
     return float(error @ np.linalg.solve(estimate.covariance, error))
+
+
+def with_rotation_curvature(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:
+    """``covariance`` widened by the second-order position error of a pose that turns about a
+    point whose bearing it sees sharply: the lamp centre, at map offset ``lever`` from the camera.
+
+    With the bearing pinned, a rotation error d moves the camera by
+    -(exp([d]x) - I) lever = -d x lever + q / 2, q = d x (d x lever). Along the lever
+    the fitted range absorbs q; across it, q_i = (d . lever)(p_i . d), p_i the i-th row
+    of the projector across the lever (the twist about the line of sight times the tilt
+    across it): quadratic in d, so outside any first-order covariance. With d ~ N(0, P),
+    q_i = d^T B_i d, B_i = sym(p_i lever^T): E q_i = tr(B_i P), Cov(q_i, q_j) =
+    2 tr(B_i P B_j P); the second moment of q / 2 is added to the position block. It
+    matters only when rotations are uncertain by degrees (one lamp seen near-frontally,
+    its tilt from gravity), and is then many sigma of the bearing.
+    """
+    unit = lever / np.linalg.norm(lever)
+    across = np.eye(3) - np.outer(unit, unit)
+    b = 0.5 * (across[:, :, None] * lever[None, None, :] + lever[None, :, None] * across[:, None, :])
+    b_p = b @ covariance[3:, 3:]
+    mean = 0.5 * np.trace(b_p, axis1=1, axis2=2)
+    widened = covariance.copy()
+    widened[:3, :3] += 0.5 * np.einsum('ijk,lkj->il', b_p, b_p) + np.outer(mean, mean)
+    return widened

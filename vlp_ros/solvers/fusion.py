@@ -14,6 +14,8 @@ misidentified lamp, a wrong map entry) give INCONSISTENT_LAMPS.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 from scipy.stats import chi2
@@ -28,7 +30,8 @@ from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
-from vlp_ros.solvers.refinement import descend, linearize, refine_pose
+from vlp_ros.solvers.refinement import Measurement, descend, linearize, refine_pose
+from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
 # Poses closer than this (m, rad) lead to the same minimum: follow only the cheapest.
 _SAME_START_M = 0.05
@@ -64,8 +67,8 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
         observation, lamp = pairs[0]
         if observation.marker is None:
             return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
-        return choose_candidate(solve_lamp(observation, lamp, camera), hints)
-    candidates = joint_candidates(pairs, camera)
+        return choose_candidate(solve_lamp(observation, lamp, camera, hints.up_measurements()), hints)
+    candidates = with_agreeing_up(lambda up: joint_candidates(pairs, camera, up), hints.up_measurements())
     if not candidates:
         return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
     best = candidates[0]
@@ -78,10 +81,12 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
     return Choice(choice.pose, Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice
 
 
-def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel) -> list[PoseCandidate]:
-    """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps."""
+def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
+                     up: Sequence[UpMeasurement] = ()) -> list[PoseCandidate]:
+    """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps
+    and any measured up directions."""
     measurements = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs]
-    coarse = [m.thinned(_PROBE_RIM_POINTS) for m in measurements]
+    coarse = [*(m.thinned(_PROBE_RIM_POINTS) for m in measurements), *up]
     reached: list[tuple[Pose, float]] = []
 
     def known_or_hopeless(pose: Pose, cost: float) -> bool:
@@ -92,7 +97,7 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
         probe = descend(start, coarse, _PROBE_ITERATIONS, give_up=known_or_hopeless)
         if probe is not None and not any(_near(probe[0], minimum) for minimum, _ in reached):
             reached.append(probe)
-    refined = (refine_pose(pose, measurements) for pose, _ in reached)
+    refined = (refine_pose(pose, measurements, up) for pose, _ in reached)
     return distinct([candidate for candidate in refined if candidate is not None])
 
 
@@ -133,7 +138,7 @@ def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Po
     return poses
 
 
-def _distinct_poses(starts: list[Pose], measurements: list[LampMeasurement]) -> list[Pose]:
+def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[Pose]:
     """Poses with a finite joint cost, cheapest first, one per neighbourhood."""
     scored = []
     for start in starts:

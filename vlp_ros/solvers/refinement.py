@@ -3,11 +3,14 @@
 A small Levenberg-Marquardt loop on the analytic Jacobians of ``measurement``
 rather than scipy.optimize.least_squares: the starts are close, so a solve
 takes 3-6 iterations of ~0.1 ms, while least_squares' per-call overhead alone
-is over 1 ms (python -m vlp_ros.solvers.benchmark).
+is over 1 ms (python -m vlp_ros.solvers.benchmark). Measured up directions
+(``up_measurement``) join the lamps' residuals: their information enters the
+fit and its covariance like any other measurement's.
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -15,6 +18,7 @@ from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import covariance_from_jacobian, perturbed
 from vlp_ros.solvers.measurement import LampMeasurement
+from vlp_ros.solvers.up_measurement import UpMeasurement
 
 # Stop when the best step can lower the chi-square by less than this fraction:
 # far below the ~1 unit that noise moves it, so stopping adds no error.
@@ -25,21 +29,32 @@ _INITIAL_DAMPING = 1e-4
 PATIENCE = 3
 
 
-def linearize(measurements: Sequence[LampMeasurement], pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+class Measurement(Protocol):
+    """Whitened residuals of a pose: a lamp's (``LampMeasurement``) or an up direction's."""
+
+    residual_count: int
+
+    def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def linearize(measurements: Sequence[Measurement], pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Stacked whitened residuals (M,) and their Jacobian (M, 6) of all measurements at ``pose``."""
     parts = [m.linearize(pose.rotation, pose.position) for m in measurements]
     return np.concatenate([r for r, _ in parts]), np.vstack([j for _, j in parts])
 
 
-def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement]) -> PoseCandidate | None:
-    """The least-squares pose nearest ``initial``, with its covariance; None if the fit breaks
-    down (the optical centre in a lamp's plane, a lamp behind the camera, a pose direction
-    the measurements leave free, or no convergence)."""
-    count = sum(m.residual_count for m in measurements)
+def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequence[UpMeasurement] = (),
+                give_up: Callable[[Pose, float], bool] | None = None) -> PoseCandidate | None:
+    """The least-squares pose nearest ``initial`` given the lamps and any measured up directions,
+    with its covariance; None if the fit breaks down (the optical centre in a lamp's plane, a
+    lamp behind the camera, a pose direction the measurements leave free, or no convergence),
+    or if ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations."""
+    terms = [*measurements, *up]
+    count = sum(m.residual_count for m in terms)
     if count <= 6:
         raise ValueError(f'{count} residuals cannot determine a 6-DoF pose')
     try:
-        pose, residuals, jacobian, converged = _levenberg_marquardt(initial, measurements, _MAX_ITERATIONS)
+        pose, residuals, jacobian, converged = _levenberg_marquardt(initial, terms, _MAX_ITERATIONS, give_up)
         covariance = covariance_from_jacobian(jacobian)
     except (np.linalg.LinAlgError, ValueError):
         return None
@@ -51,7 +66,7 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement]) -> PoseC
     return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=count)
 
 
-def descend(initial: Pose, measurements: Sequence[LampMeasurement], max_iterations: int,
+def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: int,
             give_up: Callable[[Pose, float], bool] | None = None) -> tuple[Pose, float] | None:
     """The least-squares pose and its chi-square reached from ``initial`` within
     ``max_iterations`` (a cheap probe of where a start leads); None if not reached, or if
@@ -63,7 +78,7 @@ def descend(initial: Pose, measurements: Sequence[LampMeasurement], max_iteratio
     return (pose, float(residuals @ residuals)) if converged else None
 
 
-def _levenberg_marquardt(pose: Pose, measurements: Sequence[LampMeasurement], max_iterations: int,
+def _levenberg_marquardt(pose: Pose, measurements: Sequence[Measurement], max_iterations: int,
                          give_up: Callable[[Pose, float], bool] | None = None
                          ) -> tuple[Pose, np.ndarray, np.ndarray, bool]:
     residuals, jacobian = linearize(measurements, pose)

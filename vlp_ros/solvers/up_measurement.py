@@ -1,0 +1,93 @@
+"""A measured up direction (IMU gravity, or a mount prior with a known spread) as pose residuals.
+
+The residual is where the pose puts map +z in the camera frame, ``u = R^T e_z``,
+seen from the measured direction g: its stereographic projection onto g's
+tangent plane, ``2 T u / (1 + g.u)`` with T the two tangent axes, divided by
+sigma. That is 2 tan(angle / 2) along the direction of the error, so ~ the
+angle near g and growing without bound only at -g (a pose upside down is
+never a minimum). It leaves the yaw and the position free: they come from the
+lamps. Near a frontal view of one lamp, where the rim barely fixes the tilt
+from the line of sight, these two residuals fix it.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.candidates import PoseCandidate
+
+# d(R^T e_z) / d(rotation vector on the left) = R^T [e_z]x.
+_UP_SKEW = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+# Largest innovation chi-square (2 dof) of a measured up direction that agrees with the
+# lamps: exceeded by chance with probability 1e-4 (exp(-18.42 / 2)).
+UP_INNOVATION_GATE = 18.42
+
+
+def unit_direction(vector: np.ndarray) -> np.ndarray:
+    """``vector`` (3,) scaled to unit length; ValueError unless finite and non-zero."""
+    vector = np.asarray(vector, dtype=float).reshape(3)
+    norm = np.linalg.norm(vector)
+    if not (np.isfinite(norm) and norm > 0.0):
+        raise ValueError(f'up direction {vector} is not a finite non-zero vector')
+    return vector / norm
+
+
+@dataclass(frozen=True, eq=False)
+class UpMeasurement:
+    """Map +z measured in the camera optical frame as ``direction`` (any non-zero length),
+    with ``sigma`` (rad) the standard deviation of its error about each of the two axes
+    perpendicular to it."""
+
+    direction: np.ndarray
+    sigma: float
+    _tangents: np.ndarray = field(init=False, repr=False)
+
+    residual_count = 2
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.sigma) and self.sigma > 0.0):
+            raise ValueError(f'up sigma must be positive and finite, got {self.sigma}')
+        direction = unit_direction(self.direction)
+        least_aligned = np.eye(3)[np.argmin(np.abs(direction))]
+        first = np.cross(direction, least_aligned)
+        first /= np.linalg.norm(first)
+        object.__setattr__(self, 'direction', direction)
+        object.__setattr__(self, 'sigma', float(self.sigma))
+        object.__setattr__(self, '_tangents', np.vstack([first, np.cross(direction, first)]))
+
+    def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals over sigma (2,) for the camera pose and their Jacobian (2, 6) with respect
+        to the pose perturbation of ``covariance.perturbed`` (the position columns are zero)."""
+        up = rotation[2, :]
+        scale = 2.0 / (self.sigma * (1.0 + self.direction @ up))
+        residual = scale * (self._tangents @ up)
+        # d residual / d up, then d up / d rotation vector = R^T [e_z]x.
+        d_up = scale * self._tangents - 0.5 * self.sigma * scale * np.outer(residual, self.direction)
+        jacobian = np.zeros((2, 6))
+        jacobian[:, 3:] = d_up @ rotation.T @ _UP_SKEW
+        return residual, jacobian
+
+    def innovation(self, pose: Pose) -> float:
+        """Chi-square (2 dof) of this measurement against the rest of a fit that included it,
+        at that fit's ``pose`` (covariance set): r^T (I - J P J^T)^-1 r, the residual over
+        its own variance after the fit has absorbed part of it. It is the measurement's
+        disagreement with what the lamps alone say about the up direction, in sigmas
+        squared; 0 along directions the lamps do not observe at all (nothing to disagree with)."""
+        if pose.covariance is None:
+            raise ValueError('the pose has no covariance')
+        residual, jacobian = self.linearize(pose.rotation, pose.position)
+        left = np.eye(2) - jacobian @ pose.covariance @ jacobian.T
+        return float(residual @ np.linalg.pinv(left, rcond=1e-9, hermitian=True) @ residual)
+
+
+def with_agreeing_up(solve: Callable[[Sequence[UpMeasurement]], list[PoseCandidate]],
+                     up: Sequence[UpMeasurement]) -> list[PoseCandidate]:
+    """``solve(up)``, solved again without every up measurement that no candidate agrees
+    with (innovation over ``UP_INNOVATION_GATE``): an accelerating IMU's "gravity" would
+    otherwise pull the pose away from what the lamps show."""
+    candidates = solve(up)
+    agreeing = [m for m in up if any(m.innovation(c.pose) <= UP_INNOVATION_GATE for c in candidates)]
+    return candidates if len(agreeing) == len(up) else solve(agreeing)
