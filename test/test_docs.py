@@ -4,17 +4,7 @@ from __future__ import annotations
 import yaml
 from conftest import ROOT
 
-from vlp_ros.locator_config import LAMP_PARAMETERS, PARAMETERS, default_parameters, settings_from_parameters
-
-
-def _flatten(tree: dict, prefix: str = '') -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f'{prefix}{key}.'))
-        else:
-            flat[prefix + key] = value
-    return flat
+from vlp_ros.locator_config import LAMP_PARAMETERS, PARAMETERS, settings_from_params_file
 
 
 def test_readme_documents_every_parameter() -> None:
@@ -32,8 +22,7 @@ def test_readme_quick_start_commands() -> None:
 
 
 def test_example_params_file_is_a_valid_locator_configuration() -> None:
-    params = yaml.safe_load((ROOT / 'config' / 'locator.example.yaml').read_text())
-    values = default_parameters()
-    values.update(_flatten(params['vlp_locator']['ros__parameters']))
-    settings = settings_from_parameters(values)
-    assert len(settings.lamps) == len(values['leds.names'])
+    path = ROOT / 'config' / 'locator.example.yaml'
+    settings = settings_from_params_file(path)
+    names = yaml.safe_load(path.read_text())['vlp_locator']['ros__parameters']['leds']['names']
+    assert sorted(lamp.name for lamp in settings.lamps) == sorted(names)

@@ -10,7 +10,7 @@ from rosbags.rosbag2 import Reader
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
-from vlp_ros.locator_config import default_parameters, settings_from_parameters
+from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.pose import Pose
 from vlp_ros.rosbag_reader import Bag
 from vlp_ros.sim import __main__ as cli
@@ -22,16 +22,6 @@ from vlp_ros.sim.sensor import SensorModel
 
 TOPICS = {'/image_raw': 'sensor_msgs/msg/Image', '/camera_info': 'sensor_msgs/msg/CameraInfo',
           '/imu': 'sensor_msgs/msg/Imu', '/ground_truth/pose': 'geometry_msgs/msg/PoseStamped'}
-
-
-def flatten(tree: dict, prefix: str = '') -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(flatten(value, f'{prefix}{key}.'))
-        else:
-            flat[f'{prefix}{key}'] = value
-    return flat
 
 
 def tiny_scenario(bayer=None) -> Scenario:
@@ -97,7 +87,7 @@ def test_params_file_configures_the_locator(tmp_path):
     write_params(tmp_path / 'params.yaml', scenario, imu=True)
     document = yaml.safe_load((tmp_path / 'params.yaml').read_text())
     values = default_parameters()
-    values.update(flatten(document['vlp_locator']['ros__parameters']))
+    values.update(flatten_parameters(document['vlp_locator']['ros__parameters']))
     settings = settings_from_parameters(values)
     lamp = settings.lamps.get(6)
     np.testing.assert_allclose(lamp.marker_position(), scenario.lamps[0].lamp.marker_position())
@@ -117,7 +107,7 @@ def test_command_line_writes_bag_and_params(tmp_path, capsys):
         counts = {c.topic: c.msgcount for c in reader.connections}
     assert counts == {topic: 4 for topic in TOPICS}
     values = default_parameters()
-    values.update(flatten(yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
+    values.update(flatten_parameters(yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
     settings = settings_from_parameters(values)
     assert settings.imu_enabled and settings.prior_up is None and settings.continuity_max_age == 0.0
     assert settings.lamps.ids == [11] and settings.beacon.id_bits == 4

@@ -31,6 +31,17 @@ class CameraModel:
         K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
         return cls(width, height, K, np.zeros(5) if D is None else D)
 
+    @classmethod
+    def from_camera_info(cls, width: int, height: int, k, d, distortion_model: str) -> CameraModel:
+        """From sensor_msgs/CameraInfo fields; ValueError for an uncalibrated K or a non-plumb_bob model."""
+        K = np.asarray(k, dtype=float).reshape(3, 3)
+        if not K[0, 0] > 0.0:
+            raise ValueError('camera_info is uncalibrated (K[0] <= 0)')
+        D = np.asarray(d, dtype=float).ravel()
+        if distortion_model not in ('plumb_bob', '') and np.any(D != 0.0):
+            raise ValueError(f'camera_info distortion model {distortion_model!r} is not supported (plumb_bob only)')
+        return cls(int(width), int(height), K, D[:5])
+
     @property
     def focal(self) -> float:
         return float(0.5 * (self.K[0, 0] + self.K[1, 1]))

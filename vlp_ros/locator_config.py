@@ -7,9 +7,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from vlp_ros.lamp_map import Lamp, LampMap
 
@@ -255,3 +257,25 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         image_transport=_choice(values, 'image_transport', IMAGE_TRANSPORTS),
         qos_reliability=_choice(values, 'qos.reliability', RELIABILITIES),
         qos_depth=_integer(values, 'qos.depth', 1, 1000))
+
+
+def flatten_parameters(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """Nested ``ros__parameters`` as in a params file -> dotted parameter names."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            flat.update(flatten_parameters(value, f'{prefix}{key}.'))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def settings_from_params_file(path: Path | str, node: str = 'vlp_locator') -> LocatorSettings:
+    """Settings from a ``--params-file`` YAML, reading the section of ``node`` (or ``/**``)."""
+    document = yaml.safe_load(Path(path).read_text()) or {}
+    section = next((document[key] for key in (node, f'/{node}', '/**') if key in document), None)
+    if not isinstance(section, Mapping) or 'ros__parameters' not in section:
+        raise ConfigError('params file', f'{path} has no {node}: ros__parameters section')
+    values = default_parameters()
+    values.update(flatten_parameters(section['ros__parameters']))
+    return settings_from_parameters(values)

@@ -18,7 +18,7 @@ from vlp_ros.locator_config import LocatorSettings
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
-from vlp_ros.solvers.candidates import Choice
+from vlp_ros.solvers.candidates import Choice, Reason
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.paper import solve_lamp_paper
 
@@ -92,6 +92,10 @@ class Pipeline:
                gravity_up: np.ndarray | None) -> Choice:
         if self.settings.solver == 'paper':
             observation, lamp = max(pairs, key=lambda pair: pair[0].ellipse[2])
+            try:
+                candidates = solve_lamp_paper(observation, lamp, camera)
+            except ValueError as err:  # e.g. no marker: the paper's method cannot fix the yaw
+                return Choice(None, Reason.NO_CANDIDATES, str(err))
             # The paper's two mirror solutions are told apart by the same hints as ours.
-            return choose_candidate(solve_lamp_paper(observation, lamp, camera), self._hints(stamp, gravity_up))
+            return choose_candidate(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))

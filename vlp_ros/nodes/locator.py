@@ -10,7 +10,6 @@ import os
 import sys
 import threading
 import time
-from collections import deque
 
 import numpy as np
 import rclpy
@@ -20,12 +19,12 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 
 from vlp_ros.camera import CameraModel
 from vlp_ros.frame_stats import FrameStats
+from vlp_ros.gravity import GravityBuffer
 from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
 from vlp_ros.image_message import MessageFormatError, parse_compressed_image, parse_image
 from vlp_ros.locator_config import ConfigError, settings_from_parameters
@@ -44,8 +43,7 @@ class Locator(Node):
         self.pipeline = Pipeline(self.settings)
         self.stats = FrameStats()
         self._camera: CameraModel | None = None
-        self._imu: deque[tuple[int, np.ndarray]] = deque(maxlen=400)
-        self._imu_to_camera = Rotation.from_quat(self.settings.imu_rotation).as_matrix()
+        self._gravity = GravityBuffer(self.settings.imu_rotation, self.settings.imu_max_age)
         self._pending: tuple[bytes, float] | None = None
         self._wake = threading.Condition()
         self._running = True
@@ -103,29 +101,23 @@ class Locator(Node):
             self._wake.notify()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        if msg.k[0] <= 0.0:
-            return
-        if msg.distortion_model not in ('plumb_bob', '') and any(msg.d):
-            self.get_logger().error(
-                f'camera_info distortion model {msg.distortion_model!r} is not supported (plumb_bob only)',
-                throttle_duration_sec=THROTTLE_S)
-            return
-        self._camera = CameraModel(msg.width, msg.height, np.array(msg.k), np.array(msg.d[:5]))
+        try:
+            self._camera = CameraModel.from_camera_info(msg.width, msg.height, msg.k, msg.d, msg.distortion_model)
+        except ValueError as err:
+            self.get_logger().error(f'camera_info ignored: {err}', throttle_duration_sec=THROTTLE_S)
 
     def _on_imu(self, msg: Imu) -> None:
         a = msg.linear_acceleration
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        self._imu.append((stamp, self._imu_to_camera @ np.array([a.x, a.y, a.z])))
+        self._gravity.add(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, [a.x, a.y, a.z])
 
-    def _up_from_imu(self, stamp_ns: int) -> np.ndarray | None:
-        """Measured up direction in the camera frame from the IMU sample nearest the image stamp."""
-        if not self.settings.imu_enabled or not self._imu:
+    def _up_at(self, stamp_ns: int) -> np.ndarray | None:
+        """Gravity at the image's stamp, waiting up to imu.max_age for the IMU to catch up with the camera."""
+        if not self.settings.imu_enabled:
             return None
-        sample_stamp, specific_force = min(self._imu, key=lambda s: abs(s[0] - stamp_ns))
-        if abs(sample_stamp - stamp_ns) > self.settings.imu_max_age * 1e9:
-            return None
-        norm = np.linalg.norm(specific_force)
-        return specific_force / norm if norm > 1.0 else None
+        deadline = time.monotonic() + self.settings.imu_max_age
+        while (self._gravity.newest_stamp_ns or -1) < stamp_ns and time.monotonic() < deadline:
+            time.sleep(0.002)
+        return self._gravity.up_at(stamp_ns)
 
     def _work(self) -> None:
         while True:
@@ -168,7 +160,7 @@ class Locator(Node):
                 f'frame dropped: image is {pixels.shape[1]}x{pixels.shape[0]} but camera_info says '
                 f'{camera.width}x{camera.height}', throttle_duration_sec=THROTTLE_S)
             return
-        result = self.pipeline.process(pixels, camera, msg.stamp_ns * 1e-9, self._up_from_imu(msg.stamp_ns))
+        result = self.pipeline.process(pixels, camera, msg.stamp_ns * 1e-9, self._up_at(msg.stamp_ns))
         self._publish(result, msg.stamp_ns)
         self.stats.ids_seen(result.decoded_ids, result.unknown_ids)
         self.stats.frame_processed(result.outcome, time.monotonic() - received)

@@ -1,0 +1,1 @@
+"""Measuring how well poses match the truth: metrics, tables, figures, reports and the demo."""
