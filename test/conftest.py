@@ -7,7 +7,6 @@ process a test starts is stopped by PID afterwards.
 """
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import subprocess
@@ -17,36 +16,16 @@ from pathlib import Path
 
 import pytest
 
+from vlp_ros.dds_environment import claim_domain_id, use_loopback_dds
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / 'shared' / 'data'
 LOOPBACK_PROFILE = ROOT / 'config' / 'fastdds_loopback.xml'
-_domain_lock = None
-
-
-def _claim_domain_id() -> int:
-    """Lowest ROS domain (1..100) that no other test run on this machine holds."""
-    global _domain_lock
-    for domain in range(1, 101):
-        handle = open(f'/tmp/vlp_ros_test_domain_{domain}.lock', 'w')
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _domain_lock = handle  # held until this process exits
-        return domain
-    raise RuntimeError('no free ROS domain id for the test run')
 
 
 def pytest_configure(config: pytest.Config) -> None:
     # Set before any rclpy.init in this process and inherited by every child.
-    os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
-    # Not ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: it swaps in transports that drop
-    # camera-sized best-effort messages (see the profile's comment).
-    os.environ.pop('ROS_AUTOMATIC_DISCOVERY_RANGE', None)
-    os.environ.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
-    os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] = str(LOOPBACK_PROFILE)
-    os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
+    use_loopback_dds(LOOPBACK_PROFILE, claim_domain_id())
     log_dir = ROOT / 'build' / 'test_logs' / str(os.getpid())
     log_dir.mkdir(parents=True, exist_ok=True)
     os.environ['ROS_LOG_DIR'] = str(log_dir)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from vlp_ros.sim.bag_writer import STORAGES
+from vlp_ros.progress import progress_bar
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import PAPER_CAMERAS, Scenario, paper_scenario, robot_scenario
 from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
@@ -68,14 +69,6 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
     except ValueError as error:
         raise UsageError(str(error)) from error
     return scenario.truncated(args.frames) if args.frames is not None else scenario
-
-
-def progress_bar(done: int, total: int, width: int = 40) -> None:
-    filled = width * done // total
-    sys.stderr.write(f'\r[{"#" * filled}{"." * (width - filled)}] {done}/{total} frames')
-    if done == total:
-        sys.stderr.write('\n')
-    sys.stderr.flush()
 
 
 def main(argv: list[str] | None = None) -> int:
