@@ -66,11 +66,13 @@ class SimBagWriter:
         if (IMU_TOPIC in self._connections) != (specific_force is not None):
             raise ValueError('give specific_force exactly when the bag was opened with imu=True')
         header = _header(stamp_ns, CAMERA_FRAME)
-        self._write(IMAGE_TOPIC, stamp_ns, image_message(frame.image, frame.encoding, header))
-        self._write(CAMERA_INFO_TOPIC, stamp_ns, camera_info_message(frame.camera, header))
-        self._write(GROUND_TRUTH_TOPIC, stamp_ns, pose_message(frame.pose, _header(stamp_ns, MAP_FRAME)))
+        # The image last, as a driver's frame completes after its IMU sample and calibration:
+        # a player that waits for each frame's answer has then sent everything it needs.
         if specific_force is not None:
             self._write(IMU_TOPIC, stamp_ns, imu_message(specific_force, imu_noise, header))
+        self._write(CAMERA_INFO_TOPIC, stamp_ns, camera_info_message(frame.camera, header))
+        self._write(GROUND_TRUTH_TOPIC, stamp_ns, pose_message(frame.pose, _header(stamp_ns, MAP_FRAME)))
+        self._write(IMAGE_TOPIC, stamp_ns, image_message(frame.image, frame.encoding, header))
         self.frames += 1
 
     def _write(self, topic: str, stamp_ns: int, message: object) -> None:

@@ -93,7 +93,8 @@ class Scenario:
             params['prior'] = {'up_in_camera': [float(v) for v in self.prior_up],
                                'tolerance': float(self.prior_tolerance)}
         if imu:
-            params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0]}
+            # The simulated IMU samples once per frame at the image's stamp.
+            params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0], 'max_age': 0.5 / self.frame_rate}
         if self.independent_frames:
             params['continuity'] = {'max_age': 0.0}
         return params

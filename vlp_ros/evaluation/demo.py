@@ -1,0 +1,204 @@
+"""`make demo`: the seed paper's experiment, simulated, played through the real nodes over DDS.
+
+For each lamp height it renders a rosbag2 recording of a hand-held 4K phone camera
+over a 3 m x 3 m grid (several postures per point, beacon in packet mode, IMU),
+plays it with `replay --deterministic` into `locator` (two processes, loopback DDS),
+records the published poses, compares them with the recorded ground truth, runs
+the paper's own solver on the same frames, and writes a report with figures.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from vlp_ros.dds_environment import claim_domain_id, installed_executable, loopback_profile, use_loopback_dds
+from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
+from vlp_ros.evaluation.metrics import FrameOutcome
+from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
+from vlp_ros.evaluation.report import Evaluation, write_report
+from vlp_ros.locator_config import settings_from_params_file
+from vlp_ros.pose import Pose
+from vlp_ros.progress import progress_bar
+from vlp_ros.sim.recording import record, write_params
+from vlp_ros.sim.scenarios import paper_scenario
+
+TOPICS = RecordingTopics()
+PERSPECTIVE = 'vlp_ros (perspective, over DDS)'
+PAPER = "paper's solver (same frames)"
+
+
+class PoseListener:
+    """Collects the locator's answers (poses with covariance, and per-frame outcomes) by image stamp."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from std_msgs.msg import Header
+        self._rclpy = rclpy
+        rclpy.init()
+        self.node = rclpy.create_node('vlp_demo_listener')
+        self.poses: dict[int, Pose] = {}
+        self.outcomes: dict[int, str] = {}
+        self.latency_ms = float('nan')
+        self.node.create_subscription(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', self._on_pose, 100)
+        self.node.create_subscription(Header, 'vlp/processed', self._on_processed, 100)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+
+    @staticmethod
+    def _stamp(header) -> int:
+        return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+    def _on_pose(self, msg) -> None:
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        pose = Pose.from_quaternion([q.x, q.y, q.z, q.w], [p.x, p.y, p.z])
+        pose.covariance = np.array(msg.pose.covariance).reshape(6, 6)
+        self.poses[self._stamp(msg.header)] = pose
+
+    def _on_processed(self, msg) -> None:
+        self.outcomes[self._stamp(msg)] = msg.frame_id
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == 'latency median (ms)' and kv.value != 'nan':
+                    self.latency_ms = float(kv.value)
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self._rclpy.spin_once(self.node, timeout_sec=0.02)
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self._rclpy.try_shutdown()
+
+
+def _start(name: str, *args: str, log: Path) -> subprocess.Popen:
+    with open(log, 'wb') as out:
+        return subprocess.Popen([str(installed_executable(name)), *map(str, args)], stdout=out,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+
+
+def _stop(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListener, logs: Path) -> float:
+    """Replay ``bag`` into a fresh locator and wait for every frame's answer; returns the wall time (s)."""
+    locator = _start('locator', '--ros-args', '--params-file', params, log=logs / f'{bag.name}_locator.log')
+    replay = None
+    try:
+        while not listener.node.count_publishers('vlp/processed'):
+            if locator.poll() is not None:
+                raise RuntimeError(f'locator exited: see {logs / (bag.name + "_locator.log")}')
+            listener.spin_for(0.1)
+        started = time.monotonic()
+        replay = _start('replay', bag, '--deterministic', '--topics', TOPICS.image, TOPICS.camera_info, TOPICS.imu,
+                        log=logs / f'{bag.name}_replay.log')
+        answered = -1
+        while replay.poll() is None:
+            listener.spin_for(0.1)
+            count = sum(1 for stamp in listener.outcomes if stamp >= 0)
+            if count != answered:
+                answered = count
+                progress_bar(min(count, frames), frames, 'frames located')
+        listener.spin_for(0.5)
+        progress_bar(frames, frames, 'frames located')
+        if replay.returncode != 0:
+            raise RuntimeError(f'replay failed: see {logs / (bag.name + "_replay.log")}')
+        return time.monotonic() - started
+    finally:
+        for process in (replay, locator):
+            if process is not None:
+                _stop(process)
+
+
+def outcomes_from_answers(truth: dict[int, Pose], listener: PoseListener, group: str) -> list[FrameOutcome]:
+    return [FrameOutcome(pose, listener.poses.get(stamp), group, grid_point(pose.position[:2]),
+                         listener.outcomes.get(stamp, 'no answer'))
+            for stamp, pose in sorted(truth.items())]
+
+
+def _arguments(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.demo', description=__doc__.split('\n')[0])
+    parser.add_argument('--out', type=Path, default=Path('demo_output'), help='where bags and the report go')
+    parser.add_argument('--heights', type=float, nargs='+', default=[1.5, 2.0], help='lamp heights above the camera (m)')
+    parser.add_argument('--points', type=int, default=6, help='grid points per side of the 3 m x 3 m area')
+    parser.add_argument('--postures', type=int, default=2, help='hand-held postures per grid point')
+    parser.add_argument('--camera', choices=('4k', '1080p'), default='4k')
+    parser.add_argument('--seed', type=int, default=2017)
+    parser.add_argument('--keep-bags', action='store_true', help='keep the rendered recordings (about 25 MB per 4K frame)')
+    return parser.parse_args(argv)
+
+
+def run_height(height: float, args: argparse.Namespace, listener: PoseListener) -> tuple[list, list, float, int]:
+    group = f'{height:g} m'
+    scenario = paper_scenario(args.camera, height=height, points=args.points, postures=args.postures, seed=args.seed)
+    bags = args.out / 'bags'
+    bags.mkdir(parents=True, exist_ok=True)
+    bag, params = bags / f'paper_{args.camera}_{height:g}m', bags / f'paper_{args.camera}_{height:g}m.yaml'
+    if bag.exists():
+        shutil.rmtree(bag)
+    print(f'lamp {group} above the camera: rendering {len(scenario.poses)} frames', file=sys.stderr)
+    record(scenario, bag, 'sqlite3', True, np.random.default_rng([args.seed, int(height * 100)]),
+           lambda done, total: progress_bar(done, total, 'frames rendered'))
+    write_params(params, scenario, imu=True)
+    truth = ground_truth(bag, TOPICS.ground_truth)
+    seconds = play_through_nodes(bag, params, len(truth), listener, args.out)
+    ours = outcomes_from_answers(truth, listener, group)
+    paper_settings = replace(settings_from_params_file(params), solver='paper')
+    theirs = evaluate_offline(bag, paper_settings, TOPICS, group)
+    if not args.keep_bags:
+        shutil.rmtree(bag)
+    return ours, theirs, seconds, len(truth)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _arguments(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    use_loopback_dds(loopback_profile(), claim_domain_id(101, 200))
+    listener = PoseListener()
+    ours, theirs, notes = [], [], []
+    try:
+        for height in args.heights:
+            mine, paper, seconds, frames = run_height(height, args, listener)
+            ours += mine
+            theirs += paper
+            notes.append(f'{height:g} m: {frames} frames through replay -> locator in {seconds:.1f} s '
+                         f'({frames / seconds:.1f} frames/s end to end, deterministic replay)')
+    except (RuntimeError, ValueError, OSError) as err:
+        print(f'demo: {err}', file=sys.stderr)
+        return 1
+    finally:
+        listener.close()
+    if np.isfinite(listener.latency_ms):
+        notes.append(f'locator processing latency (median of recent frames): {listener.latency_ms:.1f} ms '
+                     f'= {1000 / listener.latency_ms:.0f} frames/s on one core')
+    evaluation = Evaluation(f'Seed paper experiment, simulated ({args.camera} camera, Lumia 1020 field of view)',
+                            {PERSPECTIVE: ours, PAPER: theirs}, notes)
+    print()
+    print(evaluation.table())
+    for line in evaluation.published_rows() + notes:
+        print(line)
+    summary = write_report(evaluation, args.out / 'report')
+    print(f'report with figures: {summary}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
