@@ -51,6 +51,8 @@ PARAMETERS = (
                   'quaternion (x, y, z, w) turning IMU-frame vectors into the camera optical frame'),
     ParameterSpec('imu.max_age', 'number', 0.1, 'an IMU message older than this (s) at the image stamp is not used'),
     ParameterSpec('imu.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and measured gravity'),
+    ParameterSpec('imu.sigma', 'number', 0.01,
+                  "standard deviation (rad) of the IMU's up direction; gravity then also enters the pose fit"),
     ParameterSpec('continuity.gate', 'number', 0.3, 'a candidate within this distance (m) of a recent pose continues it'),
     ParameterSpec('continuity.max_age', 'number', 1.0, 'how long (s) a pose may vouch for the next; 0 disables'),
     ParameterSpec('image_transport', 'string', 'raw', 'raw (image_raw) or compressed (image_raw/compressed)'),
@@ -101,6 +103,7 @@ class LocatorSettings:
     imu_rotation: np.ndarray
     imu_max_age: float
     imu_tolerance: float
+    imu_sigma: float
     continuity_gate: float
     continuity_max_age: float
     image_transport: str
@@ -252,6 +255,7 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         imu_rotation=rotation,
         imu_max_age=_number(values, 'imu.max_age', positive=True),
         imu_tolerance=_number(values, 'imu.tolerance', positive=True),
+        imu_sigma=_number(values, 'imu.sigma', positive=True),
         continuity_gate=_number(values, 'continuity.gate', positive=True),
         continuity_max_age=_number(values, 'continuity.max_age', minimum=0.0),
         image_transport=_choice(values, 'image_transport', IMAGE_TRANSPORTS),

@@ -17,7 +17,7 @@ from vlp_ros.lamp_map import Lamp
 from vlp_ros.locator_config import LocatorSettings
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
-from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
+from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Choice, Reason
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.paper import solve_lamp_paper
@@ -80,9 +80,9 @@ class Pipeline:
         s = self.settings
         up = []
         if s.prior_up is not None:
-            up.append((s.prior_up, s.prior_tolerance))
+            up.append(UpHint(s.prior_up, s.prior_tolerance))  # a mount's prior gates; it is no measurement
         if gravity_up is not None:
-            up.append((np.asarray(gravity_up, dtype=float), s.imu_tolerance))
+            up.append(UpHint(gravity_up, s.imu_tolerance, s.imu_sigma))
         recent = None
         if self._recent is not None and 0.0 <= stamp - self._recent[1] <= s.continuity_max_age:
             recent = self._recent[0]
