@@ -82,8 +82,11 @@ def write_bag(path: Path, messages: list[Recorded], *, storage: str = 'sqlite3',
         for message in messages:
             if message.topic not in connections:
                 offers = (qos or {}).get(message.topic, [offer()])
+                # Types rosbags does not know (no Python module anywhere) get a made-up String-like definition.
+                known = message.msgtype in TYPESTORE.fielddefs
                 connections[message.topic] = writer.add_connection(
-                    message.topic, message.msgtype, typestore=TYPESTORE, offered_qos_profiles=offers)
+                    message.topic, message.msgtype, typestore=TYPESTORE, offered_qos_profiles=offers,
+                    msgdef=None if known else 'string data', rihs01=None if known else 'RIHS01_' + '0' * 64)
             writer.write(connections[message.topic], message.timestamp_ns, message.data)
     return path
 
@@ -145,10 +148,11 @@ def storage_file(path: Path) -> Path:
     return path / _metadata(path)['relative_file_paths'][0]
 
 
-def sqlite3_topic_data(database: Path, topic: str) -> list[bytes]:
-    """The raw messages of ``topic`` in time order, read with plain sqlite3: an oracle independent of rosbags."""
+def sqlite3_topic_data(database: Path, topic: str, start_ns: int = 0) -> list[bytes]:
+    """The raw messages of ``topic`` from ``start_ns`` on, in time order, read with plain sqlite3:
+    an oracle independent of rosbags."""
     with closing(sqlite3.connect(f'file:{database}?mode=ro', uri=True)) as connection:
         rows = connection.execute(
             'SELECT data FROM messages JOIN topics ON messages.topic_id = topics.id '
-            'WHERE topics.name = ? ORDER BY timestamp', (topic,))
+            'WHERE topics.name = ? AND timestamp >= ? ORDER BY timestamp', (topic, start_ns))
         return [bytes(data) for (data,) in rows]

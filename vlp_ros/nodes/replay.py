@@ -36,9 +36,11 @@ from vlp_ros.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, Timeline, 
                                    progress_line, select_topics)
 from vlp_ros.rosbag_reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
 
-DISCOVERY_WAIT_S = 1.0  # for subscribers to match before the first message
+DISCOVERY_WAIT_S = 5.0  # at most, for subscribers to match first (a lost announcement costs 3 s)
+DISCOVERY_SETTLE_S = 0.5  # once some matched, this long without another match ends the wait
+MATCH_SETTLE_S = 0.3  # see _wait_for_subscribers
 FRAME_SUBSCRIBER_WAIT_S = 10.0  # deterministic mode: for the frame topics' first subscriber
-ACK_WAIT_S = 2.0  # at the end, for reliable subscribers to acknowledge the last messages
+ACK_WAIT_S = 4.0  # at the end, for reliable subscribers' acknowledgements (they follow 3 s heartbeats)
 PROGRESS_PERIOD_S = 1.0
 SPIN_SLICE_S = 0.05
 # Answers only need to arrive; best effort matches publishers of either reliability.
@@ -62,10 +64,31 @@ def command_line_parser() -> argparse.ArgumentParser:
     parser.add_argument('--clock', type=float, nargs='?', const=DEFAULT_CLOCK_HZ, metavar='HZ',
                         help=f'publish /clock at HZ (default {DEFAULT_CLOCK_HZ:g})')
     parser.add_argument('--deterministic', action='store_true', default=None,
-                        help='publish each camera frame only after the previous one was answered')
+                        help='ignore bag timing: publish each camera frame once the previous one '
+                             'was answered on vlp/pose or vlp/processed (or timed out)')
     parser.add_argument('--answer-timeout', type=float, metavar='S',
                         help='deterministic mode: give up waiting for an answer after S seconds (default 2)')
     return parser
+
+
+def split_ros_arguments(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(the program's own arguments, the `--ros-args ... [--]` sections for rclpy).
+
+    rclpy.utilities.remove_ros_args would also swallow bare FROM:=TO words (the
+    pre-Foxy remapping syntax), which are the values of --remap here.
+    """
+    own: list[str] = []
+    ros: list[str] = []
+    in_ros = False
+    for arg in argv:
+        if arg == '--ros-args':
+            in_ros = True
+            ros.append(arg)
+        elif in_ros and arg == '--':
+            in_ros = False
+        else:
+            (ros if in_ros else own).append(arg)
+    return own, ros
 
 
 def message_class(msgtype: str) -> type | None:
@@ -141,9 +164,9 @@ class Replay(Node):
             names = list(self._bag_publishers)
             self._total = sum(bag.topics[name].message_count for name in names)
             self._last_bag_ns = origin
-            print(f'replay: playing {bag.path}: {self._total} messages on {len(names)} topics, '
-                  f'{(bag.end_ns - origin) / 1e9:.1f} s at rate {self.options.rate:g}'
-                  f'{" (deterministic)" if self.options.deterministic else ""}', file=sys.stderr, flush=True)
+            mode = 'deterministic' if self.options.deterministic else f'rate {self.options.rate:g}'
+            self._print(f'replay: playing {bag.path}: {self._total} messages on {len(names)} topics, '
+                        f'{(bag.end_ns - origin) / 1e9:.1f} s of bag time, {mode}')
             self.create_timer(PROGRESS_PERIOD_S,
                               lambda: self._print(progress_line(self._published, self._total, self._bag_now_ns(),
                                                                 origin, bag.end_ns)))
@@ -182,31 +205,55 @@ class Replay(Node):
             raise ValueError(f'no selected topic has an installed message type (missing: {sorted(unavailable)})')
 
     def _prepare_answers(self, bag: Bag, names: Sequence[str]) -> None:
-        self.create_subscription(PoseStamped, 'vlp/pose', lambda msg: self._answer(msg.header.stamp), ANSWER_QOS)
-        self.create_subscription(Header, 'vlp/processed', lambda msg: self._answer(msg.stamp), ANSWER_QOS)
+        """Subscribe to the answers; wait for the frame topics' subscribers, then for an answering publisher."""
+        answers = [
+            self.create_subscription(PoseStamped, 'vlp/pose', lambda msg: self._answer(msg.header.stamp),
+                                     ANSWER_QOS),
+            self.create_subscription(Header, 'vlp/processed', lambda msg: self._answer(msg.stamp), ANSWER_QOS)]
         frames = [self._bag_publishers[name] for name in names if bag.topics[name].msgtype in FRAME_TYPES]
-        if not self._spin_while(lambda: any(p.get_subscription_count() == 0 for p in frames),
-                                FRAME_SUBSCRIBER_WAIT_S):
-            return
-        self.get_logger().warning('deterministic mode: no subscriber on '
-                                  f'{[p.topic_name for p in frames if p.get_subscription_count() == 0]} '
-                                  f'after {FRAME_SUBSCRIBER_WAIT_S:g} s; their frames wait for no answer')
+        if self._spin_while(lambda: any(p.get_subscription_count() == 0 for p in frames),
+                            FRAME_SUBSCRIBER_WAIT_S):
+            self.get_logger().warning(
+                'deterministic mode: no subscriber on '
+                f'{[p.topic_name for p in frames if p.get_subscription_count() == 0]} '
+                f'after {FRAME_SUBSCRIBER_WAIT_S:g} s; their frames wait for no answer')
+        # The answering node usually comes up with the frame subscriber; let its publisher match too.
+        self._spin_while(lambda: all(a.get_publisher_count() == 0 for a in answers), DISCOVERY_WAIT_S)
 
     def _answer(self, stamp) -> None:
         if (stamp.sec, stamp.nanosec) == self._pending_stamp:
             self._pending_stamp = None
 
     def _wait_for_subscribers(self) -> None:
-        self._spin_while(lambda: any(p.get_subscription_count() == 0 for p in self._bag_publishers.values()),
-                         DISCOVERY_WAIT_S)
+        """Until every topic has a subscriber, or discovery has settled on some, or DISCOVERY_WAIT_S.
+
+        A publisher counts a subscriber before that subscriber has matched the
+        publisher, and what is sent in between is lost to volatile subscribers:
+        hence MATCH_SETTLE_S more once some matched.
+        """
+        publishers = list(self._bag_publishers.values())
+        deadline = time.monotonic() + DISCOVERY_WAIT_S
+        matched, last_change = 0, time.monotonic()
+        while matched < len(publishers) and time.monotonic() < deadline:
+            now_matched = sum(p.get_subscription_count() > 0 for p in publishers)
+            if now_matched != matched:
+                matched, last_change = now_matched, time.monotonic()
+            if matched and time.monotonic() - last_change >= DISCOVERY_SETTLE_S:
+                return
+            self._executor.spin_once(timeout_sec=SPIN_SLICE_S)
+        if matched:
+            self._spin_for(MATCH_SETTLE_S)
 
     def _play_pass(self, bag: Bag, names: Sequence[str], origin: int) -> None:
         self._timeline = None
         self._last_bag_ns = origin
         self._spin_for(self.options.delay)
-        self._timeline = Timeline(origin, self.options.rate)
-        self._loop_start = time.monotonic()
         for message in bag.messages(names, origin):
+            if self._timeline is None:
+                # The schedule starts when the first message has been read, so that
+                # opening (or decompressing) the storage does not squeeze its first gaps.
+                self._timeline = Timeline(origin, self.options.rate)
+                self._loop_start = time.monotonic()
             if self.options.deterministic:
                 self._executor.spin_once(timeout_sec=0.0)
             else:
@@ -264,10 +311,10 @@ class Replay(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    argv = list(sys.argv if args is None else args)
+    own, ros = split_ros_arguments(sys.argv if args is None else args)
     parser = command_line_parser()
-    command_line = parser.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
+    command_line = parser.parse_args(own[1:])
+    rclpy.init(args=own[:1] + ros)
     try:
         node = Replay(command_line)
     except (ValueError, ParameterException) as err:
