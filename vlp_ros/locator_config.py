@@ -46,6 +46,8 @@ PARAMETERS = (
     ParameterSpec('prior.up_in_camera', 'number_array', [],
                   'fixed mount: where map +z points in the camera optical frame (3 numbers); empty = no prior'),
     ParameterSpec('prior.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and the static prior'),
+    ParameterSpec('prior.sigma', 'number', 0.0,
+                  'standard deviation (rad) of the mount prior; > 0 makes it a measurement in the pose fit, 0 only a gate'),
     ParameterSpec('imu.enabled', 'bool', False, 'use gravity from the imu topic to tell pose candidates apart'),
     ParameterSpec('imu.rotation', 'number_array', [0.0, 0.0, 0.0, 1.0],
                   'quaternion (x, y, z, w) turning IMU-frame vectors into the camera optical frame'),
@@ -99,6 +101,7 @@ class LocatorSettings:
     solver: str
     prior_up: np.ndarray | None
     prior_tolerance: float
+    prior_sigma: float | None
     imu_enabled: bool
     imu_rotation: np.ndarray
     imu_max_age: float
@@ -251,6 +254,7 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         solver=_choice(values, 'solver', SOLVERS),
         prior_up=None if prior_up is None else _unit(prior_up, 'prior.up_in_camera'),
         prior_tolerance=_number(values, 'prior.tolerance', positive=True),
+        prior_sigma=_number(values, 'prior.sigma', minimum=0.0) or None,
         imu_enabled=bool(values.get('imu.enabled')),
         imu_rotation=rotation,
         imu_max_age=_number(values, 'imu.max_age', positive=True),

@@ -80,7 +80,7 @@ class Pipeline:
         s = self.settings
         up = []
         if s.prior_up is not None:
-            up.append(UpHint(s.prior_up, s.prior_tolerance))  # a mount's prior gates; it is no measurement
+            up.append(UpHint(s.prior_up, s.prior_tolerance, s.prior_sigma))
         if gravity_up is not None:
             up.append(UpHint(gravity_up, s.imu_tolerance, s.imu_sigma))
         recent = None

@@ -18,6 +18,11 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.node import Node
+from std_msgs.msg import Header
 
 from vlp_ros.dds_environment import claim_domain_id, installed_executable, loopback_profile, use_loopback_dds
 from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
@@ -38,14 +43,8 @@ PAPER = "paper's solver (same frames)"
 class PoseListener:
     """Collects the locator's answers (poses with covariance, and per-frame outcomes) by image stamp."""
 
-    def __init__(self) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseWithCovarianceStamped
-        from std_msgs.msg import Header
-        self._rclpy = rclpy
-        rclpy.init()
-        self.node = rclpy.create_node('vlp_demo_listener')
+    def __init__(self, node: Node) -> None:
+        self.node = node
         self.poses: dict[int, Pose] = {}
         self.outcomes: dict[int, str] = {}
         self.latency_ms = float('nan')
@@ -75,11 +74,8 @@ class PoseListener:
     def spin_for(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
-            self._rclpy.spin_once(self.node, timeout_sec=0.02)
+            rclpy.spin_once(self.node, timeout_sec=0.02)
 
-    def close(self) -> None:
-        self.node.destroy_node()
-        self._rclpy.try_shutdown()
 
 
 def _start(name: str, *args: str, log: Path) -> subprocess.Popen:
@@ -172,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     args = _arguments(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     use_loopback_dds(loopback_profile(), claim_domain_id(101, 200))
-    listener = PoseListener()
+    rclpy.init()
+    listener = PoseListener(rclpy.create_node('vlp_demo_listener'))
     ours, theirs, notes = [], [], []
     try:
         for height in args.heights:
@@ -185,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'demo: {err}', file=sys.stderr)
         return 1
     finally:
-        listener.close()
+        listener.node.destroy_node()
+        rclpy.try_shutdown()
     if np.isfinite(listener.latency_ms):
         notes.append(f'locator processing latency (median of recent frames): {listener.latency_ms:.1f} ms '
                      f'= {1000 / listener.latency_ms:.0f} frames/s on one core')

@@ -145,13 +145,22 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
     margin = sensor.blur_margin()
     for region, members in _clusters(drawn, margin, camera):
         rx0, ry0, rx1, ry1 = region
-        canvas = np.empty((ry1 - ry0, rx1 - rx0, 3), dtype=np.float32)
-        canvas[...] = np.asarray(sensor.ambient_bgr, dtype=np.float32)
+        # The lens blurs the scene; the rolling shutter then scales each row by the light of
+        # that row's exposure window, so each lamp is blurred unmodulated, then modulated.
+        background = np.empty((ry1 - ry0, rx1 - rx0, 3), dtype=np.float32)
+        background[...] = np.asarray(sensor.ambient_bgr, dtype=np.float32)
+        lamp_layers = []
         for sim, truth, bbox in members:
-            truth.visible = _draw(canvas, region, camera, pose, sim, bbox, sensor, first_row_time)
+            layer = _lamp_layer(background, lamp_layers, region, camera, pose, sim, bbox)
+            truth.visible = layer is not None
             truth.bbox = bbox if truth.visible else None
-        if sensor.blur_sigma > 0.0:
-            canvas = cv2.GaussianBlur(canvas, (0, 0), sensor.blur_sigma, borderType=cv2.BORDER_REPLICATE)
+            if layer is not None:
+                lamp_layers.append((sim, layer))
+        canvas = _blurred(background, sensor)
+        rows = sensor.row_start_times(first_row_time, ry0, ry1 - ry0)
+        for sim, layer in lamp_layers:
+            level = sim.waveform.mean_brightness(rows, sensor.exposure).astype(np.float32)
+            canvas += _blurred(layer, sensor) * level[:, None, None]
         if pattern is not None:
             canvas = mosaic(canvas, shifted_pattern(pattern, rx0, ry0))
         image[ry0:ry1, rx0:rx1] = read_out(canvas, sensor, rng)
@@ -252,23 +261,32 @@ def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool
     return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
-def _draw(canvas: np.ndarray, region: tuple[int, int, int, int], camera: CameraModel, pose: Pose,
-          sim: SimLamp, bbox: tuple[int, int, int, int], sensor: SensorModel, first_row_time: float) -> bool:
-    """Paint one lamp over ``canvas`` (which covers ``region``); False if no pixel of it shows."""
+def _blurred(canvas: np.ndarray, sensor: SensorModel) -> np.ndarray:
+    if sensor.blur_sigma <= 0.0:
+        return canvas
+    return cv2.GaussianBlur(canvas, (0, 0), sensor.blur_sigma, borderType=cv2.BORDER_REPLICATE)
+
+
+def _lamp_layer(background: np.ndarray, layers: list, region: tuple[int, int, int, int], camera: CameraModel,
+                pose: Pose, sim: SimLamp, bbox: tuple[int, int, int, int]) -> np.ndarray | None:
+    """One lamp's light at full level over ``region`` (None if no pixel of it shows).
+
+    The lamp hides the background and the lamps drawn before it (which are farther) where it covers them.
+    """
     lamp = sim.lamp
     disc, marker = disc_coverage(
         camera, pose, lamp.position[2],
         [Circle(lamp.position[:2], lamp.radius), Circle(lamp.marker_position()[:2], sim.marker_radius)],
         bbox)
     if not disc.any():
-        return False
+        return None
     x0, y0, x1, y1 = bbox
-    # Row r integrates the light over [its start, its start + exposure].
-    level = sim.waveform.mean_brightness(sensor.row_start_times(first_row_time, y0, y1 - y0), sensor.exposure)
-    light = (np.asarray(sim.color_bgr, dtype=np.float32) * (disc - marker)[..., None]
-             + np.asarray(sim.marker_bgr, dtype=np.float32) * marker[..., None])
-    light *= (sim.peak_dn * level).astype(np.float32)[:, None, None]
-    view = canvas[y0 - region[1]:y1 - region[1], x0 - region[0]:x1 - region[0]]
-    view *= (1.0 - disc)[..., None]
-    view += light
-    return True
+    window = (slice(y0 - region[1], y1 - region[1]), slice(x0 - region[0], x1 - region[0]))
+    hidden = (1.0 - disc)[..., None].astype(np.float32)
+    background[window] *= hidden
+    for _, earlier in layers:
+        earlier[window] *= hidden
+    layer = np.zeros_like(background)
+    layer[window] = (np.asarray(sim.color_bgr, dtype=np.float32) * (disc - marker)[..., None]
+                     + np.asarray(sim.marker_bgr, dtype=np.float32) * marker[..., None]) * np.float32(sim.peak_dn)
+    return layer

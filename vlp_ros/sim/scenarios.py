@@ -61,6 +61,7 @@ class Scenario:
     frame_rate: float = FRAME_RATE
     prior_up: np.ndarray | None = None
     prior_tolerance: float = 0.35
+    prior_sigma: float = 0.0
     imu_noise: float = 0.02
     independent_frames: bool = False
 
@@ -73,7 +74,7 @@ class Scenario:
             raise ValueError(f'frames must be at least 1, got {frames}')
         return Scenario(self.name, self.camera, self.sensor, self.lamps, self.poses[:frames],
                         self.accelerations[:frames], self.beacon, self.frame_rate, self.prior_up,
-                        self.prior_tolerance, self.imu_noise, self.independent_frames)
+                        self.prior_tolerance, self.prior_sigma, self.imu_noise, self.independent_frames)
 
     def locator_parameters(self, imu: bool) -> dict[str, Any]:
         """The locator's ``ros__parameters`` (nested as in a params file) for this scenario."""
@@ -91,7 +92,7 @@ class Scenario:
         }
         if self.prior_up is not None:
             params['prior'] = {'up_in_camera': [float(v) for v in self.prior_up],
-                               'tolerance': float(self.prior_tolerance)}
+                               'tolerance': float(self.prior_tolerance), 'sigma': float(self.prior_sigma)}
         if imu:
             # The simulated IMU samples once per frame at the image's stamp.
             params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0], 'max_age': 0.5 / self.frame_rate}
@@ -216,4 +217,4 @@ def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.
         poses.append(Pose(rotation, position))
         accelerations.append(np.array([0.0, -sway * omega ** 2 * np.sin(omega * t), 0.0]))
     return Scenario('robot', camera, sensor, lamps, poses, accelerations, beacon,
-                    prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1)
+                    prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1, prior_sigma=np.radians(0.7))
