@@ -11,9 +11,10 @@ import numpy as np
 import yaml
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+from conftest import SHARED_DATA
 from rosbags.typesys import Stores, get_typestore
 
-SHARED_BAGS = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'rosbag2'
+SHARED_BAGS = SHARED_DATA / 'rosbag2'
 TYPESTORE = get_typestore(Stores.ROS2_KILTED)
 T0_NS = 1_700_000_000_000_000_000
 STRING = 'std_msgs/msg/String'

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 from conftest import spin_until
-from replay_bags import (CAMERA_INFO, IMAGE, SHARED_BAGS, STRING, T0_NS, Recorded, camera_info_data, chatter,
-                         copy_bag, image_data, sqlite3_topic_data, storage_file, write_bag, write_split_bag)
+from replay_bags import (CAMERA_INFO, IMAGE, SHARED_BAGS, T0_NS, Recorded, camera_info_data, chatter, copy_bag,
+                         image_data, sqlite3_topic_data, write_bag, write_split_bag)
 
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 TALKER_MCAP = SHARED_BAGS / 'talker_mcap'
@@ -117,15 +117,16 @@ def test_clock_follows_bag_time(start_process, test_node, tmp_path: Path) -> Non
     assert T0_NS <= times[0] and times[-1] <= T0_NS + 2 * 10**9  # a 0.9 s bag
 
 
-def test_loop_plays_the_bag_again_until_interrupted(start_process, test_node, tmp_path: Path) -> None:
+def test_loop_plays_the_bag_again_after_each_delay_until_interrupted(start_process, test_node,
+                                                                     tmp_path: Path) -> None:
     from std_msgs.msg import String
     bag = write_bag(tmp_path / 'bag', chatter(3, 0.05))
     received = subscribe(test_node, '/chatter', String)
-    replay = start_process('replay', bag, '--loop')
-    assert spin_until(test_node, lambda: len(received) >= 7, 15.0), replay.output()
+    replay = start_process('replay', bag, '--loop', '--delay', '0.5')
+    play_until(test_node, replay, lambda: len(received) >= 7, timeout=15.0)
     assert [m.data for m in received.messages()[:7]] == [f'hello {k % 3}' for k in range(7)]
-    assert replay.interrupt() == 0
-    assert 'Traceback' not in replay.output()
+    arrivals = received.arrivals()
+    assert arrivals[3] - arrivals[2] >= 0.45 and arrivals[6] - arrivals[5] >= 0.45
 
 
 def test_split_and_compressed_bags_play_every_message(start_process, test_node, tmp_path: Path) -> None:
@@ -254,3 +255,21 @@ def test_deterministic_mode_publishes_each_frame_after_the_previous_answer(start
         else:
             assert arrivals[index] >= answered_at[index - 1]
     assert 'frames answered: 5, unanswered: 1' in replay.stderr()
+
+
+def test_own_arguments_keep_bare_remap_rules_and_ros_sections_go_to_rclpy() -> None:
+    from vlp_ros.nodes.replay import split_ros_arguments
+    own, ros = split_ros_arguments(['replay', 'bag', '--remap', '/a:=/b', '--ros-args', '-r', '__node:=n',
+                                    '-p', 'rate:=2.0', '--', '--loop', '--ros-args', '--log-level', 'warn'])
+    assert own == ['replay', 'bag', '--remap', '/a:=/b', '--loop']
+    assert ros == ['--ros-args', '-r', '__node:=n', '-p', 'rate:=2.0', '--ros-args', '--log-level', 'warn']
+
+
+def test_message_classes_are_found_for_installed_types_only() -> None:
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+    from vlp_ros.nodes.replay import message_class
+    assert message_class('sensor_msgs/msg/Image') is Image
+    assert message_class('std_msgs/String') is String
+    for missing in ['foo_msgs/msg/Bar', 'std_msgs/msg/Nope', 'std_msgs/msg/rclpy', 'garbage']:
+        assert message_class(missing) is None, missing

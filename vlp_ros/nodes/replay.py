@@ -277,7 +277,9 @@ class Replay(Node):
             self._pending_stamp = None
 
     def _spin_while(self, condition: Callable[[], bool], timeout: float) -> bool:
-        """Serve callbacks (timers, answers) while ``condition()`` holds, at most ``timeout`` s; whether it still holds."""
+        """Serve callbacks (timers, answers) while ``condition()`` holds, at most ``timeout`` s.
+
+        Returns whether it still holds."""
         deadline = time.monotonic() + timeout
         while True:
             remaining = deadline - time.monotonic()
