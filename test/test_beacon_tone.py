@@ -21,20 +21,28 @@ def tone_profile(frequency, periods=4.0, exposure=4e-5, depth=0.7, noise=0.3, se
 @pytest.mark.parametrize('lamp_id', [10, 17, 23, 30])
 def test_lamp_found_by_its_frequency(lamp_id):
     frequency = FREQUENCIES[lamp_id] * 1.004
-    reading = decode_tone(tone_profile(frequency), ROW_TIME, FREQUENCIES, TOLERANCE)
+    reading = decode_tone(tone_profile(frequency), ROW_TIME, FREQUENCIES, TOLERANCE, exposure=4e-5)
     assert reading.lamp_id == lamp_id and reading.confidence > 0.9999
     assert reading.candidates[np.argmax(reading.log_likelihoods)] == lamp_id
 
 
 @pytest.mark.parametrize('exposure', [3e-5, 6e-5, 1.2e-4])
-def test_three_periods_suffice_at_any_exposure(exposure):
-    reading = decode_tone(tone_profile(2600.0, periods=3.0, exposure=exposure), ROW_TIME, FREQUENCIES, TOLERANCE)
+def test_three_periods_suffice_at_any_known_exposure(exposure):
+    reading = decode_tone(tone_profile(2600.0, periods=3.2, exposure=exposure), ROW_TIME, FREQUENCIES, TOLERANCE,
+                          exposure=exposure)
     assert reading.lamp_id == 18
+
+
+def test_unknown_exposure_needs_more_periods():
+    # Blur across rows can pass for a longer exposure: edges count only to the nearest row.
+    short = decode_tone(tone_profile(4600.0, periods=3.2), ROW_TIME, FREQUENCIES, TOLERANCE)
+    assert short.lamp_id is None and not short.unknown
+    assert decode_tone(tone_profile(4600.0, periods=12.0), ROW_TIME, FREQUENCIES, TOLERANCE).lamp_id == 28
 
 
 @pytest.mark.parametrize('frequency', [2100.0, 5800.0])
 def test_frequency_between_or_beyond_the_lamps_is_rejected(frequency):
-    reading = decode_tone(tone_profile(frequency, periods=6.0), ROW_TIME, FREQUENCIES, TOLERANCE)
+    reading = decode_tone(tone_profile(frequency, periods=6.0), ROW_TIME, FREQUENCIES, TOLERANCE, exposure=4e-5)
     assert reading.lamp_id is None and reading.unknown
     assert reading.candidates[np.argmax(reading.log_likelihoods)] == UNMAPPED
 
@@ -50,7 +58,8 @@ def test_too_few_periods_or_no_stripes_give_no_id():
 def test_from_an_image_of_a_tilted_lamp():
     image, observation = lamp_image(tone_waveform(3400.0, 0.6, offset=2e-5), ROW_TIME, 5e-5, (90.0, 60.0),
                                     angle=1.1, falloff=0.3, rng=np.random.default_rng(4))
-    assert decode_tone(row_profile(image, observation), ROW_TIME, FREQUENCIES, TOLERANCE).lamp_id == 22
+    reading = decode_tone(row_profile(image, observation), ROW_TIME, FREQUENCIES, TOLERANCE, exposure=5e-5)
+    assert reading.lamp_id == 22
 
 
 def test_bad_inputs_are_rejected():
@@ -61,3 +70,5 @@ def test_bad_inputs_are_rejected():
         decode_tone(profile, ROW_TIME, {1: 30_000.0}, TOLERANCE)
     with pytest.raises(ValueError, match='tolerance'):
         decode_tone(profile, ROW_TIME, FREQUENCIES, 0.0)
+    with pytest.raises(ValueError, match='exposure'):
+        decode_tone(profile, ROW_TIME, FREQUENCIES, TOLERANCE, exposure=0.0)

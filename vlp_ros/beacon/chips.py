@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 _COARSE_PHASES = 6
 # Chips of the window the coarse grid looks at, and the largest drift of its period steps across them.
@@ -20,6 +21,12 @@ _COARSE_DRIFT = 0.3
 # The fine grid: 5 x 5 points a quarter of the coarse steps apart, around the coarse best.
 _FINE_STEPS = np.arange(-2, 3) / 4.0
 _MIN_DOF = 4
+# Least share of a typical row a chip must hold to count.
+_MIN_CHIP_ROWS = 0.25
+# Chips on each side whose extremes give a chip's midline and contrast, and the least share of
+# the lamp's whole contrast such a neighbourhood must show to be trusted.
+_EXTREMES_HALF_WIDTH = 3
+_MIN_LOCAL_CONTRAST = 0.25
 # Median of a chi-square variable with one degree of freedom.
 _CHI2_1_MEDIAN = 0.4549
 
@@ -123,7 +130,9 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
     starts = phase + period * np.arange(first, first + count)
     ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
     weight, total, square, rows = (e[count:] - e[:count] for e in ends)
-    filled = weight > 1e-9
+    # A sliver of a row at the window's ends is mostly rounding (differences of large sums).
+    row_weights = cum.rows[0][cum.rows[0] > 0]
+    filled = weight > _MIN_CHIP_ROWS * (np.median(row_weights) if row_weights.size else 0.0) + 1e-9
     mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
     # Within-chip scatter measures the noise where there is enough of it.
     dof = rows[filled].sum() - np.count_nonzero(filled)
@@ -131,35 +140,35 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
         sigma2 = max(float((square - mean * total)[filled].sum() / dof), 1e-12)
     used = np.flatnonzero(filled)
     used_range = slice(used[0], used[-1] + 1)
-    weight, mean, filled = weight[used_range], mean[used_range], filled[used_range]
-    centre, amplitude = _baseline(mean, weight, filled)
+    # Chips the window's ends cut short.
+    whole = (starts + margin >= 0.0) & (starts + period - margin <= cum.size)
+    weight, mean, filled, whole = weight[used_range], mean[used_range], filled[used_range], whole[used_range]
+    centre, amplitude = _baseline(mean, filled & whole)
     levels = np.where(filled, (mean - centre) / amplitude, 0.0)
     variances = np.where(filled, sigma2 / np.where(filled, weight, 1.0) / amplitude ** 2, np.inf)
     return ChipLevels(levels, variances, period, float(starts[used[0]]))
 
 
-def _baseline(mean: np.ndarray, weight: np.ndarray, filled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Slowly varying midline and half-contrast of the chips (ID-agnostic: half of all chips are bright).
+def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Midline and half-contrast of every chip from its neighbourhood's brightest and darkest chips.
 
-    Straight lines in the chip index, so a residual envelope or a contrast that
-    saturation squeezes differently along the lamp does not bias the levels.
+    ID-blind: no run of equal chips is longer than four (two preamble chips and a
+    Manchester pair), so any seven consecutive chips hold both levels. Following the
+    extremes rather than fitting a curve through the chips copes with any slow
+    envelope, a contrast that saturation squeezes along the lamp, and the preamble's
+    imbalance. Only ``solid`` chips (whole ones) set the extremes.
     """
-    k = np.arange(len(mean), dtype=float)
-    w = np.where(filled, weight, 0.0)
-    straight = np.count_nonzero(filled) >= 8
-    centre = _line(k, mean, w, straight)
-    deviation = np.abs(mean - centre)
-    amplitude = _line(k, deviation, w, straight)
-    floor = 0.1 * max(float(np.average(deviation, weights=w)), 1e-12)
-    return centre, np.maximum(amplitude, floor)
-
-
-def _line(k: np.ndarray, y: np.ndarray, w: np.ndarray, straight: bool) -> np.ndarray:
-    """Weighted least-squares straight line (or constant) through (k, y), evaluated at k."""
-    sw = w.sum()
-    mean_k, mean_y = (w @ k) / sw, (w @ y) / sw
-    if not straight:
-        return np.full(len(k), mean_y)
-    dk = k - mean_k
-    slope = (w @ (dk * y)) / max(float(w @ (dk * dk)), 1e-12)
-    return mean_y + slope * dk
+    if np.count_nonzero(solid) < 2:
+        return np.zeros(len(mean)), np.ones(len(mean))
+    half = _EXTREMES_HALF_WIDTH
+    high = np.pad(np.where(solid, mean, -np.inf), half, constant_values=-np.inf)
+    low = np.pad(np.where(solid, mean, np.inf), half, constant_values=np.inf)
+    upper = sliding_window_view(high, 2 * half + 1).max(axis=1)
+    lower = sliding_window_view(low, 2 * half + 1).min(axis=1)
+    # A neighbourhood without both levels (too few whole chips, or noise only) borrows the lamp's
+    # overall extremes.
+    top, bottom = mean[solid].max(), mean[solid].min()
+    lone = ~(upper - lower > _MIN_LOCAL_CONTRAST * (top - bottom))
+    upper[lone], lower[lone] = top, bottom
+    contrast = np.maximum(0.5 * (upper - lower), 1e-12)
+    return 0.5 * (upper + lower), contrast

@@ -62,7 +62,9 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
                                             unmapped_weight)
     period = 1.0 / (chip_rate * row_time)
     margin = None if exposure is None else 0.5 * exposure / row_time + 0.25
-    z, w = _central_rows(modulation(profile), np.asarray(profile.weights, dtype=float),
+    # Only the mean level: a curve fitted through few chips bends with them, and the chip levels
+    # follow the envelope locally anyway.
+    z, w = _central_rows(modulation(profile, degree=0), np.asarray(profile.weights, dtype=float),
                          MAX_PACKETS * packet_length(id_bits) * period)
     levels = chip_levels(z, w, period, timing_tolerance, margin)
     if levels is None:

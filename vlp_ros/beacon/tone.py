@@ -21,11 +21,10 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
 _MAX_ITERATIONS = 8
-# Exposure as a fraction of the tone's period: where the fit may start, and its bounds. Longer
-# exposures look the same: kappa and kappa + 1 give one shape, 1 - kappa its mirror image.
+# An unknown exposure as a fraction of the tone's period: where the fit may start. Beyond half a
+# period longer exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
 _START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.45])
-_START_PHASES = np.array([0.0])
-_KAPPA_RANGE = (0.005, 0.5)
+_MIN_EXPOSURE_ROWS = 0.05
 # Rows on each side that a row's value may borrow from (demosaicing, blur after read-out).
 _MIX_ROWS = 2
 # How well an edge that no row straddles is placed, in rows (a uniform error over one row).
@@ -34,18 +33,22 @@ _EDGE_QUANTUM = 0.3
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
                 unmapped_weight: float = UNMAPPED_WEIGHT, min_confidence: float = MIN_CONFIDENCE,
-                min_periods: float = 2.8) -> BeaconReading:
+                min_periods: float = 2.8, exposure: float | None = None) -> BeaconReading:
     """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within ``tolerance_hz``.
 
     A frequency outside every band counts for the candidate ``UNMAPPED`` (prior
     ``unmapped_weight`` per hertz relative to the bands). Fewer than
     ``min_periods`` stripe periods in view give no evidence: the envelope cannot be
-    told from the stripes over less.
+    told from the stripes over less. ``exposure`` (s), when known, is fitted with
+    exactly; unknown, it cannot be told from blur across rows, and edges are then
+    only trusted to the nearest row (a much wider frequency uncertainty).
     """
     if not row_time > 0.0:
         raise ValueError(f'row_time must be positive, got {row_time}')
     if not tolerance_hz > 0.0:
         raise ValueError(f'tolerance_hz must be positive, got {tolerance_hz}')
+    if exposure is not None and not exposure > 0.0:
+        raise ValueError(f'exposure must be positive, got {exposure}')
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
     ids = np.array(sorted(frequencies), dtype=int)
@@ -77,12 +80,13 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
         return no_evidence(candidates, mapped, prior, f'fewer than {min_periods} stripe periods in view')
     # The envelope through the stripes leans on them; one over whole periods does not.
     fit.set_profile(modulation(profile, period=len(w) / start[0])[window])
-    estimate = fit.square_wave(*start)
+    estimate = fit.square_wave(*start, None if exposure is None else exposure / row_time)
     if estimate is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
-    cycles, sigma, dof, exposure_rows = estimate
-    if exposure_rows < 1.0:
-        # No row straddles most edges: they are known to a row, and so is the period.
+    cycles, sigma, dof, _ = estimate
+    if exposure is None or exposure < row_time:
+        # No row straddles most edges, or (exposure unknown) blur may pass for a longer exposure:
+        # the edges are known to a row, and the period to a row over the window.
         sigma = np.hypot(sigma, _EDGE_QUANTUM * cycles / len(w))
     if sigma / fit.duration > search[1] - search[0]:
         return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
@@ -153,29 +157,35 @@ class _ToneFit:
             return None
         return cycles, float(np.arctan2(-a, b) / (2.0 * np.pi))
 
-    def square_wave(self, cycles: float, phase: float) -> tuple[float, float, int, float] | None:
-        """(cycles, standard deviation, degrees of freedom, exposure in rows) of the exposure-smeared
-        square wave, fitted from a sinusoid's start.
+    def square_wave(self, cycles: float, phase: float,
+                    exposure_rows: float | None) -> tuple[float, float, int, float] | None:
+        """(cycles, standard deviation, residual degrees of freedom, exposure in rows) of the
+        exposure-smeared square wave, fitted from a sinusoid's start.
 
-        A row sees the square wave averaged over its exposure (kappa, a fraction of
-        the period), exactly: the difference of the wave's integral, a triangle wave.
-        Demosaicing, blur applied after read-out and the like mix each row with its
-        neighbours, so the template is any symmetric mix of a row and the next ones
-        (linear amplitudes). Levenberg-Marquardt over frequency, phase and kappa,
-        with envelope and amplitudes solved exactly at every step (variable projection).
+        A row sees the square wave averaged over its exposure, exactly: the difference
+        of the wave's integral, a triangle wave. Demosaicing, blur applied after
+        read-out and the like mix each row with its neighbours, so the template is any
+        symmetric mix of a row and the next ones (linear amplitudes). Levenberg-
+        Marquardt over frequency, phase and (unless given) the exposure, with envelope
+        and amplitudes solved exactly at every step (variable projection).
         """
-        kappas = np.repeat(_START_KAPPAS, len(_START_PHASES))
-        starts = np.column_stack([np.full(len(kappas), cycles),
-                                  phase + 0.5 * kappas + np.tile(_START_PHASES, len(_START_KAPPAS)), kappas])
+        rows = len(self.y)
+        free = exposure_rows is None
+        # Without the exposure, start from several (as a share of the period, up to the half
+        # period beyond which longer exposures only mirror shorter ones).
+        kappas = _START_KAPPAS if free else np.array([exposure_rows * cycles / rows])
+        starts = np.column_stack([np.full(len(kappas), cycles), phase + 0.5 * kappas, kappas * rows / cycles])
         params = starts[int(np.argmin(self._fit(starts)[0]))]
-        rss, residual, jacobian = self._projected(params)
+        rss, residual, jacobian = self._projected(params, free)
         damping = 1e-3
         for _ in range(_MAX_ITERATIONS):
             normal = jacobian.T @ jacobian
             step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-300), jacobian.T @ residual)
-            trial = params + step
-            trial[2] = np.clip(trial[2], *_KAPPA_RANGE)
-            trial_rss, trial_residual, trial_jacobian = self._projected(trial)
+            trial = params.copy()
+            trial[:len(step)] += step
+            if free:
+                trial[2] = np.clip(trial[2], _MIN_EXPOSURE_ROWS, 0.5 * rows / trial[0])
+            trial_rss, trial_residual, trial_jacobian = self._projected(trial, free)
             if trial_rss < rss:
                 converged = rss - trial_rss < 1e-6 * rss
                 params, rss, residual, jacobian = trial, trial_rss, trial_residual, trial_jacobian
@@ -184,21 +194,22 @@ class _ToneFit:
                     break
             else:
                 damping *= 8.0
-        # Frequency's information with phase and kappa free (they may be degenerate with each other,
-        # e.g. when a period spans a whole number of rows).
+        # Frequency's information with the other parameters free (they may be degenerate with each
+        # other, e.g. when a period spans a whole number of rows).
         others = jacobian[:, 1:]
         leftover = jacobian[:, 0] - others @ np.linalg.lstsq(others, jacobian[:, 0], rcond=1e-10)[0]
         information = float(leftover @ leftover)
-        dof = len(self.y) - 3 - (_MIX_ROWS + 1) - 3
+        dof = rows - 3 - (_MIX_ROWS + 1) - jacobian.shape[1]
         variance = rss / max(dof, 1) / information if information > 0.0 else np.inf
         if not (np.isfinite(variance) and dof >= 1):
             return None
-        return float(params[0]), float(np.sqrt(variance)), dof, float(params[2] * len(self.y) / params[0])
+        return float(params[0]), float(np.sqrt(variance)), dof, float(params[2])
 
     def _fit(self, params: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Best envelope and row mix for each parameter set (S, 3): residual sums of squares (S,),
-        and the pieces the Jacobian needs."""
-        cycles, phase, kappa = (params[:, i, None, None] for i in range(3))
+        """Best envelope and row mix for each parameter set (S, 3) of (cycles, phase, exposure rows):
+        residual sums of squares (S,), and the pieces the Jacobian needs."""
+        cycles, phase, exposure = (params[:, i, None, None] for i in range(3))
+        kappa = exposure * cycles / len(self.y)
         offsets = np.arange(-_MIX_ROWS, _MIX_ROWS + 1)
         # Rows r + j for every offset j: time in window lengths, as a row's value borrows from them.
         tau = self.tau[None, :] + offsets[:, None] / len(self.y)
@@ -210,19 +221,22 @@ class _ToneFit:
         gram = templates.transpose(0, 2, 1) @ templates
         mix = np.linalg.solve(gram + 1e-12 * np.eye(_MIX_ROWS + 1), (self.y @ templates)[..., None])[..., 0]
         residual = self.y - (templates @ mix[..., None])[..., 0]
-        return (residual * residual).sum(axis=1), residual, templates, gram, mix, theta, tau, mean
+        return (residual * residual).sum(axis=1), residual, templates, gram, mix, theta, tau, mean, kappa
 
-    def _projected(self, params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase, kappa)
+    def _projected(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
+        """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase[, exposure])
         with the best envelope and row mix."""
-        rss, residual, templates, gram, mix, theta, tau, mean = (v[0] for v in self._fit(params[None]))
-        kappa = params[2]
+        rss, residual, templates, gram, mix, theta, tau, mean, kappa = (v[0] for v in self._fit(params[None]))
+        cycles, _, exposure = params
+        rows = len(self.y)
         late, early = _square(theta + kappa), _square(theta)
         weights = mix[np.abs(np.arange(-_MIX_ROWS, _MIX_ROWS + 1))]
         slope = (late - early) / kappa
-        derivatives = np.stack([weights @ (slope * tau), -(weights @ slope), weights @ ((late - mean) / kappa)],
-                               axis=1)
-        jacobian = self._residual(derivatives * self.sqrt_w[:, None])
+        by_kappa = (late - mean) / kappa
+        derivatives = [weights @ (slope * tau + by_kappa * exposure / rows), -(weights @ slope)]
+        if free_exposure:
+            derivatives.append(weights @ (by_kappa * cycles / rows))
+        jacobian = self._residual(np.stack(derivatives, axis=1) * self.sqrt_w[:, None])
         jacobian -= templates @ np.linalg.solve(gram + 1e-12 * np.eye(_MIX_ROWS + 1), templates.T @ jacobian)
         return float(rss), residual, jacobian
 
