@@ -180,7 +180,7 @@ class _ToneFit:
         damping = 1e-3
         for _ in range(_MAX_ITERATIONS):
             normal = jacobian.T @ jacobian
-            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-300), jacobian.T @ residual)
+            step = _inverse(normal + damping * np.diag(np.diag(normal) + 1e-300)) @ (jacobian.T @ residual)
             trial = params.copy()
             trial[:len(step)] += step
             if free:
@@ -219,14 +219,15 @@ class _ToneFit:
         templates = np.stack([mean[:, ring == j].sum(axis=1) for j in range(_MIX_ROWS + 1)], axis=2)
         templates = self._residual(templates * self.sqrt_w[:, None])
         gram = templates.transpose(0, 2, 1) @ templates
-        mix = np.linalg.solve(gram + 1e-12 * np.eye(_MIX_ROWS + 1), (self.y @ templates)[..., None])[..., 0]
+        inverse = np.array([_inverse(g + 1e-12 * np.eye(_MIX_ROWS + 1)) for g in gram])
+        mix = (inverse @ (self.y @ templates)[..., None])[..., 0]
         residual = self.y - (templates @ mix[..., None])[..., 0]
-        return (residual * residual).sum(axis=1), residual, templates, gram, mix, theta, tau, mean, kappa
+        return (residual * residual).sum(axis=1), residual, templates, inverse, mix, theta, tau, mean, kappa
 
     def _projected(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase[, exposure])
         with the best envelope and row mix."""
-        rss, residual, templates, gram, mix, theta, tau, mean, kappa = (v[0] for v in self._fit(params[None]))
+        rss, residual, templates, inverse, mix, theta, tau, mean, kappa = (v[0] for v in self._fit(params[None]))
         cycles, _, exposure = params
         rows = len(self.y)
         late, early = _square(theta + kappa), _square(theta)
@@ -237,8 +238,22 @@ class _ToneFit:
         if free_exposure:
             derivatives.append(weights @ (by_kappa * cycles / rows))
         jacobian = self._residual(np.stack(derivatives, axis=1) * self.sqrt_w[:, None])
-        jacobian -= templates @ np.linalg.solve(gram + 1e-12 * np.eye(_MIX_ROWS + 1), templates.T @ jacobian)
+        jacobian -= templates @ (inverse @ (templates.T @ jacobian))
         return float(rss), residual, jacobian
+
+
+def _inverse(m: np.ndarray) -> np.ndarray:
+    """Inverse of a 2x2 or 3x3 matrix by cofactors: numpy's general solvers cost more than the fit."""
+    if m.shape == (2, 2):
+        (a, b), (c, d) = m.tolist()
+        return np.array([[d, -b], [-c, a]]) / (a * d - b * c)
+    if m.shape != (3, 3):
+        return np.linalg.inv(m)
+    (a, b, c), (d, e, f), (g, h, i) = m.tolist()
+    cofactors = [[e * i - f * h, c * h - b * i, b * f - c * e],
+                 [f * g - d * i, a * i - c * g, c * d - a * f],
+                 [d * h - e * g, b * g - a * h, a * e - b * d]]
+    return np.array(cofactors) / (a * cofactors[0][0] + b * cofactors[1][0] + c * cofactors[2][0])
 
 
 def _triangle(x: np.ndarray) -> np.ndarray:
