@@ -62,6 +62,7 @@ def test_a_certain_frame_of_another_id_starts_the_track_over():
                          ROW_TIME, 8, MAP)
     assert full.lamp_id == 17
     assert tracker.update([observation_at(101.0, 50.0)], [full], 0.3) == [17]
+    assert len(tracker.tracks) == 1 and tracker.tracks[0].frames == 1
 
 
 def test_unknown_id_is_never_returned():

@@ -66,7 +66,7 @@ class _Cumulative:
         return [np.take(self.totals[f], i) + frac * np.take(self.rows[f], i) for f in range(fields)]
 
 
-def noise_variance(z: np.ndarray, w: np.ndarray) -> float:
+def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
     """Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges)."""
     both = (w[:-1] > 0) & (w[1:] > 0)
     if np.count_nonzero(both) < 3:
@@ -88,13 +88,42 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
     if not period > 1.0:
         raise ValueError(f'a chip must span more than one row, got {period:.3g} rows')
     cum = _Cumulative(z, w)
-    sigma2 = noise_variance(z, w)
+    sigma2 = _noise_variance(z, w)
     if not np.isfinite(sigma2) or cum.size < 3 * period:
         return None
     sigma2 = max(sigma2, 1e-12)
     period, phase = _search_grid(cum, period, tolerance, sigma2)
     interior = period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
     return _levels(cum, period, phase, interior, sigma2)
+
+
+def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2: float) -> ChipLevels | None:
+    """Chip averages over each chip's interior, normalised by the local extremes; None if no chip
+    holds enough rows."""
+    first = int(np.floor(-phase / period))
+    count = int(np.ceil((cum.size - phase) / period)) - first
+    starts = phase + period * np.arange(first, first + count)
+    ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
+    weight, total, square, rows = (e[count:] - e[:count] for e in ends)
+    # A sliver of a row at the window's ends is mostly rounding (differences of large sums).
+    row_weights = cum.rows[0][cum.rows[0] > 0]
+    filled = weight > _MIN_CHIP_ROWS * (np.median(row_weights) if row_weights.size else 0.0) + 1e-9
+    used = np.flatnonzero(filled)
+    if used.size == 0:
+        return None
+    mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
+    # Within-chip scatter measures the noise where there is enough of it.
+    dof = rows[filled].sum() - used.size
+    if dof >= _MIN_DOF:
+        sigma2 = max(float((square - mean * total)[filled].sum() / dof), 1e-12)
+    used_range = slice(used[0], used[-1] + 1)
+    # Chips the window's ends cut short.
+    whole = (starts + margin >= 0.0) & (starts + period - margin <= cum.size)
+    weight, mean, filled, whole = weight[used_range], mean[used_range], filled[used_range], whole[used_range]
+    centre, amplitude = _baseline(mean, filled & whole)
+    levels = np.where(filled, (mean - centre) / amplitude, 0.0)
+    variances = np.where(filled, sigma2 / np.where(filled, weight, 1.0) / amplitude ** 2, np.inf)
+    return ChipLevels(levels, variances, period, float(starts[used[0]]))
 
 
 def _search_grid(cum: _Cumulative, period: float, tolerance: float, sigma2: float) -> tuple[float, float]:
@@ -124,36 +153,11 @@ def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.nda
     return float(p[k, 0]), float(f[k, 0])
 
 
-def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2: float) -> ChipLevels:
-    first = int(np.floor(-phase / period))
-    count = int(np.ceil((cum.size - phase) / period)) - first
-    starts = phase + period * np.arange(first, first + count)
-    ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
-    weight, total, square, rows = (e[count:] - e[:count] for e in ends)
-    # A sliver of a row at the window's ends is mostly rounding (differences of large sums).
-    row_weights = cum.rows[0][cum.rows[0] > 0]
-    filled = weight > _MIN_CHIP_ROWS * (np.median(row_weights) if row_weights.size else 0.0) + 1e-9
-    mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
-    # Within-chip scatter measures the noise where there is enough of it.
-    dof = rows[filled].sum() - np.count_nonzero(filled)
-    if dof >= _MIN_DOF:
-        sigma2 = max(float((square - mean * total)[filled].sum() / dof), 1e-12)
-    used = np.flatnonzero(filled)
-    used_range = slice(used[0], used[-1] + 1)
-    # Chips the window's ends cut short.
-    whole = (starts + margin >= 0.0) & (starts + period - margin <= cum.size)
-    weight, mean, filled, whole = weight[used_range], mean[used_range], filled[used_range], whole[used_range]
-    centre, amplitude = _baseline(mean, filled & whole)
-    levels = np.where(filled, (mean - centre) / amplitude, 0.0)
-    variances = np.where(filled, sigma2 / np.where(filled, weight, 1.0) / amplitude ** 2, np.inf)
-    return ChipLevels(levels, variances, period, float(starts[used[0]]))
-
-
 def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Midline and half-contrast of every chip from its neighbourhood's brightest and darkest chips.
 
-    ID-blind: no run of equal chips is longer than four (two preamble chips and a
-    Manchester pair), so any seven consecutive chips hold both levels. Following the
+    ID-blind: no run of equal chips is longer than four (the preamble's three and a
+    neighbouring Manchester chip), so any seven consecutive chips hold both levels. Following the
     extremes rather than fitting a curve through the chips copes with any slow
     envelope, a contrast that saturation squeezes along the lamp, and the preamble's
     imbalance. Only ``solid`` chips (whole ones) set the extremes.

@@ -22,11 +22,17 @@ class _Track:
     center: np.ndarray
     size: float
     last_seen: float
-    candidates: np.ndarray
-    log_likelihoods: np.ndarray
-    log_prior: np.ndarray
-    mapped: np.ndarray
-    frames: int = 1
+    candidates: np.ndarray | None = None
+    log_likelihoods: np.ndarray | None = None
+    log_prior: np.ndarray | None = None
+    mapped: np.ndarray | None = None
+    frames: int = 0
+
+    def restart(self, reading: BeaconReading) -> None:
+        """Forget the evidence so far and start from ``reading``."""
+        self.candidates, self.log_prior, self.mapped = reading.candidates, reading.log_prior, reading.mapped
+        self.log_likelihoods = np.array(reading.log_likelihoods, dtype=float)
+        self.frames = 0
 
 
 class EvidenceTracker:
@@ -63,12 +69,14 @@ class EvidenceTracker:
         self.decisions = []
         for k, (observation, reading) in enumerate(zip(observations, readings)):
             track = matches.get(k)
-            if track is None or not self._continues(track, reading):
-                track = _Track(observation.center, float(observation.ellipse[2]), stamp, reading.candidates,
-                               np.array(reading.log_likelihoods, dtype=float), reading.log_prior, reading.mapped, 0)
+            if track is None:
+                track = _Track(observation.center, float(observation.ellipse[2]), stamp)
+                track.restart(reading)
                 self.tracks.append(track)
-            else:
+            elif self._continues(track, reading):
                 track.log_likelihoods = track.log_likelihoods + reading.log_likelihoods
+            else:
+                track.restart(reading)
             track.center, track.size, track.last_seen = observation.center, float(observation.ellipse[2]), stamp
             track.frames += 1
             self.decisions.append(self._decide(track))

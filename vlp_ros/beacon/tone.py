@@ -1,12 +1,13 @@
 """Tone mode (Luxapose style): which lamp's frequency the stripes repeat at.
 
 Row r samples the light at ``r * row_time``, so a square wave of frequency f
-shows stripes of period ``1 / (f * row_time)`` rows. The frequency is the least-
-squares fit of a sinusoid (on top of a quadratic envelope) to the modulation
-profile: a zero-padded FFT finds the peak, exact fits around it refine it and
-give its uncertainty from the curvature of the log-likelihood. The estimate is
-then weighed against every lamp's band (its frequency +- the tolerance) and
-against "some other frequency", each band as likely per hertz as any other.
+shows stripes of period ``1 / (f * row_time)`` rows. A zero-padded FFT of the
+profile gives a start; a least-squares fit of the square wave as the rows see it
+(averaged over the exposure, mixed with neighbouring rows, on a quadratic
+envelope) gives the frequency and, from the curvature of its likelihood, its
+uncertainty. The estimate is then weighed against every lamp's band (its
+frequency +- the tolerance) and against "some other frequency", each band as
+likely per hertz as any other.
 """
 from __future__ import annotations
 
