@@ -95,7 +95,12 @@ def _stop(process: subprocess.Popen) -> None:
 
 
 def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListener, logs: Path) -> float:
-    """Replay ``bag`` into a fresh locator and wait for every frame's answer; returns the wall time (s)."""
+    """Replay ``bag`` into a fresh locator and wait for every frame's answer; returns the wall time (s).
+
+    The listener's answers are reset first: recordings may share stamps.
+    """
+    listener.poses.clear()
+    listener.outcomes.clear()
     locator = _start('locator', '--ros-args', '--params-file', params, log=logs / f'{bag.name}_locator.log')
     replay = None
     try:
@@ -109,7 +114,7 @@ def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListe
         answered = -1
         while replay.poll() is None:
             listener.spin_for(0.1)
-            count = sum(1 for stamp in listener.outcomes if stamp >= 0)
+            count = len(listener.outcomes)
             if count != answered:
                 answered = count
                 progress_bar(min(count, frames), frames, 'frames located')
