@@ -10,8 +10,6 @@ with its ratio to one plain copy of the same frame timed in the same run.
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +17,7 @@ import numpy as np
 from vlp_ros.detection import detect_lamps
 from vlp_ros.sim.render import SimLamp, render_frame
 from vlp_ros.sim.scenarios import paper_scenario
+from vlp_ros.benchmarks.timing import median_seconds
 
 
 @dataclass
@@ -31,16 +30,6 @@ class CaseResult:
     marker_z: list[np.ndarray] = field(default_factory=list)
     detect_seconds: list[float] = field(default_factory=list)
     copy_seconds: list[float] = field(default_factory=list)
-
-
-def median_seconds(run: Callable[[], object], repeats: int) -> float:
-    run()
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return float(np.median(times))
 
 
 def run_case(camera_kind: str, peak_dn: float, frames: int, repeats: int, seed: int) -> CaseResult:

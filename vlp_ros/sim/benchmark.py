@@ -7,7 +7,6 @@ measured in the same run.
 from __future__ import annotations
 
 import argparse
-import time
 from collections.abc import Callable
 
 import cv2
@@ -15,16 +14,7 @@ import numpy as np
 
 from vlp_ros.sim.render import lamp_roi, render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
-
-
-def median_seconds(run: Callable[[], object], repeats: int) -> float:
-    run()
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return float(np.median(times))
+from vlp_ros.benchmarks.timing import median_seconds
 
 
 def noise_pass(height: int, width: int, bayer: bool) -> Callable[[], object]:

@@ -7,7 +7,6 @@ refining one single-lamp candidate on the same residuals.
 from __future__ import annotations
 
 import argparse
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -24,16 +23,7 @@ from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp
 from vlp_ros.solvers.synthetic import synthetic_observation
 from vlp_ros.solvers.up_measurement import UpMeasurement
-
-
-def median_seconds(run: Callable[[], object], repeats: int) -> float:
-    run()
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return float(np.median(times))
+from vlp_ros.benchmarks.timing import median_seconds
 
 
 def _tilted(position, rotvec) -> Pose:
