@@ -63,12 +63,13 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
     ids = [lamp.id for _, lamp in pairs]
     if len(set(ids)) != len(ids):
         return Choice(None, Reason.INCONSISTENT_LAMPS, f'one lamp identified twice in the frame: {sorted(ids)}')
+    up = hints.up_measurements()
     if len(pairs) == 1:
         observation, lamp = pairs[0]
         if observation.marker is None:
             return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
-        return choose_candidate(solve_lamp(observation, lamp, camera, hints.up_measurements()), hints)
-    candidates = with_agreeing_up(lambda up: joint_candidates(pairs, camera, up), hints.up_measurements())
+        return choose_candidate(solve_lamp(observation, lamp, camera, up), hints)
+    candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing), up)
     if not candidates:
         return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
     best = candidates[0]

@@ -28,6 +28,7 @@ sigma). A measurement no candidate agrees with (an accelerating IMU) is left out
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cache
 
 import numpy as np
 
@@ -99,18 +100,35 @@ def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel,
     """Refined candidate poses (one or two, cheapest first, covariance set) from one lamp and
     any measured up directions."""
     measurement = LampMeasurement.from_observation(observation, lamp, camera)
-    # Each start's own minimum, or the start itself where the rim alone leaves a direction free.
-    rim_fits = [(start, refine_pose(start, [measurement])) for start in closed_form_poses(measurement)]
-    rim_only = distinct([_turning_about(fit, lamp) for _, fit in rim_fits if fit is not None])
-    starts = [start if fit is None else fit.pose for start, fit in rim_fits]
-    straddle = len(rim_only) == 2 and _straddle_frontal(*rim_only)
+    starts = closed_form_poses(measurement)
+
+    @cache
+    def rim_only() -> tuple[list[Pose], list[PoseCandidate]]:
+        """Each start's own minimum (or the start, where the rim leaves a direction free), and the candidates."""
+        fits = [(start, refine_pose(start, [measurement])) for start in starts]
+        return ([start if fit is None else fit.pose for start, fit in fits],
+                distinct([_turning_about(fit, lamp) for _, fit in fits if fit is not None]))
 
     def solve(agreeing: Sequence[UpMeasurement]) -> list[PoseCandidate]:
-        if straddle and not _one_of_pair(rim_only, agreeing):
-            return [_updated(_midpoint(*rim_only, measurement), measurement, agreeing)]
-        return _refined_with_up(starts, measurement, agreeing) if agreeing else rim_only
+        if agreeing and _clearly_apart(starts, measurement):
+            return _refined_with_up(starts, measurement, agreeing)
+        minima, candidates = rim_only()
+        if len(candidates) == 2 and _straddle_frontal(*candidates) and not _one_of_pair(candidates, agreeing):
+            return [_updated(_midpoint(*candidates, measurement), measurement, agreeing)]
+        return _refined_with_up(minima, measurement, agreeing) if agreeing else candidates
 
     return with_agreeing_up(solve, up)
+
+
+def _clearly_apart(starts: list[Pose], measurement: LampMeasurement) -> bool:
+    """Whether the closed-form pair is too far apart to straddle a frontal view, without
+    refining it: its separation under the rim's information at one start tracks the
+    refined pair's within ~30% (measured, 0-11 degree views, 4K and 1080p)."""
+    if len(starts) != 2:
+        return False
+    _, jacobian = linearize([measurement], starts[0])
+    separation = starts[1].error_vector(starts[0])
+    return float(np.sum((jacobian @ separation) ** 2)) > 2.0 * FRONTAL_SEPARATION_M2
 
 
 def _one_of_pair(pair: list[PoseCandidate], up: Sequence[UpMeasurement]) -> bool:
