@@ -39,6 +39,9 @@ def cases(rng: np.random.Generator) -> dict[str, Callable[[], object]]:
     measurement = LampMeasurement.from_observation(sparse, lamp, camera_4k)
     start = closed_form_poses(measurement)[0]
     gravity = [UpMeasurement(pose.up_in_camera(), np.radians(0.5))]
+    frontal_pose = _tilted((0.1, 0.0, 0.0), (0.0, 0.05, 0.3))
+    frontal = synthetic_observation(lamp, frontal_pose, camera_4k, rim_count=120, rng=rng)
+    frontal_gravity = [UpMeasurement(frontal_pose.up_in_camera(), np.radians(0.5))]
 
     def scipy_reference() -> object:
         return least_squares(lambda d: measurement.linearize(*perturbed(start, d))[0], np.zeros(6), method='lm')
@@ -60,6 +63,8 @@ def cases(rng: np.random.Generator) -> dict[str, Callable[[], object]]:
         'solve_lamp (2 candidates refined), 120 rim pts': lambda: solve_lamp(sparse, lamp, camera_4k),
         'solve_lamp (2 candidates refined), 560 rim pts': lambda: solve_lamp(dense, lamp, camera_4k),
         'solve_lamp with measured gravity, 120 rim pts': lambda: solve_lamp(sparse, lamp, camera_4k, gravity),
+        'solve_lamp near-frontal (3 deg), 120 rim pts': lambda: solve_lamp(frontal, lamp, camera_4k),
+        'solve_lamp near-frontal, measured gravity': lambda: solve_lamp(frontal, lamp, camera_4k, frontal_gravity),
     }
     for count in range(2, len(visible) + 1):
         table[f'solve_lamps, {count} wide-angle lamps, 180 rim pts each'] = (
