@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from vlp_ros.dds_environment import claim_domain_id, use_loopback_dds
+from vlp_ros.dds_environment import claim_domain_id, installed_executable, use_loopback_dds
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / 'shared' / 'data'
@@ -29,12 +29,6 @@ def pytest_configure(config: pytest.Config) -> None:
     log_dir = ROOT / 'build' / 'test_logs' / str(os.getpid())
     log_dir.mkdir(parents=True, exist_ok=True)
     os.environ['ROS_LOG_DIR'] = str(log_dir)
-
-
-def executable(name: str) -> Path:
-    """The file `ros2 run vlp_ros <name>` would execute."""
-    from ament_index_python.packages import get_package_prefix
-    return Path(get_package_prefix('vlp_ros')) / 'lib' / 'vlp_ros' / name
 
 
 class RosProcess:
@@ -86,7 +80,7 @@ def start_process(tmp_path: Path) -> Iterator[Callable[..., RosProcess]]:
     started: list[RosProcess] = []
 
     def start(name: str, *args: str, env: dict[str, str] | None = None) -> RosProcess:
-        path = executable(name)
+        path = installed_executable(name)
         process = RosProcess([str(path), *map(str, args)], tmp_path, f'{name}{len(started)}', env)
         started.append(process)
         return process

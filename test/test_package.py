@@ -5,7 +5,9 @@ import os
 import signal
 
 import pytest
-from conftest import ROOT, executable, spin_until
+from conftest import ROOT, spin_until
+
+from vlp_ros.dds_environment import installed_executable
 
 EXECUTABLES = ['locator', 'replay']
 
@@ -19,7 +21,7 @@ def test_ament_index_registers_package() -> None:
 
 @pytest.mark.parametrize('name', EXECUTABLES)
 def test_ros2_run_resolves_installed_executable(name: str) -> None:
-    path = executable(name)
+    path = installed_executable(name)
     assert path.is_file() and os.access(path, os.X_OK)
     assert path.parent == ROOT / 'install' / 'vlp_ros' / 'lib' / 'vlp_ros'
 

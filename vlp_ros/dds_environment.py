@@ -1,4 +1,4 @@
-"""DDS settings for running the nodes on one machine: an unshared domain, loopback and shared memory only."""
+"""Running the installed nodes on one machine: where they are, an unshared domain, loopback DDS."""
 from __future__ import annotations
 
 import fcntl
@@ -37,3 +37,15 @@ def use_loopback_dds(profile: Path, domain_id: int) -> None:
     os.environ.pop('FASTDDS_BUILTIN_TRANSPORTS', None)
     os.environ['FASTDDS_DEFAULT_PROFILES_FILE'] = str(profile)
     os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
+
+
+def installed_executable(name: str) -> Path:
+    """The file `ros2 run vlp_ros <name>` would execute."""
+    from ament_index_python.packages import get_package_prefix
+    return Path(get_package_prefix('vlp_ros')) / 'lib' / 'vlp_ros' / name
+
+
+def loopback_profile() -> Path:
+    """The installed config/fastdds_loopback.xml."""
+    from ament_index_python.packages import get_package_share_directory
+    return Path(get_package_share_directory('vlp_ros')) / 'config' / 'fastdds_loopback.xml'
