@@ -16,6 +16,7 @@ import argparse
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from vlp_ros.benchmarks.timing import median_seconds
 from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
@@ -23,7 +24,6 @@ from vlp_ros.pose import Pose
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION
 from vlp_ros.sim.scenarios import MARKER_RIM_GAP_FRACTION, paper_camera, paper_scenario
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
-from vlp_ros.solvers.benchmark import median_seconds
 from vlp_ros.solvers.covariance import nees
 from vlp_ros.solvers.perspective import solve_lamp
 from vlp_ros.solvers.synthetic import synthetic_observation
