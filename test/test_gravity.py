@@ -17,10 +17,12 @@ def test_nearest_recent_sample_gives_unit_up_in_camera_frame() -> None:
     assert buffer.newest_stamp_ns == 1_040_000_000
 
 
-def test_stale_or_free_fall_samples_give_nothing() -> None:
+def test_stale_or_accelerating_samples_give_nothing() -> None:
     buffer = GravityBuffer(np.array([0.0, 0.0, 0.0, 1.0]), max_age=0.05)
     assert buffer.up_at(0) is None
     buffer.add(0, [0.0, 0.0, 9.81])
     assert buffer.up_at(100_000_000) is None
-    buffer.add(200_000_000, [0.0, 0.1, 0.2])
+    buffer.add(200_000_000, [0.0, 0.1, 0.2])  # free fall
     assert buffer.up_at(200_000_000) is None
+    buffer.add(300_000_000, [0.0, 3.0, 12.0])  # accelerating hard
+    assert buffer.up_at(300_000_000) is None

@@ -6,8 +6,10 @@ from collections import deque
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-# Below this specific force (m/s^2) the IMU is in free fall or broken: no up direction.
-MIN_SPECIFIC_FORCE = 1.0
+STANDARD_GRAVITY = 9.80665
+# A specific force this far (m/s^2) from g means the camera is accelerating (or the IMU is
+# broken): the sample no longer points up well enough to be trusted as a measurement.
+MAX_GRAVITY_DEVIATION = 1.0
 
 
 class GravityBuffer:
@@ -37,6 +39,6 @@ class GravityBuffer:
             return None
         sample_stamp, force = min(samples, key=lambda sample: abs(sample[0] - stamp_ns))
         norm = np.linalg.norm(force)
-        if abs(sample_stamp - stamp_ns) > self._max_age_ns or norm < MIN_SPECIFIC_FORCE:
+        if abs(sample_stamp - stamp_ns) > self._max_age_ns or abs(norm - STANDARD_GRAVITY) > MAX_GRAVITY_DEVIATION:
             return None
         return force / norm
