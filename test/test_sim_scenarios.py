@@ -5,7 +5,8 @@ from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_length
 from vlp_ros.pose import Pose
-from vlp_ros.sim.imu import GRAVITY, specific_force
+from vlp_ros.gravity import STANDARD_GRAVITY
+from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import PAPER_DESIGN_DISTANCE, design_beacon, paper_scenario, robot_scenario
 
@@ -66,7 +67,7 @@ def test_truncated_scenario_keeps_the_first_frames():
 
 def test_accelerometer_at_rest_reads_gravity_along_map_up():
     looking_up = Pose(np.eye(3), [0.0, 0.0, 0.0])
-    np.testing.assert_allclose(specific_force(looking_up), [0.0, 0.0, GRAVITY])
+    np.testing.assert_allclose(specific_force(looking_up), [0.0, 0.0, STANDARD_GRAVITY])
     tilted = Pose(Rotation.from_euler('xz', [30.0, 40.0], degrees=True).as_matrix(), [1.0, 2.0, 0.0])
     force = specific_force(tilted)
     np.testing.assert_allclose(force / np.linalg.norm(force), tilted.up_in_camera())
@@ -74,7 +75,7 @@ def test_accelerometer_at_rest_reads_gravity_along_map_up():
 
 def test_accelerometer_adds_motion_and_noise():
     pose = Pose(np.eye(3), [0.0, 0.0, 0.0])
-    np.testing.assert_allclose(specific_force(pose, np.array([0.5, 0.0, 0.0])), [0.5, 0.0, GRAVITY])
+    np.testing.assert_allclose(specific_force(pose, np.array([0.5, 0.0, 0.0])), [0.5, 0.0, STANDARD_GRAVITY])
     rng = np.random.default_rng(0)
     samples = np.array([specific_force(pose, noise_std=0.05, rng=rng) for _ in range(2000)])
     assert samples.std(axis=0) == pytest.approx([0.05] * 3, rel=0.1)

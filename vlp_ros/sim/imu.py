@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vlp_ros.gravity import STANDARD_GRAVITY
 from vlp_ros.pose import Pose
-
-GRAVITY = 9.81
 
 
 def specific_force(pose: Pose, acceleration: np.ndarray | None = None, noise_std: float = 0.0,
@@ -17,7 +16,7 @@ def specific_force(pose: Pose, acceleration: np.ndarray | None = None, noise_std
     noise per axis (needs ``rng``).
     """
     accel = np.zeros(3) if acceleration is None else np.asarray(acceleration, dtype=float).reshape(3)
-    force = pose.rotation.T @ (accel + np.array([0.0, 0.0, GRAVITY]))
+    force = pose.rotation.T @ (accel + np.array([0.0, 0.0, STANDARD_GRAVITY]))
     if noise_std < 0.0:
         raise ValueError(f'noise_std must not be negative, got {noise_std}')
     if noise_std > 0.0:

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_length, packet_waveform
 from vlp_ros.camera import CameraModel
+from vlp_ros.gravity import STANDARD_GRAVITY
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, SimLamp
@@ -95,7 +96,9 @@ class Scenario:
                                'tolerance': float(self.prior_tolerance), 'sigma': float(self.prior_sigma)}
         if imu:
             # The simulated IMU samples once per frame at the image's stamp.
-            params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0], 'max_age': 0.5 / self.frame_rate}
+            # Its noise per axis over g is the accuracy of the up direction it gives.
+            params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0], 'max_age': 0.5 / self.frame_rate,
+                             'sigma': float(self.imu_noise / STANDARD_GRAVITY)}
         if self.independent_frames:
             params['continuity'] = {'max_age': 0.0}
         return params
