@@ -80,3 +80,9 @@ def test_several_lamps_get_the_covariance_the_full_solver_reports() -> None:
     solved = solve_lamps(lamp_observations(deployment, pose, spans, NOISE), deployment.camera, hints).pose
     assert expected_position_error(deployment, pose, spans, NOISE) == pytest.approx(
         np.sqrt(np.trace(solved.covariance[:3, :3])), rel=1e-6)
+
+
+def test_without_an_imu_one_lamp_alone_gives_no_fix() -> None:
+    plan = plan_floor(one_lamp('1080p-lumia', 2.0, 0.1), BeaconPlan(), MeasurementNoise(imu_sigma=None), points=5)
+    assert np.any(plan.lamps_in_view == 1)
+    assert np.all(np.isnan(plan.error_cm))
