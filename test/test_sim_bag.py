@@ -10,6 +10,7 @@ from rosbags.rosbag2 import Reader
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
+from vlp_ros.gravity import STANDARD_GRAVITY
 from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.pose import Pose
 from vlp_ros.rosbag_reader import Bag
@@ -64,7 +65,7 @@ def test_bag_round_trip_has_every_topic_with_matching_stamps(tmp_path, storage):
     assert truth.header.frame_id == 'map'
     assert (truth.pose.position.x, truth.pose.orientation.w) == pytest.approx((0.02, 1.0))
     accel = seen['/imu'][1][1].linear_acceleration
-    assert (accel.x, accel.y, accel.z) == pytest.approx((0.1, 0.0, 9.81))
+    assert (accel.x, accel.y, accel.z) == pytest.approx((0.1, 0.0, STANDARD_GRAVITY))
 
 
 def test_bag_offers_sensor_qos_for_images_and_reliable_camera_info(tmp_path):

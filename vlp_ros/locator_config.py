@@ -54,7 +54,7 @@ PARAMETERS = (
     ParameterSpec('imu.max_age', 'number', 0.1, 'an IMU message older than this (s) at the image stamp is not used'),
     ParameterSpec('imu.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and measured gravity'),
     ParameterSpec('imu.sigma', 'number', 0.01,
-                  "standard deviation (rad) of the IMU's up direction; gravity then also enters the pose fit"),
+                  "standard deviation (rad) of the IMU's up direction; > 0 makes gravity a measurement in the pose fit, 0 only a gate"),
     ParameterSpec('continuity.gate', 'number', 0.3, 'a candidate within this distance (m) of a recent pose continues it'),
     ParameterSpec('continuity.max_age', 'number', 1.0, 'how long (s) a pose may vouch for the next; 0 disables'),
     ParameterSpec('image_transport', 'string', 'raw', 'raw (image_raw) or compressed (image_raw/compressed)'),
@@ -106,7 +106,7 @@ class LocatorSettings:
     imu_rotation: np.ndarray
     imu_max_age: float
     imu_tolerance: float
-    imu_sigma: float
+    imu_sigma: float | None
     continuity_gate: float
     continuity_max_age: float
     image_transport: str
@@ -259,7 +259,7 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         imu_rotation=rotation,
         imu_max_age=_number(values, 'imu.max_age', positive=True),
         imu_tolerance=_number(values, 'imu.tolerance', positive=True),
-        imu_sigma=_number(values, 'imu.sigma', positive=True),
+        imu_sigma=_number(values, 'imu.sigma', minimum=0.0) or None,
         continuity_gate=_number(values, 'continuity.gate', positive=True),
         continuity_max_age=_number(values, 'continuity.max_age', minimum=0.0),
         image_transport=_choice(values, 'image_transport', IMAGE_TRANSPORTS),
