@@ -1,6 +1,7 @@
 """The evaluation's outputs: a terminal table, and a folder with a Markdown summary and figures."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,7 +43,7 @@ def write_report(evaluation: Evaluation, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     made = []
     for solver, outcomes in evaluation.series.items():
-        slug = solver.replace(' ', '_')
+        slug = re.sub(r'[^a-z0-9]+', '_', solver.lower()).strip('_')
         made.append(figures.per_point_error(outcomes, folder / f'per_point_error_{slug}.png', solver))
         made.append(figures.xy_view(outcomes, folder / f'xy_view_{slug}.png', f'{solver}: estimates vs truth'))
     made.append(figures.error_cdf(_cdf_series(evaluation.series), folder / 'error_cdf.png', '3D error CDF'))
