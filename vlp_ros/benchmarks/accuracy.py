@@ -3,16 +3,17 @@
 The seed paper's experiment reproduced in this process (no ROS, no bags): every
 frame is rendered by the frame simulator and run through ``Pipeline.process``
 with the up direction a camera-mounted accelerometer measures (the scenario's
-IMU noise). Setups: a 3 m x 3 m grid with the lamp 1.5 m and 2 m above a
-hand-held phone (several postures per point), with a 4K camera of the Lumia
-1020's field of view and with a 1080p one; and the robot (1080p wide-angle
-camera looking up from 0.45 m under a row of 15 cm lamps 1.2 m apart, 1-3 lamps
-in view). Each setup's frames go through the paper's solver and the perspective
-solver alike, each in one pipeline for the whole setup, as the locator node runs
-(the paper's photos are independent: no continuity between them). Prints one
-table (setup x solver), the targets, why frames had no pose, and every wrong fix
-with what went wrong in it. Frame k of a setup is rendered from its own random
-stream ([seed, setup number, k]), so a frame can be reproduced alone.
+IMU noise), taken through the locator's ``GravityBuffer``. Setups: a 3 m x 3 m
+grid with the lamp 1.5 m and 2 m above a hand-held phone (several postures per
+point), with a 4K camera of the Lumia 1020's field of view and with a 1080p one;
+and the robot (1080p wide-angle camera looking up from 0.45 m under a row of
+15 cm lamps 1.2 m apart, 1-3 lamps in view). Each setup's frames go through the
+paper's solver and the perspective solver alike, each in one pipeline for the
+whole setup, as the locator node runs (the paper's photos are independent: no
+continuity between them). Prints one table (setup x solver), the targets, why
+frames had no pose, and the wrong fixes: counted by row with the stage at fault,
+the first few of each row in full. Frame k of a setup is rendered from its own
+random stream ([seed, setup number, k]), so a frame can be reproduced alone.
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ from vlp_ros.evaluation.evaluate import grid_point
 from vlp_ros.evaluation.metrics import (TABLE_HEADER, WRONG_FIX_M, ErrorSummary, FrameOutcome, format_table,
                                         summarize, summary_row)
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
+from vlp_ros.gravity import GravityBuffer
 from vlp_ros.locator_config import (LocatorSettings, default_parameters, flatten_parameters,
                                     settings_from_parameters)
 from vlp_ros.pipeline import FrameResult, Pipeline
@@ -105,12 +107,14 @@ def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = 
     scenario = setup.scenario
     settings = scenario_settings(scenario)
     pipelines = {solver: Pipeline(replace(settings, solver=solver)) for solver in SOLVERS}
+    gravity = GravityBuffer(settings.imu_rotation, settings.imu_max_age)
     run = SetupRun({solver: [] for solver in SOLVERS})
     for index, (truth, stamp) in enumerate(zip(scenario.poses, scenario.frame_times())):
         rng = np.random.default_rng([seed, setup.number, index])
         frame = render_frame(scenario.camera, truth, scenario.lamps, scenario.sensor, float(stamp), rng)
-        force = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
-        up = force / np.linalg.norm(force)
+        stamp_ns = int(round(stamp * 1e9))
+        gravity.add(stamp_ns, specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng))
+        up = gravity.up_at(stamp_ns)
         for solver, pipeline in pipelines.items():
             result = pipeline.process(frame.image, scenario.camera, float(stamp), up)
             run.outcomes[solver].append(FrameOutcome(truth, result.pose, setup.group, grid_point(truth.position[:2]),
@@ -123,7 +127,7 @@ def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = 
     return run
 
 
-def diagnose(frame: RenderedFrame, result: FrameResult, up: np.ndarray) -> tuple[str, str]:
+def diagnose(frame: RenderedFrame, result: FrameResult, up: np.ndarray | None) -> tuple[str, str]:
     """Which stage a wrong fix came from, and the evidence: the decoded IDs against the lamps
     in view, the detected ellipses and markers against their true images, the fix against gravity."""
     in_view = sorted(t.lamp_id for t in frame.lamps if t.visible)
@@ -147,9 +151,10 @@ def diagnose(frame: RenderedFrame, result: FrameResult, up: np.ndarray) -> tuple
                         f'{np.linalg.norm(nearest.center - truth.ellipse[:2]):.1f} px, marker by {marker_px:.1f} px')
         if marker_px > BAD_MARKER_PX:
             stages.append(f'detection: bad marker on lamp {truth.lamp_id}')
-    tilt = np.degrees(np.arccos(np.clip(result.pose.up_in_camera() @ up, -1.0, 1.0)))
-    truth_tilt = np.degrees(np.arccos(np.clip(frame.pose.up_in_camera() @ up, -1.0, 1.0)))
-    findings.append(f'fix {tilt:.1f} deg from measured gravity (truth {truth_tilt:.1f} deg)')
+    if up is not None:
+        tilt = np.degrees(np.arccos(np.clip(result.pose.up_in_camera() @ up, -1.0, 1.0)))
+        truth_tilt = np.degrees(np.arccos(np.clip(frame.pose.up_in_camera() @ up, -1.0, 1.0)))
+        findings.append(f'fix {tilt:.1f} deg from measured gravity (truth {truth_tilt:.1f} deg)')
     return '; '.join(stages) or 'solver (detection and ID right)', '; '.join(findings)
 
 
