@@ -73,7 +73,8 @@ def cases(poses: int, seed: int) -> list[Case]:
     return made
 
 
-def interleaved_times(runs: dict[str, Callable[[int], object]], repeats: int, warmup: int = 1) -> dict[str, list[float]]:
+def interleaved_times(runs: dict[str, Callable[[int], object]], repeats: int,
+                      warmup: int = 1) -> dict[str, list[float]]:
     """Seconds per call of each run, all runs taking turns within every repetition.
 
     Each run gets the repetition's number; the first ``warmup`` repetitions are not timed.
@@ -144,6 +145,26 @@ def _ms(seconds: float) -> str:
     return f'{1e3 * seconds:.2f}'
 
 
+def case_row(case: Case, repeats: int, seed: int) -> list[str]:
+    """The table row of one case: medians over all its camera poses and repetitions."""
+    settings = scenario_settings(case.scenario)
+    rng = np.random.default_rng(seed)
+    times: dict[str, list[float]] = {stage: [] for stage in STAGES}
+    posed = 0
+    for index in case.indices:
+        pose_times, reached = time_pose(case, index, settings, repeats, rng)
+        posed += reached
+        for stage in STAGES:
+            times[stage] += pose_times[stage]
+    median = {stage: float(np.median(values)) for stage, values in times.items()}
+    camera = case.scenario.camera
+    target = TARGET_SECONDS.get(camera.height, float('nan'))
+    return [case.name, f'{camera.width}x{camera.height}', f'{posed}/{len(case.indices)}',
+            _ms(median['process']), *(_ms(median[s]) for s in ('detect', 'beacon', 'solve')),
+            _ms(median['copy']), f'{median["process"] / median["copy"]:.1f}', _ms(target),
+            'yes' if median['process'] <= target else 'NO']
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.pipeline_speed',
                                      description=__doc__.splitlines()[0])
@@ -153,27 +174,15 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.poses < 1 or args.repeats < 1:
         parser.error('--poses and --repeats must be at least 1')
+    threads_before = cv2.getNumThreads()
     cv2.setNumThreads(1)
-    rows = []
-    for case in cases(args.poses, args.seed):
-        settings = scenario_settings(case.scenario)
-        rng = np.random.default_rng(args.seed)
-        times: dict[str, list[float]] = {stage: [] for stage in STAGES}
-        posed = 0
-        for index in case.indices:
-            pose_times, reached = time_pose(case, index, settings, args.repeats, rng)
-            posed += reached
-            for stage in STAGES:
-                times[stage] += pose_times[stage]
-        median = {stage: float(np.median(values)) for stage, values in times.items()}
-        camera = case.scenario.camera
-        target = TARGET_SECONDS.get(camera.height, float('nan'))
-        rows.append([case.name, f'{camera.width}x{camera.height}', f'{posed}/{len(case.indices)}',
-                     _ms(median['process']), *(_ms(median[s]) for s in ('detect', 'beacon', 'solve')),
-                     _ms(median['copy']), f'{median["process"] / median["copy"]:.1f}', _ms(target),
-                     'yes' if median['process'] <= target else 'NO'])
+    try:
+        rows = [case_row(case, args.repeats, args.seed) for case in cases(args.poses, args.seed)]
+        cv2_threads = cv2.getNumThreads()
+    finally:
+        cv2.setNumThreads(threads_before)
     threads = ', '.join(f'{v}={os.environ.get(v, "unset")}' for v in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS'))
-    print(f'Pipeline time per frame, median ms (cv2 threads {cv2.getNumThreads()}, {threads}; '
+    print(f'Pipeline time per frame, median ms (cv2 threads {cv2_threads}, {threads}; '
           f'{args.poses} camera poses x {args.repeats} repeats per case)')
     print(format_table(rows, ('case', 'size', 'posed', 'process', 'detect', 'beacon', 'solve', 'copy',
                               'process/copy', 'target', 'met')))
