@@ -7,9 +7,10 @@ import numpy as np
 
 from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness, shape_spread
-from vlp_ros.detection.rim import RimFit, clipped_edge_offset, fit_rim, outward_normals, row_crossings
+from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
+                                   row_crossings)
 from vlp_ros.detection.rows import ellipse_chords, row_levels, row_profile, steady_rows
-from vlp_ros.ellipse import geometric_distances
+from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
 from vlp_ros.observation import LampObservation
 
 # A lamp's rim must have this many kept points on each side of its centre.
@@ -116,9 +117,15 @@ def _distinct(observations: list[LampObservation]) -> list[LampObservation]:
     """
     kept: list[LampObservation] = []
     for candidate in sorted(observations, key=lambda o: -len(o.rim_points)):
-        if all(geometric_distances(o.ellipse, candidate.center[None])[0] > 0.0 for o in kept):
+        if not any(_inside(o.ellipse, candidate.center) for o in kept):
             kept.append(candidate)
     return kept
+
+
+def _inside(ellipse: np.ndarray, point: np.ndarray) -> bool:
+    # The conic's sign, not a distance: the point may be the ellipse's centre, where distances divide by zero.
+    h = np.append(point, 1.0)
+    return bool(h @ conic_from_ellipse(ellipse) @ h < 0.0)
 
 
 def _check_image(image: np.ndarray) -> None:
@@ -178,7 +185,11 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     x0, y0, x1, y1 = bbox
     roi = image[y0:y1, x0:x1]
     colour = roi.ndim == 3
-    brightness = np.maximum(np.maximum(roi[..., 0], roi[..., 1]), roi[..., 2]) if colour else roi
+    # One channel, the lamp's brightest, is linear in the light, so a row's half level is crossed on
+    # the edge. The maximum over channels is not: where a channel dimmer on the lamp is the brighter
+    # one on the ceiling, the maximum's ramp bends and its half level lies up to ~0.05 px inside the
+    # edge in dim rows, the same way all round the rim: several sigmas of the fitted ellipse's size.
+    brightness = roi[..., int(np.argmax(roi.reshape(-1, 3).max(axis=0)))] if colour else roi
     background = float(np.median(np.concatenate(
         [brightness[0], brightness[-1], brightness[:, 0], brightness[:, -1]])))
     peak = float(brightness.max())
@@ -200,13 +211,15 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     clipped = plateaus >= options.saturation_level
     if np.count_nonzero(~clipped) >= max(options.min_rim_points, _MIN_UNCLIPPED_SHARE * len(points)):
         # Unclipped rows place the edge exactly: clipped ones are not needed.
-        points, clipped = points[~clipped], clipped[~clipped]
+        points, plateaus, clipped = points[~clipped], plateaus[~clipped], clipped[~clipped]
     if len(points) < options.min_rim_points:
         return None
     try:
         rim = fit_rim(points, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
         if clipped.any():
             rim = _unclip(rim, points, clipped, brightness, background, options)
+        else:
+            rim = _unblurred(rim, points, plateaus, brightness, background, options)
     except ValueError:
         return None
     if rim is None:
@@ -230,6 +243,17 @@ def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np
         return None
     moved = points.copy()
     moved[clipped] -= offset * outward_normals(rim.ellipse, points[clipped])
+    return fit_rim(moved, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
+
+
+def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, brightness: np.ndarray, background: float,
+               options: DetectionOptions) -> RimFit:
+    """Refit with the crossings moved out by the blur's pull on the curved edge (kept as
+    they are when the ramps do not tell the blur)."""
+    variance = blur_variance(brightness, points, plateaus, background, rim.ellipse)
+    if variance is None:
+        return rim
+    moved = points + blur_shifts(rim.ellipse, points, variance)
     return fit_rim(moved, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
 
 
