@@ -18,7 +18,7 @@ from vlp_ros.locator_config import LocatorSettings
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
-from vlp_ros.solvers.candidates import Choice, Reason
+from vlp_ros.solvers.candidates import Choice, Reason, explains_the_image
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.paper import solve_lamp_paper
 
@@ -42,8 +42,11 @@ class FrameResult:
 class Pipeline:
     """Stateful across frames: beacon evidence per tracked lamp, and the last pose for continuity."""
 
-    def __init__(self, settings: LocatorSettings) -> None:
+    def __init__(self, settings: LocatorSettings, gate_fit: bool = True) -> None:
+        """``gate_fit=False`` lets the paper's solver publish poses that do not explain the
+        image: only for measuring that solver as published, never in the locator."""
         self.settings = settings
+        self.gate_fit = gate_fit
         self.tracker = EvidenceTracker(known_ids=settings.lamps.ids)
         self._recent: tuple[Pose, float] | None = None
 
@@ -96,6 +99,12 @@ class Pipeline:
                 candidates = solve_lamp_paper(observation, lamp, camera)
             except ValueError as err:  # e.g. no marker: the paper's method cannot fix the yaw
                 return Choice(None, Reason.NO_CANDIDATES, str(err))
+            if self.gate_fit:
+                # Weak perspective is an approximation: a pose it cannot reconcile with the
+                # image under the exact projection is decimetres off and must not be published.
+                candidates = [c for c in candidates if explains_the_image(c)]
+                if not candidates:
+                    return Choice(None, Reason.POOR_FIT, "the paper's pose does not explain the image")
             # The paper's two mirror solutions are told apart by the same hints as ours.
             return choose_candidate(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))

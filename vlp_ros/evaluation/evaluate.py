@@ -29,11 +29,14 @@ def grid_point(outcome_truth_xy) -> tuple[float, float]:
 
 
 def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopics, group: str = '',
-                     progress: Callable[[int], None] | None = None) -> list[FrameOutcome]:
-    """Run every frame of ``bag`` through the pipeline and pair each with its true pose."""
+                     progress: Callable[[int], None] | None = None, gate_fit: bool = True) -> list[FrameOutcome]:
+    """Run every frame of ``bag`` through the pipeline and pair each with its true pose.
+
+    ``gate_fit=False`` measures the paper's solver as published (see ``Pipeline``).
+    """
     truth = ground_truth(bag, topics.ground_truth)
     gravity = GravityBuffer(settings.imu_rotation, settings.imu_max_age) if settings.imu_enabled else None
-    pipeline = Pipeline(settings)
+    pipeline = Pipeline(settings, gate_fit)
     outcomes = []
     for frame in recorded_frames(bag, topics, gravity):
         if frame.stamp_ns not in truth:
@@ -65,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         settings = settings_from_params_file(args.params)
         solvers = ['perspective', 'paper'] if args.solver == 'both' else [args.solver]
-        series = {solver: evaluate_offline(args.bag, replace(settings, solver=solver), topics, args.group)
+        series = {solver: evaluate_offline(args.bag, replace(settings, solver=solver), topics, args.group,
+                                           gate_fit=solver != 'paper')
                   for solver in solvers}
     except (ConfigError, BagError, ValueError, OSError) as err:
         print(f'evaluate: {err}', file=sys.stderr)

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+from scipy.stats import chi2
 
 from vlp_ros.pose import Pose
 
@@ -36,6 +37,7 @@ class Reason(str, Enum):
     NO_CANDIDATE_AGREES = 'no_candidate_agrees'  # every candidate contradicts a hint
     NO_CANDIDATES = 'no_candidates'            # the solver found no pose at all
     INCONSISTENT_LAMPS = 'inconsistent_lamps'  # the lamps of one frame admit no common pose
+    POOR_FIT = 'poor_fit'                      # no candidate explains the image within its noise
 
 
 @dataclass
@@ -73,3 +75,18 @@ def distinct(candidates: list[PoseCandidate]) -> list[PoseCandidate]:
         if not any(coincide(k, candidate) for k in kept):
             kept.append(candidate)
     return kept
+
+
+# A fit is inconsistent with the image when its chi-square is both improbable under the
+# stated noise (tail below 1e-6) and over 4x its degrees of freedom, so sigmas that are
+# off by up to 2x are tolerated while a misplaced lamp or a wrong model (thousands) is not.
+INCONSISTENT_TAIL = 1e-6
+INCONSISTENT_REDUCED_CHI2 = 4.0
+
+
+def explains_the_image(candidate: PoseCandidate) -> bool:
+    """Whether the candidate's residuals are what the stated measurement noise allows."""
+    dof = candidate.residual_count - 6
+    if dof <= 0:
+        return True
+    return not (candidate.cost > INCONSISTENT_REDUCED_CHI2 * dof and chi2.sf(candidate.cost, dof) < INCONSISTENT_TAIL)

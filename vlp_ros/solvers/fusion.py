@@ -18,7 +18,6 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
-from scipy.stats import chi2
 
 from vlp_ros.camera import CameraModel
 from vlp_ros.ellipse import ellipse_from_conic
@@ -26,7 +25,7 @@ from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
-from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
+from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, explains_the_image
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
@@ -48,11 +47,6 @@ _PROBE_RIM_POINTS = 16
 _PROBE_ITERATIONS = 10
 _HOPELESS_FACTOR = 100.0
 _PNP_MIN_LAMPS = 4
-# The best joint fit is inconsistent when its chi-square is both improbable under the
-# stated noise (tail below 1e-6) and over 4x its degrees of freedom, so sigmas that are
-# off by up to 2x are tolerated while a misplaced lamp (thousands) is not.
-_INCONSISTENT_TAIL = 1e-6
-_INCONSISTENT_REDUCED_CHI2 = 4.0
 
 
 def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
@@ -68,15 +62,19 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
         observation, lamp = pairs[0]
         if observation.marker is None:
             return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
-        return choose_candidate(solve_lamp(observation, lamp, camera, up), hints)
+        candidates = solve_lamp(observation, lamp, camera, up)
+        explaining = [c for c in candidates if explains_the_image(c)]
+        if candidates and not explaining:
+            return Choice(None, Reason.POOR_FIT, f'best single-lamp chi-square {candidates[0].cost:.0f} for '
+                                                 f'{candidates[0].residual_count - 6} degrees of freedom')
+        return choose_candidate(explaining, hints)
     candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing), up)
     if not candidates:
         return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
     best = candidates[0]
-    dof = best.residual_count - 6
-    if best.cost > _INCONSISTENT_REDUCED_CHI2 * dof and chi2.sf(best.cost, dof) < _INCONSISTENT_TAIL:
+    if not explains_the_image(best):
         return Choice(None, Reason.INCONSISTENT_LAMPS,
-                      f'best joint chi-square {best.cost:.0f} for {dof} degrees of freedom')
+                      f'best joint chi-square {best.cost:.0f} for {best.residual_count - 6} degrees of freedom')
     choice = choose_candidate(candidates, hints, cost_reason=Reason.MULTI_LAMP)
     # A single joint minimum is the other lamps' doing: each lamp alone has two.
     return Choice(choice.pose, Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice

@@ -1,0 +1,51 @@
+"""The frame pipeline in-process: rendered frame in, pose (or a reason for none) out."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from vlp_ros.gravity import STANDARD_GRAVITY
+from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.pipeline import Pipeline
+from vlp_ros.sim.imu import specific_force
+from vlp_ros.sim.render import render_frame
+from vlp_ros.sim.scenarios import paper_scenario
+
+
+@pytest.fixture(scope='module')
+def oblique_photo():
+    """A hand-held 4K photo with the lamp well off the optical axis, its settings and gravity."""
+    scenario = paper_scenario('4k', height=2.0, points=6, postures=2, seed=2017)
+    values = default_parameters()
+    values.update(flatten_parameters(scenario.locator_parameters(imu=True)))
+    pose = scenario.poses[0]
+    frame = render_frame(scenario.camera, pose, scenario.lamps, scenario.sensor, 0.0, np.random.default_rng(8))
+    up = specific_force(pose, noise_std=scenario.imu_noise, rng=np.random.default_rng(9)) / STANDARD_GRAVITY
+    return settings_from_parameters(values), scenario.camera, frame, up
+
+
+def test_perspective_pipeline_locates_the_photo(oblique_photo) -> None:
+    settings, camera, frame, up = oblique_photo
+    result = Pipeline(settings).process(frame.image, camera, 0.0, up)
+    assert result.outcome == 'pose', result
+    assert result.pose.position_error(frame.pose) < 0.01
+    assert result.decoded_ids == [frame.lamps[0].lamp_id]
+
+
+def test_without_gravity_only_an_overwhelming_fit_may_decide(oblique_photo) -> None:
+    settings, camera, frame, _ = oblique_photo
+    result = Pipeline(settings).process(frame.image, camera, 0.0, None)
+    assert result.outcome in ('pose', 'ambiguous')
+    if result.pose is not None:
+        assert result.detail == 'cost' and result.pose.position_error(frame.pose) < 0.01
+
+
+def test_paper_solver_pose_that_does_not_explain_the_image_is_not_published(oblique_photo) -> None:
+    settings, camera, frame, up = oblique_photo
+    paper = replace(settings, solver='paper')
+    ungated = Pipeline(paper, gate_fit=False).process(frame.image, camera, 0.0, up)
+    assert ungated.pose is not None and ungated.pose.position_error(frame.pose) > 0.2
+    gated = Pipeline(paper).process(frame.image, camera, 0.0, up)
+    assert gated.pose is None and gated.outcome == 'poor_fit'
