@@ -244,17 +244,23 @@ class _ToneFit:
 
 
 def _inverse(m: np.ndarray) -> np.ndarray:
-    """Inverse of a 2x2 or 3x3 matrix by cofactors: numpy's general solvers cost more than the fit."""
+    """Inverse of a 2x2 or 3x3 matrix by cofactors (numpy's general solvers cost more than the fit);
+    the pseudo-inverse when it is singular."""
     if m.shape == (2, 2):
         (a, b), (c, d) = m.tolist()
-        return np.array([[d, -b], [-c, a]]) / (a * d - b * c)
-    if m.shape != (3, 3):
-        return np.linalg.inv(m)
-    (a, b, c), (d, e, f), (g, h, i) = m.tolist()
-    cofactors = [[e * i - f * h, c * h - b * i, b * f - c * e],
-                 [f * g - d * i, a * i - c * g, c * d - a * f],
-                 [d * h - e * g, b * g - a * h, a * e - b * d]]
-    return np.array(cofactors) / (a * cofactors[0][0] + b * cofactors[1][0] + c * cofactors[2][0])
+        cofactors, det = [[d, -b], [-c, a]], a * d - b * c
+    elif m.shape == (3, 3):
+        (a, b, c), (d, e, f), (g, h, i) = m.tolist()
+        cofactors = [[e * i - f * h, c * h - b * i, b * f - c * e],
+                     [f * g - d * i, a * i - c * g, c * d - a * f],
+                     [d * h - e * g, b * g - a * h, a * e - b * d]]
+        det = a * cofactors[0][0] + b * cofactors[1][0] + c * cofactors[2][0]
+    else:
+        return np.linalg.pinv(m)
+    scale = float(np.abs(m).max()) ** len(m)
+    if not (np.isfinite(det) and abs(det) > 1e-12 * scale):
+        return np.linalg.pinv(m)
+    return np.array(cofactors) / det
 
 
 def _triangle(x: np.ndarray) -> np.ndarray:
