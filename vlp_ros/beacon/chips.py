@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 _COARSE_PHASES = 6
 # Chips of the window the coarse grid looks at, and the largest drift of its period steps across them.
@@ -67,13 +66,14 @@ class _Cumulative:
 
 
 def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
-    """Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges)."""
-    both = (w[:-1] > 0) & (w[1:] > 0)
-    if np.count_nonzero(both) < 3:
+    """Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges).
+
+    Pairs with an empty row count as noiseless; the median shrugs them off."""
+    if np.count_nonzero(w) < 4:
         return float('inf')
-    d = np.diff(z)[both]
-    scale = 1.0 / w[:-1][both] + 1.0 / w[1:][both]
-    return float(np.median(d * d / scale) / _CHI2_1_MEDIAN)
+    d = np.diff(z)
+    inverse = 1.0 / np.maximum(w, 1e-12)
+    return float(np.median(d * d / (inverse[:-1] + inverse[1:])) / _CHI2_1_MEDIAN)
 
 
 def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
@@ -164,11 +164,11 @@ def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """
     if np.count_nonzero(solid) < 2:
         return np.zeros(len(mean)), np.ones(len(mean))
-    half = _EXTREMES_HALF_WIDTH
-    high = np.pad(np.where(solid, mean, -np.inf), half, constant_values=-np.inf)
-    low = np.pad(np.where(solid, mean, np.inf), half, constant_values=np.inf)
-    upper = sliding_window_view(high, 2 * half + 1).max(axis=1)
-    lower = sliding_window_view(low, 2 * half + 1).min(axis=1)
+    n, width = len(mean), 2 * _EXTREMES_HALF_WIDTH + 1
+    high = np.pad(np.where(solid, mean, -np.inf), _EXTREMES_HALF_WIDTH, constant_values=-np.inf)
+    low = np.pad(np.where(solid, mean, np.inf), _EXTREMES_HALF_WIDTH, constant_values=np.inf)
+    upper = np.maximum.reduce([high[j:j + n] for j in range(width)])
+    lower = np.minimum.reduce([low[j:j + n] for j in range(width)])
     # A neighbourhood without both levels (too few whole chips, or noise only) borrows the lamp's
     # overall extremes.
     top, bottom = mean[solid].max(), mean[solid].min()

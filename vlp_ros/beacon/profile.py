@@ -125,6 +125,9 @@ def modulation(profile: RowProfile, period: float | None = None, degree: int = 2
     out = np.zeros(len(w))
     if used.size == 0:
         return out
+    if degree == 0 and period is None:
+        out[used] = values[used] / (values[used] @ w[used] / w[used].sum()) - 1.0
+        return out
     first, last = used[0], used[-1] + 1
     centre, half = 0.5 * (first + last - 1), max(0.5 * (last - 1 - first), 1.0)
     if period is not None and last - first >= 1.5 * period:
