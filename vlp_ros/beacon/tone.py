@@ -22,6 +22,8 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
 _MAX_ITERATIONS = 8
+# The fit stops when a step moves the frequency by less than this share of its standard deviation.
+_CONVERGED = 0.05
 # An unknown exposure as a fraction of the tone's period: where the fit may start. Beyond half a
 # period longer exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
 _START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.45])
@@ -179,16 +181,19 @@ class _ToneFit:
         params = starts[int(np.argmin(self._fit(starts)[0]))]
         rss, residual, jacobian = self._projected(params, free)
         damping = 1e-3
+        dof = rows - 3 - (_MIX_ROWS + 1) - jacobian.shape[1]
         for _ in range(_MAX_ITERATIONS):
             normal = jacobian.T @ jacobian
-            step = _inverse(normal + damping * np.diag(np.diag(normal) + 1e-300)) @ (jacobian.T @ residual)
+            inverse = _inverse(normal + damping * np.diag(np.diag(normal) + 1e-300))
+            step = inverse @ (jacobian.T @ residual)
             trial = params.copy()
             trial[:len(step)] += step
             if free:
                 trial[2] = np.clip(trial[2], _MIN_EXPOSURE_ROWS, 0.5 * rows / trial[0])
             trial_rss, trial_residual, trial_jacobian = self._projected(trial, free)
             if trial_rss < rss:
-                converged = rss - trial_rss < 1e-6 * rss
+                # Done once the frequency moves by a small part of its own uncertainty.
+                converged = step[0] ** 2 < _CONVERGED ** 2 * inverse[0, 0] * trial_rss / max(dof, 1)
                 params, rss, residual, jacobian = trial, trial_rss, trial_residual, trial_jacobian
                 damping = max(damping / 4.0, 1e-9)
                 if converged:
@@ -200,7 +205,6 @@ class _ToneFit:
         others = jacobian[:, 1:]
         leftover = jacobian[:, 0] - others @ np.linalg.lstsq(others, jacobian[:, 0], rcond=1e-10)[0]
         information = float(leftover @ leftover)
-        dof = rows - 3 - (_MIX_ROWS + 1) - jacobian.shape[1]
         variance = rss / max(dof, 1) / information if information > 0.0 else np.inf
         if not (np.isfinite(variance) and dof >= 1):
             return None
@@ -209,38 +213,49 @@ class _ToneFit:
     def _fit(self, params: np.ndarray) -> tuple[np.ndarray, ...]:
         """Best envelope and row mix for each parameter set (S, 3) of (cycles, phase, exposure rows):
         residual sums of squares (S,), and the pieces the Jacobian needs."""
-        cycles, phase, exposure = (params[:, i, None, None] for i in range(3))
-        kappa = exposure * cycles / len(self.y)
-        offsets = np.arange(-_MIX_ROWS, _MIX_ROWS + 1)
-        # Rows r + j for every offset j: time in window lengths, as a row's value borrows from them.
-        tau = self.tau[None, :] + offsets[:, None] / len(self.y)
+        cycles, phase, exposure = (params[:, i, None] for i in range(3))
+        rows = len(self.y)
+        kappa = exposure * cycles / rows
+        # The light of rows -MIX .. rows + MIX - 1: a row's value borrows from its neighbours'.
+        tau = np.arange(-_MIX_ROWS, rows + _MIX_ROWS) / rows
         theta = cycles * tau - phase
         mean = (_triangle(theta + kappa) - _triangle(theta)) / kappa
-        ring = np.abs(offsets)
-        templates = np.stack([mean[:, ring == j].sum(axis=1) for j in range(_MIX_ROWS + 1)], axis=2)
+        templates = np.stack([_ring(mean, j, rows) for j in range(_MIX_ROWS + 1)], axis=2)
         templates = self._residual(templates * self.sqrt_w[:, None])
         gram = templates.transpose(0, 2, 1) @ templates
         inverse = np.array([_inverse(g + 1e-12 * np.eye(_MIX_ROWS + 1)) for g in gram])
         mix = (inverse @ (self.y @ templates)[..., None])[..., 0]
         residual = self.y - (templates @ mix[..., None])[..., 0]
-        return (residual * residual).sum(axis=1), residual, templates, inverse, mix, theta, tau, mean, kappa
+        return (residual * residual).sum(axis=1), residual, templates, inverse, mix, theta, mean, kappa
 
     def _projected(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares, residual and (Kaufman) Jacobian over (cycles, phase[, exposure])
         with the best envelope and row mix."""
-        rss, residual, templates, inverse, mix, theta, tau, mean, kappa = (v[0] for v in self._fit(params[None]))
+        rss, residual, templates, inverse, mix, theta, mean, kappa = (v[0] for v in self._fit(params[None]))
         cycles, _, exposure = params
         rows = len(self.y)
-        late, early = _square(theta + kappa), _square(theta)
-        weights = mix[np.abs(np.arange(-_MIX_ROWS, _MIX_ROWS + 1))]
-        slope = (late - early) / kappa
+        tau = np.arange(-_MIX_ROWS, rows + _MIX_ROWS) / rows
+        late = _square(theta + kappa)
+        slope = (late - _square(theta)) / kappa
         by_kappa = (late - mean) / kappa
-        derivatives = [weights @ (slope * tau + by_kappa * exposure / rows), -(weights @ slope)]
+        light = [slope * tau + by_kappa * exposure / rows, -slope]
         if free_exposure:
-            derivatives.append(weights @ (by_kappa * cycles / rows))
-        jacobian = self._residual(np.stack(derivatives, axis=1) * self.sqrt_w[:, None])
+            light.append(by_kappa * cycles / rows)
+        # What each parameter does to the rows, through the same row mix as the light.
+        derivatives = np.stack([sum(m * _ring(d, j, rows) for j, m in enumerate(mix)) for d in light], axis=1)
+        jacobian = self._residual(derivatives * self.sqrt_w[:, None])
         jacobian -= templates @ (inverse @ (templates.T @ jacobian))
         return float(rss), residual, jacobian
+
+
+def _ring(extended: np.ndarray, distance: int, rows: int) -> np.ndarray:
+    """Sum over the neighbours ``distance`` rows away (the row itself for 0) of a quantity given on
+    rows -MIX .. rows + MIX - 1 (last axis), for rows 0 .. rows - 1."""
+    centre = _MIX_ROWS
+    if distance == 0:
+        return extended[..., centre:centre + rows]
+    return (extended[..., centre - distance:centre - distance + rows]
+            + extended[..., centre + distance:centre + distance + rows])
 
 
 def _inverse(m: np.ndarray) -> np.ndarray:
