@@ -303,12 +303,14 @@ def report_time(title: str, timer: Timer) -> float:
     return decode
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--trials', type=int, default=10500,
                         help='single-frame trials per mode (default 10500: over 10 000 once lamps off the ROI drop out)')
     parser.add_argument('--seed', type=int, default=1)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if args.trials < 1:
+        parser.error('--trials must be at least 1')
     rng = np.random.default_rng(args.seed)
     packet_rows = sum(len(rows) for _, rows in PACKET_TABLES) + 1
     tone_rows = sum(len(rows) for _, rows in TONE_TABLES) + 1
