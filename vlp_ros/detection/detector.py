@@ -1,7 +1,7 @@
 """Lamps in one frame: blobs, sub-pixel rim, fitted ellipse and marker centroid per lamp."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -9,7 +9,7 @@ from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness, shape_spread
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
                                    row_crossings)
-from vlp_ros.detection.rows import ellipse_chords, row_levels, row_profile, steady_rows
+from vlp_ros.detection.rows import RowLevels, clear_levels, ellipse_chords, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
 from vlp_ros.observation import LampObservation
 
@@ -18,6 +18,8 @@ _MIN_SIDE_FRACTION = 0.2
 # Share of the slope-selected rim points that must survive outlier rejection.
 _MIN_INLIER_FRACTION = 0.7
 _MIN_RIM_SIGMA = 0.01
+# Blur dims the disc by under 0.2 % this many blur sigmas inside its edge.
+_CLEAR_BLURS = 3.0
 # Below this share of unclipped rim points, clipped rows are used too (moved onto the edge).
 _MIN_UNCLIPPED_SHARE = 0.25
 # Clipped lamps brighter than this over the clip level give no observation.
@@ -141,7 +143,7 @@ def _check_image(image: np.ndarray) -> None:
 
 @dataclass(frozen=True)
 class _LampBox:
-    """One lamp's box of the frame and what was measured in it (box pixels)."""
+    """One lamp's box of the frame and what was measured in it (box pixels; ``rim`` once fitted)."""
 
     origin: tuple[int, int]
     frame_width: int
@@ -149,7 +151,8 @@ class _LampBox:
     background: float
     red: np.ndarray | None
     seed: MarkerSeed | None
-    rim: RimFit
+    levels: RowLevels
+    rim: RimFit | None = None
 
 
 def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
@@ -198,20 +201,13 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     threshold = max(background + options.threshold_fraction * (peak - background),
                     background + options.noise_factor * noise)
     levels = row_levels(brightness, threshold, background, options.level_fraction)
-    points, plateaus = row_crossings(brightness, levels, background, options.reach)
     red = redness(roi) if colour else None
     seed = None
     if red is not None:
         lamp_radius = 0.5 * max(x1 - x0, y1 - y0)
         seed = find_seed(red, 0.3 * lamp_radius + 3.0, options.min_marker_redness)
-    if seed is not None:
-        # The marker's colour changes the brightness near it: its rim points are not trusted.
-        far = np.linalg.norm(points - seed.center, axis=1) > seed.radius + options.blur_margin + 1.0
-        points, plateaus = points[far], plateaus[far]
-    clipped = plateaus >= options.saturation_level
-    if np.count_nonzero(~clipped) >= max(options.min_rim_points, _MIN_UNCLIPPED_SHARE * len(points)):
-        # Unclipped rows place the edge exactly: clipped ones are not needed.
-        points, plateaus, clipped = points[~clipped], plateaus[~clipped], clipped[~clipped]
+    box = _LampBox((x0, y0), image.shape[1], brightness, background, red, seed, levels)
+    points, plateaus, clipped = _rim_points(box, levels, options)
     if len(points) < options.min_rim_points:
         return None
     try:
@@ -219,12 +215,30 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
         if clipped.any():
             rim = _unclip(rim, points, clipped, brightness, background, options)
         else:
-            rim = _unblurred(rim, points, plateaus, brightness, background, options)
+            rim = _unblurred(rim, points, plateaus, box, options)
     except ValueError:
         return None
     if rim is None:
         return None
-    return _LampBox((x0, y0), image.shape[1], brightness, background, red, seed, rim)
+    return replace(box, rim=rim)
+
+
+def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row crossings (N, 2), their rows' plateaus, and which rows are clipped.
+
+    Clipped rows are left out when enough unclipped ones remain.
+    """
+    points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach)
+    if box.seed is not None:
+        # The marker's colour changes the brightness near it: its rim points are not trusted.
+        far = np.linalg.norm(points - box.seed.center, axis=1) > box.seed.radius + options.blur_margin + 1.0
+        points, plateaus = points[far], plateaus[far]
+    clipped = plateaus >= options.saturation_level
+    if np.count_nonzero(~clipped) >= max(options.min_rim_points, _MIN_UNCLIPPED_SHARE * len(points)):
+        # Unclipped rows place the edge exactly: clipped ones are not needed.
+        points, plateaus, clipped = points[~clipped], plateaus[~clipped], clipped[~clipped]
+    return points, plateaus, clipped
 
 
 def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np.ndarray, background: float,
@@ -246,15 +260,21 @@ def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np
     return fit_rim(moved, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
 
 
-def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, brightness: np.ndarray, background: float,
+def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _LampBox,
                options: DetectionOptions) -> RimFit:
-    """Refit with the crossings moved out by the blur's pull on the curved edge (kept as
-    they are when the ramps do not tell the blur)."""
-    variance = blur_variance(brightness, points, plateaus, background, rim.ellipse)
+    """The rim again, free of the blur: crossings at the half of plateaus measured where blur
+    does not dim the disc (three blurs inside the edge), moved out by the blur's pull on the
+    curved edge. ``rim`` as it is when the ramps do not tell the blur."""
+    variance = blur_variance(box.brightness, points, plateaus, box.background, rim.ellipse)
     if variance is None:
         return rim
-    moved = points + blur_shifts(rim.ellipse, points, variance)
-    return fit_rim(moved, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
+    marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
+    levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * np.sqrt(variance), marker)
+    points, _, clipped = _rim_points(box, levels, options)
+    if len(points) < options.min_rim_points or clipped.any():
+        return rim
+    return fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
+                   _MIN_RIM_SIGMA)
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:

@@ -14,6 +14,10 @@ from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
 
 # Plateau samples per row, spread over the middle half of the row's chord.
 _FRACTIONS = np.linspace(0.25, 0.75, 9)
+# Once the ellipse is known, more of them (a row's two rim points share its plateau's
+# error), of which at least a few must lie well inside the edge.
+_CLEAR_FRACTIONS = np.linspace(0.25, 0.75, 25)
+_MIN_CLEAR_SAMPLES = 5
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,35 @@ def row_levels(brightness: np.ndarray, threshold: float, background: float,
     reference = np.percentile(plateau, 90.0)
     keep = (span >= 2) & (plateau - background >= level_fraction * (reference - background))
     return RowLevels(lit[keep], first[keep], last[keep], plateau[keep])
+
+
+def clear_levels(brightness: np.ndarray, levels: RowLevels, ellipse: np.ndarray, clearance: float,
+                 marker: tuple[np.ndarray, float] | None) -> RowLevels:
+    """``levels`` with each row's plateau measured again where the disc is at least ``clearance`` (px)
+    inside ``ellipse``, on the middle half of the row's chord, away from the ``marker`` disc
+    (centre, radius) if given; rows without enough such samples are dropped.
+
+    Blur dims the disc within a few blurs of its edge, and near the disc's top and
+    bottom that reaches the middle of the chord: a plateau a few tenths of a level low
+    there moves the rows' half-level crossings outward by a hundredth of a pixel in
+    the rows that meet the edge obliquely. A marker of another colour does the same to
+    the rows it crosses. (The median of noisy samples, some of them dimmed, is lower
+    than the noise-free one, so both grow with the noise.)
+    """
+    left, right, crossed = ellipse_chords(ellipse, levels.rows)
+    cols = left[:, None] + (right - left)[:, None] * _CLEAR_FRACTIONS[None, :]
+    rows = np.broadcast_to(levels.rows[:, None], cols.shape)
+    depth = -geometric_distances(ellipse, np.column_stack([cols.ravel(), rows.ravel()])).reshape(cols.shape)
+    samples = brightness[rows, np.clip(np.rint(cols), 0, brightness.shape[1] - 1).astype(int)].astype(float)
+    usable = depth >= clearance
+    if marker is not None:
+        usable &= np.hypot(cols - marker[0][0], rows - marker[0][1]) > marker[1]
+    count = np.count_nonzero(usable, axis=1)
+    keep = crossed & (count >= _MIN_CLEAR_SAMPLES)
+    # Unusable samples sort last (np.nanmedian costs ten times as much).
+    ordered = np.sort(np.where(usable, samples, np.inf)[keep], axis=1)
+    plateau = np.take_along_axis(ordered, (count[keep] // 2)[:, None], axis=1)[:, 0]
+    return RowLevels(levels.rows[keep], levels.first[keep], levels.last[keep], plateau)
 
 
 def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
