@@ -204,3 +204,51 @@ def test_bad_options_are_value_errors():
         DetectionOptions(min_diameter=0.0)
     with pytest.raises(ValueError, match='search_step'):
         DetectionOptions(search_step=0)
+
+
+@pytest.mark.parametrize('blur', [0.7, 1.4])
+def test_rim_points_lie_on_the_edge_on_average_whatever_the_blur(blur):
+    # Blur pulls the half level of a convex edge inward (by ~0.3 px / radius at 0.7 px blur),
+    # and so does the maximum over colour channels on a tinted ceiling: 0.011 px (0.7 px blur)
+    # and 0.031 px (1.4 px) here before either was undone, against the 0.002-0.004 px one
+    # lamp's rim noise averages out to.
+    cam, pose = camera(), tilted_pose()
+    sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=blur)
+    distances = []
+    for seed in range(8):
+        lamp = sim_lamp(cam, pose, (220.0 + 25.0 * seed, 180.0 + 15.0 * seed), 120.0, depth=0.75,
+                        marker_angle=0.8 * seed, phase=1e-4 * seed)
+        frame = render_frame(cam, pose, [lamp], sensor, 0.0, np.random.default_rng(seed))
+        observation = only(detect_lamps(frame.image))
+        distances.append(geometric_distances(frame.truth(lamp.lamp.id).ellipse, observation.rim_points))
+    assert abs(np.mean(np.concatenate(distances))) < 0.004
+
+
+def ellipse_chi_square(ellipse, points, sigma):
+    """Chi-square, under ``sigma``, of the points' distances from ``ellipse`` that a fitted
+    ellipse absorbs (5 degrees of freedom if the points' errors are independent with ``sigma``)."""
+    cx, cy, a, b, theta = ellipse
+    rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    shape = rotation @ np.diag([a ** -2, b ** -2]) @ rotation.T
+    u = points - [cx, cy]
+    gradient = 2.0 * u @ shape
+    norm = np.linalg.norm(gradient, axis=1)
+    # d distance / d (centre, shape matrix entries): a parametrisation that stays regular for circles.
+    jacobian = np.column_stack([-gradient / norm[:, None], u[:, 0] ** 2 / norm, 2.0 * u[:, 0] * u[:, 1] / norm,
+                                u[:, 1] ** 2 / norm])
+    basis, _ = np.linalg.qr(jacobian)
+    absorbed = basis.T @ geometric_distances(ellipse, points)
+    return absorbed @ absorbed / sigma ** 2
+
+
+def test_rim_sigma_is_honest_for_the_ellipse():
+    # The pose uses the rim through the ellipse it fixes: the rim points' errors there must
+    # average the chi-square of independent errors with sigma rim_sigma.
+    rng = np.random.default_rng(5)
+    chi_squares = []
+    for seed in range(40):
+        frame, truth = single(depth=0.75, seed=seed, at=rng.uniform([180.0, 150.0], [460.0, 330.0]),
+                              diameter=rng.uniform(60.0, 140.0), marker_angle=rng.uniform(-np.pi, np.pi))
+        lamp = only(detect_lamps(frame.image))
+        chi_squares.append(ellipse_chi_square(truth.ellipse, lamp.rim_points, lamp.rim_sigma))
+    assert 3.5 < np.mean(chi_squares) < 7.0
