@@ -33,6 +33,13 @@ def test_three_periods_suffice_at_any_known_exposure(exposure):
     assert reading.lamp_id == 18
 
 
+def test_exposure_of_about_a_period_gives_no_id():
+    # 8.4 kHz over 125 us: 1.05 periods per exposure, the stripes all but average away.
+    profile = tone_profile(8400.0, periods=8.0, exposure=1.25e-4, noise=0.05)
+    reading = decode_tone(profile, ROW_TIME, {**FREQUENCIES, 99: 8400.0}, TOLERANCE, exposure=1.25e-4)
+    assert reading.lamp_id is None and 'washed out' in reading.detail
+
+
 def test_unknown_exposure_needs_more_periods():
     # Blur across rows can pass for a longer exposure: edges count only to the nearest row.
     short = decode_tone(tone_profile(4600.0, periods=3.2), ROW_TIME, FREQUENCIES, TOLERANCE)

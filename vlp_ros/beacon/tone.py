@@ -22,8 +22,10 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
 _MAX_ITERATIONS = 8
-# The fit stops when a step moves the frequency by less than this share of its standard deviation.
+# The fit stops when a step with damping below _UNDAMPED moves the frequency by less than this
+# share of its standard deviation.
 _CONVERGED = 0.05
+_UNDAMPED = 0.01
 # An unknown exposure as a fraction of the tone's period: where the fit may start. Beyond half a
 # period longer exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
 _START_KAPPAS = np.array([0.05, 0.15, 0.3, 0.45])
@@ -32,6 +34,9 @@ _MIN_EXPOSURE_ROWS = 0.05
 _MIX_ROWS = 2
 # How well an edge that no row straddles is placed, in rows (a uniform error over one row).
 _EDGE_QUANTUM = 0.3
+# Least share of the fundamental that the exposure lets through (|sinc(exposure x frequency)|):
+# near a whole number of periods per exposure the stripes average away.
+_MIN_TRANSMISSION = 0.3
 
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
@@ -87,6 +92,9 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if estimate is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
     cycles, sigma, dof, _ = estimate
+    if exposure is not None and abs(np.sinc(exposure * cycles / fit.duration)) < _MIN_TRANSMISSION:
+        # What is left of the stripes is shaped by the exposure more than by the frequency.
+        return no_evidence(candidates, mapped, prior, 'the exposure spans about whole periods: stripes washed out')
     if exposure is None or exposure < row_time:
         # No row straddles most edges, or (exposure unknown) blur may pass for a longer exposure:
         # the edges are known to a row, and the period to a row over the window.
@@ -192,8 +200,10 @@ class _ToneFit:
                 trial[2] = np.clip(trial[2], _MIN_EXPOSURE_ROWS, 0.5 * rows / trial[0])
             trial_rss, trial_residual, trial_jacobian = self._projected(trial, free)
             if trial_rss < rss:
-                # Done once the frequency moves by a small part of its own uncertainty.
-                converged = step[0] ** 2 < _CONVERGED ** 2 * inverse[0, 0] * trial_rss / max(dof, 1)
+                # Done once an (almost) undamped step moves the frequency by a small part of its
+                # own uncertainty; a heavily damped step is small for want of trust, not of need.
+                converged = (damping < _UNDAMPED
+                             and step[0] ** 2 < _CONVERGED ** 2 * inverse[0, 0] * trial_rss / max(dof, 1))
                 params, rss, residual, jacobian = trial, trial_rss, trial_residual, trial_jacobian
                 damping = max(damping / 4.0, 1e-9)
                 if converged:
