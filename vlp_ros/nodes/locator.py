@@ -205,6 +205,13 @@ def _covariance_of(pose: Pose) -> list[float]:
 
 
 def main(args: list[str] | None = None) -> None:
+    try:
+        _run(args)
+    except KeyboardInterrupt:  # Ctrl-C while starting up or shutting down is a clean stop too
+        pass
+
+
+def _run(args: list[str] | None) -> None:
     rclpy.init(args=args)
     try:
         node = Locator()
@@ -214,7 +221,7 @@ def main(args: list[str] | None = None) -> None:
         sys.exit(2)
     try:
         rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         pass
     finally:
         node.stop()

@@ -313,6 +313,13 @@ class Replay(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    try:
+        return _run(args)
+    except KeyboardInterrupt:  # Ctrl-C while starting up or shutting down is a clean stop too
+        return 0
+
+
+def _run(args: list[str] | None) -> int:
     own, ros = split_ros_arguments(sys.argv if args is None else args)
     parser = command_line_parser()
     command_line = parser.parse_args(own[1:])
