@@ -1,0 +1,188 @@
+"""Covariance honesty on rendered frames: python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S].
+
+Whether the published pose covariance is honest, and which measurement makes it
+not. Setups: the seed paper's grid with a 4K camera and the lamp 2 m and 1.5 m up
+(8 x 8 points, 2 postures, gravity from the scenario's IMU as a measurement), and
+the robot's drive (continuous frames, its static mount prior with a sigma, no
+IMU). Every frame is rendered, its lamps detected and matched to the simulator's
+truth, and the frame run through ``Pipeline.process``. Printed per setup:
+
+- detection: the rim points' mean signed distance from the true edge (px) and their
+  RMS over ``rim_sigma`` (1 if it describes them); the marker's error over
+  ``marker_sigma``, squared, per image axis (1 if honest).
+- measurement: each measurement's whitened residuals at the true pose, projected on
+  the pose directions they move (what the fit absorbs of them): a chi-square of
+  5 (rim), 2 (marker) and 2 (up direction) on average if its sigma is honest for the pose.
+- pose: NEES of the published poses (6 if honest), its position and rotation parts
+  (3 each), per axis normalised squared error (1 each), and the mean position error.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from vlp_ros.benchmarks.accuracy import scenario_settings
+from vlp_ros.camera import CameraModel
+from vlp_ros.detection import detect_lamps
+from vlp_ros.ellipse import geometric_distances
+from vlp_ros.evaluation.metrics import format_table, nees_or_nan
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.locator_config import LocatorSettings
+from vlp_ros.observation import LampObservation
+from vlp_ros.pipeline import Pipeline
+from vlp_ros.pose import Pose
+from vlp_ros.sim.imu import specific_force
+from vlp_ros.sim.render import LampTruth, render_frame
+from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
+from vlp_ros.solvers.measurement import LampMeasurement
+from vlp_ros.solvers.up_measurement import UpMeasurement
+
+# A detection belongs to a lamp when its centre lies this close (px) to the lamp centre's image.
+_MATCH_PX = 5.0
+
+
+@dataclass
+class Tally:
+    """What one setup's frames showed."""
+
+    rim_mean_px: list[float] = field(default_factory=list)
+    rim_rms_ratio: list[float] = field(default_factory=list)
+    marker_z2: list[np.ndarray] = field(default_factory=list)
+    absorbed: dict[str, list[float]] = field(default_factory=dict)
+    nees: list[float] = field(default_factory=list)
+    nees_position: list[float] = field(default_factory=list)
+    nees_rotation: list[float] = field(default_factory=list)
+    axes: list[np.ndarray] = field(default_factory=list)
+    position_errors: list[float] = field(default_factory=list)
+
+
+def absorbed_chi_square(residuals: np.ndarray, jacobian: np.ndarray) -> float:
+    """Chi-square of whitened residuals within the span of their pose Jacobian's columns."""
+    scaled = jacobian / np.maximum(np.linalg.norm(jacobian, axis=0), 1e-300)
+    basis, values, _ = np.linalg.svd(scaled, full_matrices=False)
+    projected = basis[:, values > 1e-7 * values[0]].T @ residuals
+    return float(projected @ projected)
+
+
+def match(observations: list[LampObservation], truth: LampTruth) -> LampObservation | None:
+    near = [o for o in observations if np.linalg.norm(o.center - truth.center_pixel) < _MATCH_PX]
+    return near[0] if len(near) == 1 else None
+
+
+def tally_detection(tally: Tally, observation: LampObservation, truth: LampTruth, camera: CameraModel) -> None:
+    rim = camera.undistort_pixels(observation.rim_points) if camera.is_distorted else observation.rim_points
+    distances = geometric_distances(truth.ellipse, rim)
+    tally.rim_mean_px.append(float(distances.mean()))
+    tally.rim_rms_ratio.append(float(np.sqrt(np.mean(distances ** 2)) / observation.rim_sigma))
+    if observation.marker is not None:
+        tally.marker_z2.append(((observation.marker - truth.marker_pixel) / observation.marker_sigma) ** 2)
+
+
+def tally_measurements(tally: Tally, pairs: list[tuple[LampObservation, Lamp]], up: list[UpMeasurement],
+                       camera: CameraModel, truth: Pose) -> None:
+    for observation, lamp in pairs:
+        measurement = LampMeasurement.from_observation(observation, lamp, camera)
+        residuals, jacobian = measurement.linearize(truth.rotation, truth.position)
+        n = len(measurement.rim_rays)
+        tally.absorbed.setdefault('rim', []).append(absorbed_chi_square(residuals[:n], jacobian[:n]))
+        if measurement.marker_pixel is not None:
+            tally.absorbed.setdefault('marker', []).append(absorbed_chi_square(residuals[n:], jacobian[n:]))
+    for measurement in up:
+        tally.absorbed.setdefault('up', []).append(absorbed_chi_square(*measurement.linearize(truth.rotation,
+                                                                                              truth.position)))
+
+
+def tally_pose(tally: Tally, estimate: Pose, truth: Pose) -> None:
+    error, covariance = estimate.error_vector(truth), estimate.covariance
+    tally.nees.append(nees_or_nan(estimate, truth))
+    tally.nees_position.append(float(error[:3] @ np.linalg.solve(covariance[:3, :3], error[:3])))
+    tally.nees_rotation.append(float(error[3:] @ np.linalg.solve(covariance[3:, 3:], error[3:])))
+    tally.axes.append(error ** 2 / np.diag(covariance))
+    tally.position_errors.append(estimate.position_error(truth))
+
+
+def up_measurements(settings: LocatorSettings, gravity_up: np.ndarray | None) -> list[UpMeasurement]:
+    """The up directions the pipeline fits with: the mount prior and gravity, where they have a sigma."""
+    up = []
+    if settings.prior_up is not None and settings.prior_sigma:
+        up.append(UpMeasurement(settings.prior_up, settings.prior_sigma))
+    if gravity_up is not None and settings.imu_sigma:
+        up.append(UpMeasurement(gravity_up, settings.imu_sigma))
+    return up
+
+
+def run_setup(scenario: Scenario, settings: LocatorSettings, imu: bool, seed: int, number: int) -> Tally:
+    pipeline = Pipeline(settings)
+    lamps = {sim.lamp.id: sim.lamp for sim in scenario.lamps}
+    tally = Tally()
+    for index, (truth, stamp) in enumerate(zip(scenario.poses, scenario.frame_times())):
+        rng = np.random.default_rng([seed, number, index])
+        frame = render_frame(scenario.camera, truth, scenario.lamps, scenario.sensor, float(stamp), rng)
+        force = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
+        gravity_up = force / np.linalg.norm(force) if imu else None
+        observations = detect_lamps(frame.image)
+        pairs = []
+        for lamp_truth in (t for t in frame.lamps if t.visible and t.fully_inside):
+            observation = match(observations, lamp_truth)
+            if observation is not None:
+                tally_detection(tally, observation, lamp_truth, scenario.camera)
+                pairs.append((observation, lamps[lamp_truth.lamp_id]))
+        tally_measurements(tally, pairs, up_measurements(settings, gravity_up), scenario.camera, truth)
+        result = pipeline.process(frame.image, scenario.camera, float(stamp), gravity_up)
+        if result.pose is not None and result.pose.covariance is not None:
+            tally_pose(tally, result.pose, truth)
+    return tally
+
+
+def tables(results: list[tuple[str, Tally]]) -> str:
+    def mean(values: list) -> str:
+        return f'{np.mean(values):.2f}' if len(values) else '-'
+
+    detection, poses = [], []
+    for label, t in results:
+        marker = np.mean(t.marker_z2, axis=0) if t.marker_z2 else (np.nan, np.nan)
+        rim_mean = f'{np.mean(t.rim_mean_px):+.4f}' if t.rim_mean_px else '-'
+        detection.append([label, str(len(t.rim_mean_px)), rim_mean, mean(t.rim_rms_ratio),
+                          f'{marker[0]:.2f}', f'{marker[1]:.2f}',
+                          *(mean(t.absorbed.get(name, [])) for name in ('rim', 'marker', 'up'))])
+        axes = np.mean(t.axes, axis=0) if t.axes else np.full(6, np.nan)
+        poses.append([label, str(len(t.nees)), mean(t.nees), f'{np.median(t.nees):.2f}' if t.nees else '-',
+                      mean(t.nees_position), mean(t.nees_rotation), *(f'{v:.2f}' for v in axes),
+                      f'{100 * np.mean(t.position_errors):.3f}' if t.position_errors else '-'])
+    return '\n\n'.join([
+        format_table(detection, ('setup', 'lamps', 'rim mean px', 'rim RMS/sigma', 'marker z2 x', 'marker z2 y',
+                                 'rim chi2 (5)', 'marker chi2 (2)', 'up chi2 (2)')),
+        format_table(poses, ('setup', 'poses', 'NEES mean', 'median', 'position (3)', 'rotation (3)',
+                             'x', 'y', 'z', 'rot x', 'rot y', 'rot z', 'mean error cm'))])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.covariance_honesty',
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument('--seed', type=int, default=2017)
+    parser.add_argument('--frames', type=int, default=None, help='at most this many frames per setup')
+    parser.add_argument('--imu-sigma', type=float, default=None,
+                        help="rad: the locator's imu.sigma on the paper setups (default: the scenario's own)")
+    args = parser.parse_args(argv)
+    if args.frames is not None and args.frames < 1:
+        parser.error('--frames must be at least 1')
+    setups = [(f'paper 4K {height:g} m', paper_scenario('4k', height=height, points=8, postures=2, seed=args.seed),
+               True) for height in (2.0, 1.5)]
+    setups.append(('robot (prior)', robot_scenario(seed=args.seed), False))
+    results = []
+    for number, (label, scenario, imu) in enumerate(setups):
+        if args.frames is not None:
+            scenario = scenario.truncated(min(args.frames, len(scenario.poses)))
+        settings = scenario_settings(scenario)
+        if imu and args.imu_sigma is not None:
+            settings = replace(settings, imu_sigma=args.imu_sigma)
+        results.append((label, run_setup(scenario, settings, imu, args.seed, number)))
+    print(f'Covariance honesty on rendered frames (seed {args.seed})')
+    print(tables(results))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
