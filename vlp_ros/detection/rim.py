@@ -26,8 +26,8 @@ _MAD_TO_SIGMA = 1.4826
 _ELLIPSE_PARAMETERS = 5
 # Clipped rows pooled to measure how far their crossings lie outside the edge.
 _MAX_POOLED_ROWS = 200
-# Ramp pixels further than this (of the row's step) from background or plateau give
-# probits too noisy to measure the blur with.
+# Ramp pixels within this (of the row's step) of background or plateau give probits
+# too noisy to measure the blur with.
 _PROBIT_MARGIN = 0.03
 _MIN_BLUR_ROWS = 10
 
