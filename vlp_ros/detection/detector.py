@@ -274,7 +274,7 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     if len(points) < options.min_rim_points or clipped.any():
         return rim
     return fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
-                   _MIN_RIM_SIGMA)
+                   _MIN_RIM_SIGMA, near=rim.ellipse)
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:

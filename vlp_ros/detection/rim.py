@@ -190,13 +190,14 @@ def edge_slopes(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float,
-            min_sigma: float) -> RimFit:
+            min_sigma: float, near: np.ndarray | None = None) -> RimFit:
     """Ellipse through row crossings: grazing rows dropped, then outliers beyond ``outlier_sigmas``.
 
+    ``near``: an ellipse already close to the points, to tell the grazing rows by.
     Raises ValueError when too few points remain for a fit.
     """
     # A rough ellipse through a quarter of the points is enough to tell the grazing rows.
-    ellipse = fit_ellipse(points[::4] if len(points) >= 40 else points)
+    ellipse = near if near is not None else fit_ellipse(points[::4] if len(points) >= 40 else points)
     kept = points[edge_slopes(ellipse, points) <= max_slope]
     ellipse = fit_ellipse(kept)
     candidates = len(kept)
