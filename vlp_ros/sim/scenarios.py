@@ -96,9 +96,12 @@ class Scenario:
                                'tolerance': float(self.prior_tolerance), 'sigma': float(self.prior_sigma)}
         if imu:
             # The simulated IMU samples once per frame at the image's stamp.
-            # Its noise per axis over g is the accuracy of the up direction it gives.
+            # Its noise and the camera's own acceleration (RMS magnitude, conservatively all of it
+            # across the up direction), over g, are how far the up direction it gives may stray.
+            rms_acceleration = np.sqrt(np.mean(np.sum(np.square(self.accelerations), axis=1)))
+            sigma = np.hypot(self.imu_noise, rms_acceleration) / STANDARD_GRAVITY
             params['imu'] = {'enabled': True, 'rotation': [0.0, 0.0, 0.0, 1.0], 'max_age': 0.5 / self.frame_rate,
-                             'sigma': float(self.imu_noise / STANDARD_GRAVITY)}
+                             'sigma': float(sigma)}
         if self.independent_frames:
             params['continuity'] = {'max_age': 0.0}
         return params
