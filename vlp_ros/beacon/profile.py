@@ -51,7 +51,8 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
         raise ValueError(f'image must be mono (H, W) or BGR (H, W, 3), got shape {image.shape}')
     x0, y0, x1, y1 = (int(v) for v in observation.bbox)
     if not (0 <= x0 < x1 <= image.shape[1] and 0 <= y0 < y1 <= image.shape[0]):
-        raise ValueError(f'lamp bbox {observation.bbox} does not lie inside the {image.shape[1]}x{image.shape[0]} image')
+        raise ValueError(f'lamp bbox {observation.bbox} does not lie inside the '
+                         f'{image.shape[1]}x{image.shape[0]} image')
     mask = _usable_pixels(observation, (y1 - y0, x1 - x0), edge_margin, marker_margin)
     roi = image[y0:y1, x0:x1]
     if ceiling is None and np.issubdtype(image.dtype, np.integer):

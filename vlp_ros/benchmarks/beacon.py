@@ -5,8 +5,9 @@ rolling shutter, blur, shot and read noise, saturation, bgr8) in a small ROI,
 builds the observation a detector would report from the ground truth, and runs
 the pipeline's calls: ``row_profile`` and ``decode_packet`` / ``decode_tone`` with
 nominal timing that is off by up to 3 % (packet) or 0.2 % (tone); packet mode
-without the exposure, tone mode with it (one table without). Tables give, per condition, the correct-ID rate among lamps in the
-map, the share of unmapped lamps recognised as such, and every wrong ID. "span"
+without the exposure, tone mode with it (one table without). Tables give, per
+condition, the correct-ID rate among lamps in the map, the share of unmapped
+lamps recognised as such, and every wrong ID. "span"
 is the lamp's usable height (rows left after the edge margin) in packets, or in
 stripe periods for tone mode. ``--trials`` is per mode, spread over the tables.
 The tracker table follows lamps over frames (new packet phase every frame).
@@ -306,7 +307,8 @@ def report_time(title: str, timer: Timer) -> float:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--trials', type=int, default=10500,
-                        help='single-frame trials per mode (default 10500: over 10 000 once lamps off the ROI drop out)')
+                        help='single-frame trials per mode (default 10500: over 10 000 once lamps cut by the ROI '
+                             'drop out)')
     parser.add_argument('--seed', type=int, default=1)
     args = parser.parse_args(argv)
     if args.trials < 1:
