@@ -41,6 +41,8 @@ PARAMETERS = (
     ParameterSpec('beacon.chip_rate', 'number', 8000.0, 'packet mode chip rate (Hz)'),
     ParameterSpec('beacon.id_bits', 'integer', 8, 'packet mode data bits per ID'),
     ParameterSpec('beacon.row_time', 'number', 1.5e-5, "camera's time between consecutive row exposure starts (s)"),
+    ParameterSpec('beacon.exposure', 'number', 0.0,
+                  "camera's exposure time (s); 0 = unknown. Tone mode needs it for short exposures"),
     ParameterSpec('beacon.frequency_tolerance', 'number', 60.0, 'tone mode: largest accepted frequency error (Hz)'),
     ParameterSpec('solver', 'string', 'perspective', 'pose solver: perspective (exact) or paper (weak perspective)'),
     ParameterSpec('prior.up_in_camera', 'number_array', [],
@@ -90,6 +92,7 @@ class BeaconSettings:
     chip_rate: float
     id_bits: int
     row_time: float
+    exposure: float | None
     frequency_tolerance: float
 
 
@@ -236,6 +239,7 @@ def beacon_from_parameters(values: Mapping[str, Any]) -> BeaconSettings:
         chip_rate=_number(values, 'beacon.chip_rate', positive=True),
         id_bits=_integer(values, 'beacon.id_bits', 1, 16),
         row_time=_number(values, 'beacon.row_time', positive=True),
+        exposure=_number(values, 'beacon.exposure', minimum=0.0) or None,
         frequency_tolerance=_number(values, 'beacon.frequency_tolerance', positive=True))
 
 

@@ -76,8 +76,9 @@ class Pipeline:
         profile = row_profile(image, observation)
         if beacon.mode == 'tone':
             return decode_tone(profile, beacon.row_time, self.settings.lamps.frequencies(),
-                               beacon.frequency_tolerance)
-        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self.settings.lamps.ids)
+                               beacon.frequency_tolerance, exposure=beacon.exposure)
+        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self.settings.lamps.ids,
+                             exposure=beacon.exposure)
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
         s = self.settings

@@ -89,7 +89,8 @@ class Scenario:
             'map_frame': 'map',
             'leds': leds,
             'beacon': {'mode': 'packet', 'chip_rate': float(self.beacon.chip_rate),
-                       'id_bits': int(self.beacon.id_bits), 'row_time': float(self.sensor.row_time)},
+                       'id_bits': int(self.beacon.id_bits), 'row_time': float(self.sensor.row_time),
+                       'exposure': float(self.sensor.exposure)},
         }
         if self.prior_up is not None:
             params['prior'] = {'up_in_camera': [float(v) for v in self.prior_up],
