@@ -77,8 +77,8 @@ class Pipeline:
         if beacon.mode == 'tone':
             return decode_tone(profile, beacon.row_time, self.settings.lamps.frequencies(),
                                beacon.frequency_tolerance, exposure=beacon.exposure)
-        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self.settings.lamps.ids,
-                             exposure=beacon.exposure)
+        # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
+        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self.settings.lamps.ids)
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
         s = self.settings
