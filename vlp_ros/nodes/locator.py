@@ -7,12 +7,14 @@ the worker is busy replace the waiting one, so latency never grows.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
 
 import numpy as np
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -209,6 +211,13 @@ def main(args: list[str] | None = None) -> None:
         _run(args)
     except KeyboardInterrupt:  # Ctrl-C while starting up or shutting down is a clean stop too
         pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+        pass  # Ctrl-C shut the context down while the node was still being built
+    finally:
+        # Stopping anyway: a Ctrl-C during interpreter shutdown must not turn a clean exit into a signal death.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _run(args: list[str] | None) -> None:

@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
@@ -317,6 +319,13 @@ def main(args: list[str] | None = None) -> int:
         return _run(args)
     except KeyboardInterrupt:  # Ctrl-C while starting up or shutting down is a clean stop too
         return 0
+    except RCLError:
+        if rclpy.ok():
+            raise
+        return 0  # Ctrl-C shut the context down while the node was still being built
+    finally:
+        # Stopping anyway: a Ctrl-C during interpreter shutdown must not turn a clean exit into a signal death.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _run(args: list[str] | None) -> int:
