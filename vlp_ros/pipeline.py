@@ -47,7 +47,10 @@ class Pipeline:
         image: only for measuring that solver as published, never in the locator."""
         self.settings = settings
         self.gate_fit = gate_fit
-        self.tracker = EvidenceTracker(known_ids=settings.lamps.ids)
+        # Per-frame decoding needs these for every lamp: derive them once.
+        self._known_ids = settings.lamps.ids
+        self._frequencies = settings.lamps.frequencies()
+        self.tracker = EvidenceTracker(known_ids=self._known_ids)
         self._recent: tuple[Pose, float] | None = None
 
     def process(self, image: np.ndarray, camera: CameraModel, stamp: float,
@@ -75,10 +78,10 @@ class Pipeline:
         beacon = self.settings.beacon
         profile = row_profile(image, observation)
         if beacon.mode == 'tone':
-            return decode_tone(profile, beacon.row_time, self.settings.lamps.frequencies(),
+            return decode_tone(profile, beacon.row_time, self._frequencies,
                                beacon.frequency_tolerance, exposure=beacon.exposure)
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
-        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self.settings.lamps.ids)
+        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids)
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
         s = self.settings
