@@ -6,35 +6,42 @@ here because OpenCV's fitEllipseDirect returns no conic and no residuals.
 """
 from __future__ import annotations
 
+import math
+
+import cv2
 import numpy as np
 
 
 def conic_from_ellipse(ellipse: np.ndarray) -> np.ndarray:
     """Symmetric 3x3 conic C with x^T C x = 0 for homogeneous points x on the ellipse."""
     cx, cy, a, b, theta = (float(v) for v in ellipse)
-    c, s = np.cos(theta), np.sin(theta)
-    # Axis-aligned conic diag(1/a^2, 1/b^2, -1) moved by rotation then translation.
-    to_local = np.array([[c, s, -(c * cx + s * cy)], [-s, c, s * cx - c * cy], [0.0, 0.0, 1.0]])
-    return to_local.T @ np.diag([1.0 / a ** 2, 1.0 / b ** 2, -1.0]) @ to_local
+    c, s = math.cos(theta), math.sin(theta)
+    # The axis-aligned conic u^2/a^2 + v^2/b^2 = 1, rotated by theta and moved to the centre,
+    # written out: tiny matrix products cost more in call overhead than in arithmetic.
+    ia, ib = 1.0 / (a * a), 1.0 / (b * b)
+    xx, yy, xy = c * c * ia + s * s * ib, s * s * ia + c * c * ib, c * s * (ia - ib)
+    x1, y1 = -(xx * cx + xy * cy), -(xy * cx + yy * cy)
+    return np.array([[xx, xy, x1], [xy, yy, y1], [x1, y1, xx * cx * cx + 2.0 * xy * cx * cy + yy * cy * cy - 1.0]])
 
 
 def ellipse_from_conic(conic: np.ndarray) -> np.ndarray:
     """(cx, cy, a, b, theta) of a real ellipse conic; ValueError for anything else."""
     C = np.asarray(conic, dtype=float)
-    C = 0.5 * (C + C.T)
-    A2 = C[:2, :2]
-    if np.linalg.det(A2) <= 0.0:
+    p, r = float(C[0, 0]), float(C[1, 1])
+    q, d, e = 0.5 * float(C[0, 1] + C[1, 0]), 0.5 * float(C[0, 2] + C[2, 0]), 0.5 * float(C[1, 2] + C[2, 1])
+    det = p * r - q * q
+    if det <= 0.0:
         raise ValueError('conic is not an ellipse')
-    center = np.linalg.solve(A2, -C[:2, 2])
-    k = -(C[2, 2] + C[:2, 2] @ center)
-    if k * A2[0, 0] <= 0.0:
+    cx, cy = (q * e - r * d) / det, (q * d - p * e) / det
+    k = -(float(C[2, 2]) + d * cx + e * cy)
+    if k * p <= 0.0:
         raise ValueError('conic is an imaginary ellipse')
-    evals, evecs = np.linalg.eigh(A2 / k)
-    # Smallest eigenvalue <-> longest axis.
-    a, b = 1.0 / np.sqrt(evals[0]), 1.0 / np.sqrt(evals[1])
-    theta = float(np.arctan2(evecs[1, 0], evecs[0, 0]))
-    theta = (theta + np.pi / 2) % np.pi - np.pi / 2
-    return np.array([center[0], center[1], a, b, theta])
+    # Eigenvalues of the 2x2 block over k: the smaller one belongs to the longer axis.
+    mean, radius = 0.5 * (p + r) / k, math.hypot(0.5 * (p - r), q) / abs(k)
+    a, b = 1.0 / math.sqrt(mean - radius), 1.0 / math.sqrt(mean + radius)
+    theta = 0.5 * math.atan2(-2.0 * q / k, (r - p) / k)
+    theta = (theta + math.pi / 2) % math.pi - math.pi / 2
+    return np.array([cx, cy, a, b, theta])
 
 
 def fit_ellipse(points: np.ndarray) -> np.ndarray:
@@ -47,21 +54,30 @@ def fit_ellipse(points: np.ndarray) -> np.ndarray:
     if len(p) < 5:
         raise ValueError(f'an ellipse fit needs at least 5 points, got {len(p)}')
     mean = p.mean(axis=0)
-    scale = np.sqrt(np.mean(np.sum((p - mean) ** 2, axis=1)))
+    centred = p - mean
+    scale = math.sqrt(float(np.einsum('ij,ij->', centred, centred)) / len(p))
     if not scale > 0.0:
         raise ValueError('ellipse fit points are all identical')
-    x, y = ((p - mean) / scale).T
-    D1 = np.stack([x * x, x * y, y * y], axis=1)
-    D2 = np.stack([x, y, np.ones_like(x)], axis=1)
-    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    try:
-        T = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError as err:
-        raise ValueError('ellipse fit points are degenerate (collinear)') from err
+    # One design matrix [x^2, xy, y^2 | x, y, 1]: its scatter holds S1, S2 and S3 as blocks.
+    design = np.empty((len(p), 6))
+    design[:, 3:5] = centred / scale
+    x, y = design[:, 3], design[:, 4]
+    design[:, 0] = x * x
+    design[:, 1] = x * y
+    design[:, 2] = y * y
+    design[:, 5] = 1.0
+    scatter = design.T @ design
+    S1, S2, S3 = scatter[:3, :3], scatter[:3, 3:], scatter[3:, 3:]
+    # OpenCV's 3x3 solve and eigen decomposition: numpy's cost ~5x more in call overhead.
+    solved, T = cv2.solve(S3, S2.T, flags=cv2.DECOMP_LU)
+    if not solved:
+        raise ValueError('ellipse fit points are degenerate (collinear)')
+    T = -T
     M = S1 + S2 @ T
     M = np.array([M[2] / 2.0, -M[1], M[0] / 2.0])
-    evals, evecs = np.linalg.eig(M)
-    evecs = np.real(evecs)
+    # The constrained eigenvalues are real (Halir and Flusser): OpenCV's solver assumes as much.
+    _, evecs = cv2.eigenNonSymmetric(M)
+    evecs = evecs.T
     cond = 4.0 * evecs[0] * evecs[2] - evecs[1] ** 2
     valid = np.flatnonzero(cond > 0.0)
     if valid.size == 0:
@@ -92,7 +108,9 @@ def geometric_distances(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
     """
     C = conic_from_ellipse(ellipse)
     p = np.asarray(points, dtype=float).reshape(-1, 2)
-    h = np.column_stack([p, np.ones(len(p))])
-    value = np.einsum('ni,ij,nj->n', h, C, h)
-    grad = 2.0 * (h @ C)[:, :2]
-    return value / np.linalg.norm(grad, axis=1)
+    x, y = p[:, 0], p[:, 1]
+    # Half the conic's gradient, (C h)_xy, and its value h^T C h = (C h)_xy . p + (C h)_w.
+    gx = C[0, 0] * x + C[0, 1] * y + C[0, 2]
+    gy = C[0, 1] * x + C[1, 1] * y + C[1, 2]
+    value = gx * x + gy * y + (C[0, 2] * x + C[1, 2] * y + C[2, 2])
+    return 0.5 * value / np.sqrt(gx * gx + gy * gy)

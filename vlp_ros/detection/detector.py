@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 from vlp_ros.detection.blobs import Blob, find_blobs
@@ -12,6 +13,7 @@ from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_e
 from vlp_ros.detection.rows import RowLevels, clear_levels, ellipse_chords, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
 from vlp_ros.observation import LampObservation
+from vlp_ros.small_arrays import median
 
 # A lamp's rim must have this many kept points on each side of its centre.
 _MIN_SIDE_FRACTION = 0.2
@@ -192,9 +194,8 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     # the edge. The maximum over channels is not: where a channel dimmer on the lamp is the brighter
     # one on the ceiling, the maximum's ramp bends and its half level lies up to ~0.05 px inside the
     # edge in dim rows, the same way all round the rim: several sigmas of the fitted ellipse's size.
-    brightness = roi[..., int(np.argmax(roi.reshape(-1, 3).max(axis=0)))] if colour else roi
-    background = float(np.median(np.concatenate(
-        [brightness[0], brightness[-1], brightness[:, 0], brightness[:, -1]])))
+    brightness = roi[..., _brightest_channel(roi)] if colour else roi
+    background = median(np.concatenate([brightness[0], brightness[-1], brightness[:, 0], brightness[:, -1]]))
     peak = float(brightness.max())
     if peak - background < options.min_contrast:
         return None
@@ -221,6 +222,12 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     if rim is None:
         return None
     return replace(box, rim=rim)
+
+
+def _brightest_channel(roi: np.ndarray) -> int:
+    """The channel of the brightest pixel value in a colour box (cv2.reduce: numpy's axis max costs ~10x)."""
+    column_maxima = cv2.reduce(roi.reshape(roi.shape[0], -1), 0, cv2.REDUCE_MAX)
+    return int(np.argmax(column_maxima.reshape(-1, 3).max(axis=0)))
 
 
 def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions

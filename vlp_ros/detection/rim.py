@@ -20,6 +20,7 @@ from scipy.special import ndtr, ndtri
 
 from vlp_ros.detection.rows import RowLevels
 from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse, geometric_distances
+from vlp_ros.small_arrays import median
 
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
@@ -159,7 +160,7 @@ def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarr
         return None
     across = np.abs(outward_normals(ellipse, points[inside][usable])[:, 0])
     sigma = across / np.abs(ndtri(right[usable]) - ndtri(left[usable]))
-    return float(np.median(sigma)) ** 2
+    return median(sigma) ** 2
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:
@@ -202,7 +203,7 @@ def fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float,
     ellipse = fit_ellipse(kept)
     candidates = len(kept)
     distances = geometric_distances(ellipse, kept)
-    scale = max(_MAD_TO_SIGMA * np.median(np.abs(distances)), min_sigma)
+    scale = max(_MAD_TO_SIGMA * median(np.abs(distances)), min_sigma)
     inliers = np.abs(distances) <= outlier_sigmas * scale
     if not inliers.all():
         kept = kept[inliers]

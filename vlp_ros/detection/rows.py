@@ -11,6 +11,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
+from vlp_ros.small_arrays import percentile
 
 # Plateau samples per row, spread over the middle half of the row's chord.
 _FRACTIONS = np.linspace(0.25, 0.75, 9)
@@ -47,7 +48,7 @@ def row_levels(brightness: np.ndarray, threshold: float, background: float,
     # The middle half of the chord is well away from the blurred edge (and from a marker at the rim).
     cols = np.rint(first[:, None] + span[:, None] * _FRACTIONS[None, :]).astype(int)
     plateau = _median_of_rows(brightness[lit[:, None], cols])
-    reference = np.percentile(plateau, 90.0)
+    reference = percentile(plateau, 90.0)
     keep = (span >= 2) & (plateau - background >= level_fraction * (reference - background))
     return RowLevels(lit[keep], first[keep], last[keep], plateau[keep])
 

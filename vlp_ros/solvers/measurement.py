@@ -136,11 +136,11 @@ class LampMeasurement:
         # With zero rvec/tvec the tvec columns are d pixel / d point (camera frame);
         # d point = R^T (offset x dtheta - dp).
         to_pixel = lens[:, 3:6] @ rotation.T
-        jacobian = np.hstack([-to_pixel, to_pixel @ _cross_matrix(offset)])
+        jacobian = np.hstack([-to_pixel, to_pixel @ cross_matrix(offset)])
         return pixel.reshape(2) - self.marker_pixel, jacobian
 
 
-def _cross_matrix(v: np.ndarray) -> np.ndarray:
+def cross_matrix(v: np.ndarray) -> np.ndarray:
     """[v]x: [v]x @ u = v x u."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 

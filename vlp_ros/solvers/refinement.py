@@ -20,9 +20,12 @@ from vlp_ros.solvers.covariance import covariance_from_jacobian, perturbed
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
-# Stop when the best step can lower the chi-square by less than this fraction:
-# far below the ~1 unit that noise moves it, so stopping adds no error.
+# Stop when the best step can lower the chi-square by less than this fraction of it, or
+# by less than the floor: the pose is then within sqrt(floor) = 0.03 sigma of the minimum
+# before its last step, far below the ~1 unit that noise moves the chi-square (this saves
+# the last one or two iterations of a quadratically converging fit).
 _COST_TOLERANCE = 1e-9
+_DECREMENT_FLOOR = 1e-3
 _MAX_ITERATIONS = 50
 _INITIAL_DAMPING = 1e-4
 # Iterations after which ``descend`` judges whether a start is still worth following.
@@ -89,9 +92,12 @@ def _levenberg_marquardt(pose: Pose, measurements: Sequence[Measurement], max_it
             break
         information = jacobian.T @ jacobian
         gradient = jacobian.T @ residuals
-        # Converged when even the undamped Gauss-Newton step promises no real decrease.
-        if gradient @ np.linalg.solve(information, gradient) < _COST_TOLERANCE * max(cost, 1.0):
-            return pose, residuals, jacobian, True
+        # Converged when even the undamped Gauss-Newton step promises no real decrease. That
+        # last step is still taken (its residuals, which it lowers by under the floor, are not
+        # evaluated): near the minimum it lands quadratically close to it.
+        newton = np.linalg.solve(information, -gradient)
+        if -(gradient @ newton) < max(_COST_TOLERANCE * cost, _DECREMENT_FLOOR):
+            return Pose(*perturbed(pose, newton)), residuals, jacobian, True
         step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
         trial = Pose(*perturbed(pose, step))
         trial_residuals, trial_jacobian = linearize(measurements, trial)
