@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 _COARSE_PHASES = 6
@@ -26,6 +27,7 @@ _MIN_CHIP_ROWS = 0.25
 # the lamp's whole contrast such a neighbourhood must show to be trusted.
 _EXTREMES_HALF_WIDTH = 3
 _MIN_LOCAL_CONTRAST = 0.25
+_EXTREMES_KERNEL = np.ones((1, 2 * _EXTREMES_HALF_WIDTH + 1), dtype=np.uint8)
 # Median of a chi-square variable with one degree of freedom.
 _CHI2_1_MEDIAN = 0.4549
 
@@ -34,11 +36,13 @@ _CHI2_1_MEDIAN = 0.4549
 class ChipLevels:
     """Chip-wise averages of a modulation profile on the found grid.
 
-    Chip k spans rows [phase + k period, phase + (k + 1) period). ``levels`` are
-    normalised to about +1 (bright) and -1 (dark); ``variances`` their noise
-    variances on that scale (inf for chips without rows).
+    Chip k spans rows [phase + k period, phase + (k + 1) period); ``index`` lists the
+    chips that hold enough rows to be measured (increasing), ``levels`` their
+    averages normalised to about +1 (bright) and -1 (dark) and ``variances`` their
+    noise variances on that scale.
     """
 
+    index: np.ndarray
     levels: np.ndarray
     variances: np.ndarray
     period: float
@@ -50,19 +54,19 @@ class _Cumulative:
 
     def __init__(self, z: np.ndarray, w: np.ndarray) -> None:
         self.size = len(z)
-        rows = np.zeros((4, self.size + 1))
-        rows[0, :-1], rows[1, :-1], rows[2, :-1], rows[3, :-1] = w, w * z, w * z * z, w > 0
-        self.rows = rows
-        self.totals = np.zeros((4, self.size + 1))
-        np.cumsum(rows[:, :-1], axis=1, out=self.totals[:, 1:])
+        # sums[0]: cumulative sums up to each row, sums[1]: each row's own terms (0 past the end).
+        self.sums = np.zeros((2, 4, self.size + 1))
+        self.rows = self.sums[1]
+        self.rows[:, :-1] = w, w * z, w * z * z, w > 0
+        np.cumsum(self.rows[:, :-1], axis=1, out=self.sums[0, :, 1:])
 
-    def at(self, u: np.ndarray, fields: int) -> list[np.ndarray]:
-        """The first ``fields`` cumulative sums up to positions ``u``."""
-        u = np.clip(u, 0.0, self.size)
+    def at(self, u: np.ndarray, fields: int) -> np.ndarray:
+        """The first ``fields`` cumulative sums up to positions ``u`` (within [0, size]), shape
+        (fields,) + u.shape."""
         i = u.astype(np.intp)
-        frac = u - i
         # np.take: several times faster than fancy indexing for these sizes.
-        return [np.take(self.totals[f], i) + frac * np.take(self.rows[f], i) for f in range(fields)]
+        totals, rows = np.take(self.sums[:, :fields], i, axis=2)
+        return totals + (u - i) * rows
 
 
 def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
@@ -73,7 +77,14 @@ def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
         return float('inf')
     d = np.diff(z)
     inverse = 1.0 / np.maximum(w, 1e-12)
-    return float(np.median(d * d / (inverse[:-1] + inverse[1:])) / _CHI2_1_MEDIAN)
+    return _median(d * d / (inverse[:-1] + inverse[1:])) / _CHI2_1_MEDIAN
+
+
+def _median(values: np.ndarray) -> float:
+    """np.median without its overhead, which dominates for a few hundred values."""
+    n = len(values)
+    middle = np.partition(values, ((n - 1) // 2, n // 2))
+    return 0.5 * float(middle[(n - 1) // 2] + middle[n // 2])
 
 
 def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
@@ -102,28 +113,29 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
     holds enough rows."""
     first = int(np.floor(-phase / period))
     count = int(np.ceil((cum.size - phase) / period)) - first
-    starts = phase + period * np.arange(first, first + count)
-    ends = cum.at(np.concatenate([starts + margin, starts + period - margin]), 4)
-    weight, total, square, rows = (e[count:] - e[:count] for e in ends)
+    edges = phase + period * np.arange(first, first + count) + np.array([[margin], [period - margin]])
+    # Chips the window's ends cut short.
+    whole = (edges[0] >= 0.0) & (edges[1] <= cum.size)
+    sums = cum.at(np.clip(edges, 0.0, cum.size), 4)
+    weight, total, square, rows = sums[:, 1] - sums[:, 0]
     # A sliver of a row at the window's ends is mostly rounding (differences of large sums).
     row_weights = cum.rows[0][cum.rows[0] > 0]
-    filled = weight > _MIN_CHIP_ROWS * (np.median(row_weights) if row_weights.size else 0.0) + 1e-9
+    filled = weight > _MIN_CHIP_ROWS * (_median(row_weights) if row_weights.size else 0.0) + 1e-9
     used = np.flatnonzero(filled)
     if used.size == 0:
         return None
-    mean = np.where(filled, total / np.where(filled, weight, 1.0), 0.0)
+    span = slice(used[0], used[-1] + 1)
+    weight, total, square, rows, filled, whole = weight[span], total[span], square[span], rows[span], \
+        filled[span], whole[span]
+    mean = np.divide(total, weight, out=np.zeros(len(weight)), where=filled)
     # Within-chip scatter measures the noise where there is enough of it.
-    dof = rows[filled].sum() - used.size
+    dof = rows @ filled - used.size
     if dof >= _MIN_DOF:
-        sigma2 = max(float((square - mean * total)[filled].sum() / dof), 1e-12)
-    used_range = slice(used[0], used[-1] + 1)
-    # Chips the window's ends cut short.
-    whole = (starts + margin >= 0.0) & (starts + period - margin <= cum.size)
-    weight, mean, filled, whole = weight[used_range], mean[used_range], filled[used_range], whole[used_range]
+        sigma2 = max(float((square - mean * total) @ filled) / dof, 1e-12)
     centre, amplitude = _baseline(mean, filled & whole)
-    levels = np.where(filled, (mean - centre) / amplitude, 0.0)
-    variances = np.where(filled, sigma2 / np.where(filled, weight, 1.0) / amplitude ** 2, np.inf)
-    return ChipLevels(levels, variances, period, float(starts[used[0]]))
+    index = used - used[0]
+    return ChipLevels(index, (mean[index] - centre[index]) / amplitude[index],
+                      sigma2 / (weight[index] * amplitude[index] ** 2), period, float(edges[0, used[0]] - margin))
 
 
 def _search_grid(cum: _Cumulative, period: float, tolerance: float, sigma2: float) -> tuple[float, float]:
@@ -143,14 +155,14 @@ def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.nda
                sigma2: float) -> tuple[float, float]:
     """The (period, phase) pair whose chip-wise constant fit of rows [0, end) captures most energy
     beyond noise."""
-    p = np.repeat(periods, len(phases))[:, None]
-    f = np.tile(phases, len(periods))[:, None] % p
-    bounds = np.minimum(f + p * np.arange(-1.0, np.ceil(end / periods.min()) + 2.0), end)
-    weight, total = (v[:, 1:] - v[:, :-1] for v in cum.at(bounds, 2))
+    offsets = phases % periods[:, None]
+    chips = np.arange(-1.0, np.ceil(end / periods.min()) + 2.0)
+    bounds = np.clip(offsets[:, :, None] + periods[:, None, None] * chips, 0.0, end)
+    weight, total = np.diff(cum.at(bounds, 2), axis=-1)
     # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
-    energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=1)
-    k = int(np.argmax(energy))
-    return float(p[k, 0]), float(f[k, 0])
+    energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=-1)
+    k, j = np.unravel_index(int(np.argmax(energy)), energy.shape)
+    return float(periods[k]), float(offsets[k, j])
 
 
 def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,11 +176,10 @@ def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """
     if np.count_nonzero(solid) < 2:
         return np.zeros(len(mean)), np.ones(len(mean))
-    n, width = len(mean), 2 * _EXTREMES_HALF_WIDTH + 1
-    high = np.pad(np.where(solid, mean, -np.inf), _EXTREMES_HALF_WIDTH, constant_values=-np.inf)
-    low = np.pad(np.where(solid, mean, np.inf), _EXTREMES_HALF_WIDTH, constant_values=np.inf)
-    upper = np.maximum.reduce([high[j:j + n] for j in range(width)])
-    lower = np.minimum.reduce([low[j:j + n] for j in range(width)])
+    # Running maximum of the bright and (negated) dark extremes; dilation ignores what lies outside.
+    extremes = cv2.dilate(np.where(solid, [mean, -mean], -np.inf), _EXTREMES_KERNEL,
+                          borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    upper, lower = extremes[0], -extremes[1]
     # A neighbourhood without both levels (too few whole chips, or noise only) borrows the lamp's
     # overall extremes.
     top, bottom = mean[solid].max(), mean[solid].min()

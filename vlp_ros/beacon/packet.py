@@ -16,7 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from vlp_ros.beacon.chips import chip_levels
-from vlp_ros.beacon.encoding import packet_chips, packet_length
+from vlp_ros.beacon.encoding import packet_bits, packet_chips, packet_length
 from vlp_ros.beacon.profile import RowProfile, modulation
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
                                     reading)
@@ -29,14 +29,25 @@ MISFIT_PROBABILITY = 1e-6
 
 
 @lru_cache(maxsize=4)
-def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """Signs (+1 bright, -1 dark) of every ID's packet (2^id_bits, L), and the index matrix
-    ``(p - shift) % L`` that folds window chips onto packet positions for every shift."""
-    # float32: the hypotheses' sums need ~1e-3 nats, and halve the time of the largest arrays.
-    signs = np.array([packet_chips(i, id_bits) for i in range(2 ** id_bits)], dtype=np.float32) * 2 - 1
-    length = packet_length(id_bits)
+def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every ID's packet, factored: chip signs (+1 bright, -1 dark) = ``chip_weights.T @ design``.
+
+    ``design`` (1 + bits + parity, 2^id_bits) is a row of ones over the +-1 of each bit of each ID;
+    ``chip_weights`` (1 + bits, L) say what the constant (the preamble) and each bit contribute to
+    every packet position (Manchester: +-1 on the bit's two chips). ``fold`` is ``(p - shift) % L`` over (shift, p): it
+    folds window chips onto packet positions for every shift.
+    """
+    ids, length = 2 ** id_bits, packet_length(id_bits)
+    signs = np.array([packet_chips(i, id_bits) for i in range(ids)], dtype=float) * 2 - 1
+    bit_signs = np.array([packet_bits(i, id_bits) for i in range(ids)], dtype=float).T * 2 - 1
+    design = np.vstack([np.ones(ids), bit_signs])
+    # The contract is linear in the bit signs, so least squares factors it exactly.
+    chip_weights = np.linalg.lstsq(design.T, signs, rcond=None)[0]
+    if not np.allclose(design.T @ chip_weights, signs):
+        raise AssertionError('packet chips are not linear in the bit signs')
     p = np.arange(length)
-    return signs, (p[:, None] - p[None, :]) % length
+    # float32: the hypotheses' sums need ~1e-3 nats, and halve the time of the largest arrays.
+    return design.astype(np.float32), chip_weights.T.copy(), (p[None, :] - p[:, None]) % length
 
 
 def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bits: int = 8,
@@ -69,13 +80,11 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     levels = chip_levels(z, w, period, timing_tolerance, margin)
     if levels is None:
         return no_evidence(candidates, mapped, prior, 'too few rows for a chip grid')
-    filled = np.isfinite(levels.variances)
-    if np.count_nonzero(filled) < MIN_CHIPS:
-        return no_evidence(candidates, mapped, prior, f'only {np.count_nonzero(filled)} chips visible')
-    index = np.flatnonzero(filled)
+    if levels.index.size < MIN_CHIPS:
+        return no_evidence(candidates, mapped, prior, f'only {levels.index.size} chips visible')
     log_likelihoods, misfit = _id_log_likelihoods(
-        levels.levels[index], 1.0 / (levels.variances[index] + model_error ** 2), index, id_bits)
-    if misfit > _misfit_limit(index.size - 4):
+        levels.levels, 1.0 / (levels.variances + model_error ** 2), levels.index, id_bits)
+    if misfit > _misfit_limit(levels.index.size - 4):
         return no_evidence(candidates, mapped, prior, 'the chips fit no packet')
     return reading(candidates, mapped, log_likelihoods, prior, min_confidence)
 
@@ -125,36 +134,43 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     hypothesis with beta > 0. The baseline takes up what the ID-blind envelope left:
     a preamble's run of bright chips leans any envelope fitted through the stripes.
     """
-    signs, fold = _codebook(id_bits)
-    ids, length = signs.shape
+    design, chip_weights, fold = _codebook(id_bits)
+    ids, length = design.shape[1], len(fold)
     basis = _orthonormal_baseline(k, v)
-    baseline = basis @ (v * x)
-    baseline_rss = float(v @ (x * x) - baseline @ baseline)
-    # Per packet position and shift: sums of v times each baseline column, and of v x, over the
-    # chips that land there; then for every ID, the sums over its bright minus its dark chips.
-    columns = np.concatenate([basis * v, (v * x)[None]])
+    vx = v * x
+    baseline = basis @ vx
+    baseline_rss = float(vx @ x - baseline @ baseline)
+    # Per packet position: sums of v times each baseline column over the chips that land there, and
+    # of v times what the baseline leaves of x (every ID's fit is linear in it). Folded for every
+    # shift and factored by bit, then for every (ID, shift): the sums over its bright minus its dark
+    # chips, (4, L, ids), each hypothesis along the last axis.
+    vbasis = basis * v
+    columns = np.concatenate([vbasis, (vx - baseline @ vbasis)[None]])
     positions = (k % length + length * np.arange(4)[:, None]).ravel()
     folded = np.take(np.bincount(positions, weights=columns.ravel(), minlength=4 * length).reshape(4, length),
                      fold, axis=1)
-    sums = signs @ folded.transpose(1, 0, 2).reshape(length, 4 * length).astype(np.float32)
-    c0, c1, c2, xs = (sums[:, j * length:(j + 1) * length] for j in range(4))
+    per_bit = (folded @ chip_weights).reshape(4 * length, len(design)).astype(np.float32)
+    sums = (per_bit @ design).reshape(4, length, ids)
     # With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it.
     total = np.float32(v.sum())
-    schur = np.maximum(total - c0 * c0 - c1 * c1 - c2 * c2, np.float32(1e-6) * total)
-    b0, b1, b2 = (np.float32(b) for b in baseline)
-    target = xs - b0 * c0 - b1 * c1 - b2 * c2
-    rss = np.float32(baseline_rss) - np.where(target > 0, target * target / schur, np.float32(0))
-    best = rss.min(axis=1)
-    log_likelihoods = -0.5 * best + np.log(np.exp(np.float32(-0.5) * (rss - best[:, None])).sum(axis=1) / length)
-    return log_likelihoods.astype(float), float(best.min())
+    schur = np.maximum(total - (sums[0] * sums[0] + sums[1] * sums[1] + sums[2] * sums[2]),
+                       np.float32(1e-6) * total)
+    target = np.maximum(sums[3], np.float32(0))
+    gain = target * target / schur
+    best = gain.max(axis=0)
+    spread = np.log(np.exp(np.float32(0.5) * (gain - best)).sum(axis=0) / length)
+    return 0.5 * best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - float(best.max())
 
 
 def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """1, t, t^2 in the chip index, made orthonormal under the weights ``v`` (Gram-Schmidt), (3, n)."""
-    t = (k - k.mean()) / max(0.5 * float(np.ptp(k)), 1.0)
-    basis = []
-    for column in (np.ones_like(t), t, t * t):
-        for q in basis:
-            column = column - (v @ (column * q)) * q
-        basis.append(column / np.sqrt(max(float(v @ (column * column)), 1e-300)))
-    return np.array(basis)
+    """1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v`` (Gram-Schmidt,
+    written out through the weighted moments of t), (3, n)."""
+    t = (k - 0.5 * (k[0] + k[-1])) / max(0.5 * float(k[-1] - k[0]), 1.0)
+    m0, m1, m2, m3, m4 = (v @ np.vander(t, 5, increasing=True)).tolist()
+    linear = t - m1 / m0
+    linear_norm2 = m2 - m1 * m1 / m0
+    lean = (m3 - m1 * m2 / m0) / linear_norm2
+    quadratic = t * t - m2 / m0 - lean * linear
+    quadratic_norm2 = m4 - m2 * m2 / m0 - lean * lean * linear_norm2
+    return np.array([np.full_like(t, 1.0 / np.sqrt(m0)), linear / np.sqrt(linear_norm2),
+                     quadratic / np.sqrt(max(quadratic_norm2, 1e-300))])
