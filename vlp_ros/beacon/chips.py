@@ -9,6 +9,7 @@ so a candidate grid costs one look-up per chip, not per row.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -156,12 +157,12 @@ def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.nda
     """The (period, phase) pair whose chip-wise constant fit of rows [0, end) captures most energy
     beyond noise."""
     offsets = phases % periods[:, None]
-    chips = np.arange(-1.0, np.ceil(end / periods.min()) + 2.0)
+    chips = np.arange(-1.0, math.ceil(end / periods.min()) + 2.0)
     bounds = np.clip(offsets[:, :, None] + periods[:, None, None] * chips, 0.0, end)
     weight, total = np.diff(cum.at(bounds, 2), axis=-1)
     # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
     energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=-1)
-    k, j = np.unravel_index(int(np.argmax(energy)), energy.shape)
+    k, j = divmod(int(np.argmax(energy)), energy.shape[1])
     return float(periods[k]), float(offsets[k, j])
 
 

@@ -166,11 +166,12 @@ def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
     """1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v`` (Gram-Schmidt,
     written out through the weighted moments of t), (3, n)."""
     t = (k - 0.5 * (k[0] + k[-1])) / max(0.5 * float(k[-1] - k[0]), 1.0)
-    m0, m1, m2, m3, m4 = (v @ np.vander(t, 5, increasing=True)).tolist()
+    vt, t2 = v * t, t * t
+    m0, m1, m2, m3, m4 = float(v.sum()), float(vt.sum()), float(vt @ t), float(vt @ t2), float((v * t2) @ t2)
     linear = t - m1 / m0
     linear_norm2 = m2 - m1 * m1 / m0
     lean = (m3 - m1 * m2 / m0) / linear_norm2
-    quadratic = t * t - m2 / m0 - lean * linear
+    quadratic = t2 - m2 / m0 - lean * linear
     quadratic_norm2 = m4 - m2 * m2 / m0 - lean * lean * linear_norm2
     return np.array([np.full_like(t, 1.0 / np.sqrt(m0)), linear / np.sqrt(linear_norm2),
                      quadratic / np.sqrt(max(quadratic_norm2, 1e-300))])

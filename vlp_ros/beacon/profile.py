@@ -55,18 +55,20 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
                          f'{image.shape[1]}x{image.shape[0]} image')
     mask = _usable_pixels(observation, (y1 - y0, x1 - x0), edge_margin, marker_margin)
     roi = image[y0:y1, x0:x1]
-    if ceiling is None and np.issubdtype(image.dtype, np.integer):
+    if ceiling is None and image.dtype.kind in 'ui':
         ceiling = float(np.iinfo(image.dtype).max)
+    if roi.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        roi = roi.astype(np.float32)
     luma = cv2.cvtColor(roi, cv2.COLOR_BGR2GRAY) if roi.ndim == 3 else roi
-    if luma.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
-        luma = luma.astype(np.float32)
     counts = _row_sums(mask)
-    sums = _row_sums(cv2.bitwise_and(luma, luma, mask=mask))
     valid = np.maximum(counts, 1.0)
-    saturated = np.zeros_like(counts)
-    if ceiling is not None and roi.max() >= ceiling:
-        peak = roi.max(axis=2) if roi.ndim == 3 else roi
-        saturated = _row_sums(((peak >= ceiling) & (mask > 0)).astype(np.uint8)) / valid
+    sums = _row_sums(cv2.bitwise_and(luma, luma, mask=mask))
+    # The channels side by side: one pass finds the brightest value (numpy's max is slower).
+    if ceiling is not None and cv2.minMaxLoc(roi.reshape(len(roi), -1))[1] >= ceiling:
+        peak = np.maximum(np.maximum(roi[..., 0], roi[..., 1]), roi[..., 2]) if roi.ndim == 3 else roi
+        saturated = _row_sums(((peak >= ceiling) & (mask > 0)).view(np.uint8)) / valid
+    else:
+        saturated = np.zeros(len(counts))
     return RowProfile(sums / valid, counts, saturated, y0)
 
 
@@ -101,7 +103,8 @@ def _usable_pixels(observation: LampObservation, shape: tuple[int, int], edge_ma
             if marker_margin > 0:
                 grown = cv2.dilate(grown, _disc_kernel(marker_margin), borderType=cv2.BORDER_CONSTANT,
                                    borderValue=0)
-            mask[y0:y1, x0:x1] &= 1 - grown
+            box = mask[y0:y1, x0:x1]
+            cv2.subtract(box, grown, dst=box)
     return mask
 
 
@@ -127,7 +130,8 @@ def modulation(profile: RowProfile, period: float | None = None, degree: int = 2
     if used.size == 0:
         return out
     if degree == 0 and period is None:
-        out[used] = values[used] / (values[used] @ w[used] / w[used].sum()) - 1.0
+        values, w = values[used], w[used]
+        out[used] = values * (w.sum() / (values @ w)) - 1.0
         return out
     first, last = used[0], used[-1] + 1
     centre, half = 0.5 * (first + last - 1), max(0.5 * (last - 1 - first), 1.0)
