@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -50,5 +51,6 @@ class Pose:
 
     def error_vector(self, truth: Pose) -> np.ndarray:
         """6-vector (position error, map-frame rotation vector) in the covariance's convention."""
-        drot = Rotation.from_matrix(self.rotation @ truth.rotation.T).as_rotvec()
-        return np.concatenate([self.position - truth.position, drot])
+        # OpenCV's Rodrigues: scipy's Rotation costs ~25x more per call, and solvers call this per candidate.
+        drot, _ = cv2.Rodrigues(self.rotation @ truth.rotation.T)
+        return np.concatenate([self.position - truth.position, drot.ravel()])

@@ -29,6 +29,7 @@ _AXIS_SKEWS = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
                         [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]])
 # Step (normalised units, ~1e-3 px) of the central differences for the lens Jacobian.
 _LENS_STEP = 1e-6
+_ZERO3 = np.zeros(3)
 
 
 @dataclass(frozen=True)
@@ -84,16 +85,27 @@ class LampMeasurement:
     def residual_count(self) -> int:
         return len(self.rim_rays) + (0 if self.marker_pixel is None else 2)
 
+    def __post_init__(self) -> None:
+        # Per-iteration constants, laid out for elementwise products (cheaper than einsum on (N, 2, 2)).
+        lens = self.rim_pixel_jacobian
+        object.__setattr__(self, '_lens', tuple(np.ascontiguousarray(lens[:, i, j]) for i in (0, 1) for j in (0, 1)))
+        marker_map = None if self.marker_pixel is None else self.lamp.marker_position()
+        object.__setattr__(self, '_marker_map', marker_map)
+
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals over their sigmas (M,) for the camera pose (``rotation`` camera to map,
         ``position``) and their Jacobian (M, 6) with respect to the pose perturbation of
         ``covariance.perturbed``."""
-        rim, rim_jacobian = self._rim(rotation, position)
-        if self.marker_pixel is None:
-            return rim / self.rim_sigma, rim_jacobian / self.rim_sigma
-        marker, marker_jacobian = self._marker(rotation, position)
-        return (np.concatenate([rim / self.rim_sigma, marker / self.marker_sigma]),
-                np.vstack([rim_jacobian / self.rim_sigma, marker_jacobian / self.marker_sigma]))
+        n = len(self.rim_rays)
+        residuals, jacobian = np.empty(self.residual_count), np.empty((self.residual_count, 6))
+        residuals[:n], jacobian[:n] = self._rim(rotation, position)
+        residuals[:n] /= self.rim_sigma
+        jacobian[:n] /= self.rim_sigma
+        if self.marker_pixel is not None:
+            residuals[n:], jacobian[n:] = self._marker(rotation, position)
+            residuals[n:] /= self.marker_sigma
+            jacobian[n:] /= self.marker_sigma
+        return residuals, jacobian
 
     def lamp_center_in_camera(self, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
         return (self.lamp.position - position) @ rotation
@@ -106,37 +118,43 @@ class LampMeasurement:
         # s = v / (2 |P|).
         plane_axes = np.eye(3)
         plane_axes[:, 2] = self.lamp.position - position
-        image_to_plane = np.linalg.inv(rotation.T @ plane_axes)
+        _, image_to_plane = cv2.invert(rotation.T @ plane_axes, flags=cv2.DECOMP_LU)
         q_diagonal = np.array([1.0, 1.0, -self.lamp.radius ** 2])
         conic = image_to_plane.T @ (q_diagonal[:, None] * image_to_plane)
-        rays, lens = self.rim_rays, self.rim_pixel_jacobian
+        rays = self.rim_rays
+        g00, g01, g10, g11 = self._lens
         c_h = rays @ conic
         value = np.einsum('ni,ni->n', rays, c_h)
-        pixel = c_h[:, 0:1] * lens[:, 0, :] + c_h[:, 1:2] * lens[:, 1, :]
-        norm2 = np.einsum('ni,ni->n', pixel, pixel)
+        p0 = c_h[:, 0] * g00 + c_h[:, 1] * g10
+        p1 = c_h[:, 0] * g01 + c_h[:, 1] * g11
+        norm2 = p0 * p0 + p1 * p1
         norm = np.sqrt(norm2)
         residual = 0.5 * value / norm
         # Exact derivative (it matters far from the minimum, where v is large):
         # ds = a^T dC h, a = h / (2|P|) - s (G P, 0) / |P|^2, and along each of the six
         # perturbations dH of H, dC = -(M + M^T) with M = C dH H^-1.
         a = rays * (0.5 / norm)[:, None]
-        a[:, :2] -= (residual / norm2)[:, None] * np.einsum('nji,ni->nj', lens, pixel)
+        pull = residual / norm2
+        a[:, 0] -= pull * (g00 * p0 + g01 * p1)
+        a[:, 1] -= pull * (g10 * p0 + g11 * p1)
         d_h = np.zeros((6, 3, 3))
         d_h[:3, :, 2] = -rotation
         d_h[3:] = -(rotation.T @ _AXIS_SKEWS) @ plane_axes
         m = conic @ d_h @ image_to_plane
         d_conic = -(m + m.transpose(0, 2, 1))
-        jacobian = np.einsum('kni,ni->nk', a @ d_conic, rays)
-        return residual, jacobian
+        # a^T dC_k h for all k at once: the outer products a h^T against the six flattened dC_k.
+        outer = (a[:, :, None] * rays[:, None, :]).reshape(-1, 9)
+        return residual, outer @ d_conic.reshape(6, 9).T
 
     def _marker(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        offset = self.lamp.marker_position() - position
-        pixel, lens = cv2.projectPoints(offset @ rotation, np.zeros(3), np.zeros(3),
-                                        self.camera.K, self.camera.D)
+        offset = self._marker_map - position
+        pixel, lens = cv2.projectPoints(offset @ rotation, _ZERO3, _ZERO3, self.camera.K, self.camera.D)
         # With zero rvec/tvec the tvec columns are d pixel / d point (camera frame);
         # d point = R^T (offset x dtheta - dp).
         to_pixel = lens[:, 3:6] @ rotation.T
-        jacobian = np.hstack([-to_pixel, to_pixel @ cross_matrix(offset)])
+        jacobian = np.empty((2, 6))
+        jacobian[:, :3] = -to_pixel
+        jacobian[:, 3:] = to_pixel @ cross_matrix(offset)
         return pixel.reshape(2) - self.marker_pixel, jacobian
 
 

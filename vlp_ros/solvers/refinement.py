@@ -69,6 +69,18 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
     return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=count)
 
 
+def forecast_minimum(initial: Pose, measurements: Sequence[Measurement]) -> float:
+    """The chi-square that the Gauss-Newton model at ``initial`` forecasts for the nearest
+    minimum: one linearisation, against the several iterations of reaching it."""
+    residuals, jacobian = linearize(measurements, initial)
+    gradient = jacobian.T @ residuals
+    try:
+        decrease = gradient @ np.linalg.solve(jacobian.T @ jacobian, gradient)
+    except np.linalg.LinAlgError:
+        return 0.0
+    return float(residuals @ residuals - decrease)
+
+
 def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: int,
             give_up: Callable[[Pose, float], bool] | None = None) -> tuple[Pose, float] | None:
     """The least-squares pose and its chi-square reached from ``initial`` within
