@@ -15,6 +15,7 @@ the same offset for the lamp (hundredths of a pixel).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -102,12 +103,15 @@ def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
     return _SHAPE_FLOOR + _SHAPE_MARGIN * (a / focal_length) * np.sqrt(max(1.0 - (b / a) ** 2, 0.0))
 
 
-def shape_matrix(ellipse: np.ndarray) -> np.ndarray:
-    """2x2 matrix A with det 1 whose ellipse p^T A p = s^2 has the shape of ``ellipse``, mean radius s."""
+def shape_root(ellipse: np.ndarray) -> np.ndarray:
+    """Symmetric square root of the 2x2 matrix A with det 1 whose ellipse p^T A p = s^2 has the
+    shape of ``ellipse``, mean radius s: A = R diag(b/a, a/b) R^T, so its root takes the square
+    roots of the two axis ratios."""
     _, _, a, b, theta = (float(v) for v in ellipse)
-    c, s = np.cos(theta), np.sin(theta)
-    rotation = np.array([[c, -s], [s, c]])
-    return rotation @ np.diag([b / a, a / b]) @ rotation.T
+    c, s = math.cos(theta), math.sin(theta)
+    along, across = math.sqrt(b / a), math.sqrt(a / b)
+    off = c * s * (along - across)
+    return np.array([[c * c * along + s * s * across, off], [off, s * s * along + c * c * across]])
 
 
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
@@ -132,17 +136,19 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     if rows.size < _MIN_MARKER_ROWS or x1 - x0 < 5:
         return None
     data = red[rows, x0:x1].astype(float)
-    xs, ys = np.meshgrid(np.arange(x0, x1, dtype=float), rows.astype(float))
-    pixels = np.stack([xs, ys], axis=-1)
+    pixels = np.empty((len(rows), x1 - x0, 2))
+    pixels[..., 0] = np.arange(x0, x1, dtype=float)
+    pixels[..., 1] = rows[:, None]
     lamp_disc = ndtr(-geometric_distances(lamp_ellipse, pixels.reshape(-1, 2)).reshape(data.shape) / blur_guess)
-    root = _symmetric_root(shape_matrix(lamp_ellipse))
+    root = shape_root(lamp_ellipse)
     model = _MarkerModel(data, pixels, lamp_disc, root, row_level[rows])
     params = np.array([seed.center[0], seed.center[1], seed.radius, blur_guess])
     cost, residual, jac = model.evaluate(params)
     damping = 1e-3
     for _ in range(_MAX_ITERATIONS):
         JtJ = jac.T @ jac
-        damped = JtJ + damping * np.diag(np.diag(JtJ) + 1e-12)
+        damped = JtJ.copy()
+        damped.flat[::5] += damping * (np.diagonal(JtJ) + 1e-12)
         # OpenCV's 4x4 solve: numpy's costs several times more in call overhead.
         _, step = cv2.solve(damped, (jac.T @ residual)[:, None], flags=cv2.DECOMP_LU)
         step = step.ravel()
@@ -183,7 +189,8 @@ def _centre_sigma(jac: np.ndarray, row_terms: np.ndarray, noise_variance: float,
     (rows, 4): each row's marker term against the first four columns.
     """
     fitted, shape = jac[:, :4], jac[:, 4:]
-    inverse = np.linalg.pinv(fitted.T @ fitted)
+    # OpenCV's SVD pseudo-inverse: np.linalg.pinv costs ~100 us of overhead on a 4x4.
+    _, inverse = cv2.invert(fitted.T @ fitted, flags=cv2.DECOMP_SVD)
     shape_effect = inverse @ fitted.T @ shape
     level_effect = inverse @ row_terms.T
     covariance = (noise_variance * inverse + shape_spread ** 2 * shape_effect @ shape_effect.T
@@ -191,22 +198,14 @@ def _centre_sigma(jac: np.ndarray, row_terms: np.ndarray, noise_variance: float,
     return float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
 
 
-def _symmetric_root(A: np.ndarray) -> np.ndarray:
-    values, vectors = np.linalg.eigh(A)
-    return vectors @ np.diag(np.sqrt(values)) @ vectors.T
-
-
-def _inverse_2x2(m: np.ndarray) -> np.ndarray:
-    """Closed-form inverse of a symmetric positive definite 2x2 matrix (np.linalg.inv's overhead is ~10 us)."""
-    a, b, d = float(m[0, 0]), float(m[0, 1]), float(m[1, 1])
-    return np.array([[d, -b], [-b, a]]) / (a * d - b * b)
-
-
 def _bounded(params: np.ndarray) -> np.ndarray:
-    out = params.copy()
-    out[2] = max(out[2], 0.5)
-    out[3] = float(np.clip(out[3], *_BLUR_BOUNDS))
-    return out
+    cx, cy, radius, blur = (float(v) for v in params)
+    return np.array([cx, cy, max(radius, 0.5), min(max(blur, _BLUR_BOUNDS[0]), _BLUR_BOUNDS[1])])
+
+
+def _inverse_gram(a: float, b: float, d: float) -> np.ndarray:
+    """Inverse of the 2x2 Gram matrix [[a, b], [b, d]] in closed form (np.linalg.inv's overhead is ~10 us)."""
+    return np.array([[d, -b], [-b, a]]) / (a * d - b * b)
 
 
 class _MarkerModel:
@@ -223,10 +222,13 @@ class _MarkerModel:
     def __init__(self, data: np.ndarray, pixels: np.ndarray, lamp_disc: np.ndarray, root: np.ndarray,
                  row_level: np.ndarray) -> None:
         self.data = data.ravel()
-        self.pixels = pixels
+        self.rows = pixels.shape[0]
         self.root = root
+        # Pixels in the frame where the lamp is round: u = (p - centre) R is then a shift away.
+        self.rounded = pixels.reshape(-1, 2) @ root
         self.level = np.broadcast_to(row_level[:, None], data.shape).ravel()
         self.disc_term = (row_level[:, None] * lamp_disc).ravel()
+        self.disc_norm2 = float(self.disc_term @ self.disc_term)
 
     def evaluate(self, params: np.ndarray, with_consider: bool = False) -> tuple:
         """(cost, residual (N,), Jacobian of the model (N, 4)) with the amplitudes eliminated.
@@ -235,17 +237,18 @@ class _MarkerModel:
         each row's marker term projected on the first four columns (rows, 4).
         """
         cx, cy, s, blur = params
-        u = ((self.pixels - np.array([cx, cy])) @ self.root).reshape(-1, 2)
+        u = self.rounded - np.array([cx, cy]) @ self.root
         gradient = u @ self.root
-        norm = np.maximum(np.sqrt(np.einsum('ij,ij->i', gradient, gradient)), 1e-9)
-        rho = np.sqrt(np.einsum('ij,ij->i', u, u))
+        norm = np.maximum(np.sqrt(gradient[:, 0] ** 2 + gradient[:, 1] ** 2), 1e-9)
+        rho = np.sqrt(u[:, 0] ** 2 + u[:, 1] ** 2)
         # Distance to the marker's edge, positive inside (first order in the offset from the edge).
         gain = rho / norm
         z = (s - rho) * gain / blur
         basis = np.empty((2, z.size))
         basis[0] = self.level * ndtr(z)
         basis[1] = self.disc_term
-        gram_inverse = _inverse_2x2(basis @ basis.T + 1e-9 * np.eye(2))
+        gram_inverse = _inverse_gram(float(basis[0] @ basis[0]) + 1e-9, float(basis[0] @ basis[1]),
+                                     self.disc_norm2 + 1e-9)
         coef = gram_inverse @ (basis @ self.data)
         residual = self.data - coef @ basis
         # Kaufman's approximation: the marker term's derivatives, minus their part in the basis.
@@ -260,5 +263,5 @@ class _MarkerModel:
         if not with_consider:
             return cost, residual, jac.T
         # The columns are orthogonal to the basis, so a row's term needs no projection here.
-        row_terms = (jac[:4] * (coef[0] * basis[0])).reshape(4, self.pixels.shape[0], -1).sum(axis=2).T
+        row_terms = (jac[:4] * (coef[0] * basis[0])).reshape(4, self.rows, -1).sum(axis=2).T
         return cost, residual, jac.T, row_terms
