@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from beacon_scenes import flat_profile, lamp_image
 
+from vlp_ros.beacon.chips import chip_levels
 from vlp_ros.beacon.decoding import decode_packet, row_profile
 from vlp_ros.beacon.encoding import Waveform, packet_chips, packet_waveform
 
@@ -113,3 +114,14 @@ def test_bad_inputs_are_rejected():
         decode_packet(profile, CHIP_RATE, ROW_TIME, 4, MAP)
     with pytest.raises(ValueError, match='more than one row'):
         decode_packet(profile, 1.0 / (0.5 * ROW_TIME), ROW_TIME, 8, MAP)
+
+
+def test_short_rows_at_the_lamps_ends_still_give_chips():
+    # A disc's rows near its top and bottom hold few pixels: the chips they show are noisier, not missing.
+    chips = packet_chips(77)[:13] * 2.0 - 1.0
+    z = np.repeat(chips, 5)[:62]  # the last chip shows two rows, its middle half three quarters of one
+    w = np.full(62, 100.0)
+    w[-3:] = w[:3] = 8.0
+    levels = chip_levels(z, w, 5.0, 0.05, None)
+    assert levels.index.tolist() == list(range(13))
+    np.testing.assert_allclose(levels.levels, chips, atol=0.05)

@@ -22,7 +22,7 @@ _COARSE_DRIFT = 0.3
 # The fine grid: 5 x 5 points a quarter of the coarse steps apart, around the coarse best.
 _FINE_STEPS = np.arange(-2, 3) / 4.0
 _MIN_DOF = 4
-# Least share of a typical row a chip must hold to count.
+# Least share of a row a chip must hold to count.
 _MIN_CHIP_ROWS = 0.25
 # Chips on each side whose extremes give a chip's midline and contrast, and the least share of
 # the lamp's whole contrast such a neighbourhood must show to be trusted.
@@ -119,9 +119,9 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
     whole = (edges[0] >= 0.0) & (edges[1] <= cum.size)
     sums = cum.at(np.clip(edges, 0.0, cum.size), 4)
     weight, total, square, rows = sums[:, 1] - sums[:, 0]
-    # A sliver of a row at the window's ends is mostly rounding (differences of large sums).
-    row_weights = cum.rows[0][cum.rows[0] > 0]
-    filled = weight > _MIN_CHIP_ROWS * (_median(row_weights) if row_weights.size else 0.0) + 1e-9
+    # A sliver of a row at the window's ends is mostly rounding (differences of large sums). Counted
+    # in rows, not pixels: the short rows near the lamp's top and bottom carry their own weights.
+    filled = rows > _MIN_CHIP_ROWS
     used = np.flatnonzero(filled)
     if used.size == 0:
         return None
