@@ -9,6 +9,7 @@ from vlp_ros.lamp_map import Lamp
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.fusion import pnp_starts, solve_lamps
+from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 
 WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
 NO_HINTS = DisambiguationHints()
@@ -111,3 +112,22 @@ def test_degenerate_inputs() -> None:
     pairs = _pairs(2, (True, True))
     twice = [pairs[0], (pairs[1][0], pairs[0][1])]
     assert solve_lamps(twice, camera_wide(), NO_HINTS).reason is Reason.INCONSISTENT_LAMPS
+
+
+@pytest.mark.parametrize('markers', [(True, False, True), (False, False), (True, True, True, True)])
+def test_lamps_evaluated_together_give_each_lamps_residuals(markers) -> None:
+    camera = camera_wide()
+    measurements = [LampMeasurement.from_observation(obs, lamp, camera).thinned(16)
+                    for obs, lamp in _pairs(len(markers), markers, rng=np.random.default_rng(5))]
+    together = LampMeasurements(tuple(measurements))
+    away = looking_up((0.7, 0.2, 0.5), (0.2, 0.1, 0.0))
+    for pose in (WIDE_TRUTH, away):
+        parts = [m.linearize(pose.rotation, pose.position) for m in measurements]
+        rim_parts = np.concatenate([r[:len(m.rim_rays)] for (r, _), m in zip(parts, measurements)])
+        marker_parts = np.concatenate([r[len(m.rim_rays):] for (r, _), m in zip(parts, measurements)])
+        jacobian = np.vstack([j[:len(m.rim_rays)] for (_, j), m in zip(parts, measurements)]
+                             + [j[len(m.rim_rays):] for (_, j), m in zip(parts, measurements)])
+        residuals, joint_jacobian = together.linearize(pose.rotation, pose.position)
+        assert together.residual_count == len(residuals)
+        np.testing.assert_allclose(residuals, np.concatenate([rim_parts, marker_parts]), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(joint_jacobian, jacobian, rtol=1e-8, atol=1e-8 * np.abs(jacobian).max())

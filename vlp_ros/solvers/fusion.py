@@ -27,7 +27,7 @@ from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, explains_the_image
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
-from vlp_ros.solvers.measurement import LampMeasurement
+from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
 from vlp_ros.solvers.refinement import Measurement, descend, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
@@ -85,7 +85,7 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
     """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps
     and any measured up directions."""
     measurements = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs]
-    coarse = [*(m.thinned(_PROBE_RIM_POINTS) for m in measurements), *up]
+    coarse = [LampMeasurements(tuple(m.thinned(_PROBE_RIM_POINTS) for m in measurements)), *up]
     reached: list[tuple[Pose, float]] = []
 
     def known_or_hopeless(pose: Pose, cost: float) -> bool:

@@ -173,3 +173,86 @@ def _lens_jacobian(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
         backward = camera.project(np.column_stack([normalized - step, np.ones(len(normalized))]))
         columns.append((forward - backward) / (2.0 * _LENS_STEP))
     return np.stack(columns, axis=2)
+
+
+@dataclass(frozen=True)
+class LampMeasurements:
+    """Several lamps' measurements evaluated as one: the residuals of each lamp in turn (all rims,
+    then all markers), in one pass of array operations over all of them. Per-lamp numpy calls
+    dominate the cost of small (thinned) rims, and a multi-lamp fit evaluates them for every
+    start it probes."""
+
+    parts: tuple[LampMeasurement, ...]
+
+    def __post_init__(self) -> None:
+        parts = self.parts
+        rim_counts = [len(m.rim_rays) for m in parts]
+        with_marker = [m for m in parts if m.marker_pixel is not None]
+        constants = {
+            'lamp_of_point': np.repeat(np.arange(len(parts)), rim_counts),
+            'rays': np.vstack([m.rim_rays for m in parts]),
+            'lens': tuple(np.concatenate([m._lens[i] for m in parts]) for i in range(4)),
+            'rim_sigma': np.repeat([m.rim_sigma for m in parts], rim_counts),
+            'centres': np.array([m.lamp.position for m in parts]),
+            'q_diagonals': np.array([[1.0, 1.0, -m.lamp.radius ** 2] for m in parts]),
+            'marker_maps': np.array([m._marker_map for m in with_marker]).reshape(-1, 3),
+            'marker_pixels': np.array([m.marker_pixel for m in with_marker]).reshape(-1, 2),
+            'marker_sigma': np.repeat([m.marker_sigma for m in with_marker], 2),
+        }
+        for name, value in constants.items():
+            object.__setattr__(self, '_' + name, value)
+
+    @property
+    def residual_count(self) -> int:
+        return sum(m.residual_count for m in self.parts)
+
+    def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As ``LampMeasurement.linearize``, for all the lamps at once."""
+        rim, rim_jacobian = self._rims(rotation, position)
+        rim /= self._rim_sigma
+        rim_jacobian /= self._rim_sigma[:, None]
+        if not len(self._marker_maps):
+            return rim, rim_jacobian
+        markers, marker_jacobian = self._markers(rotation, position)
+        return (np.concatenate([rim, markers / self._marker_sigma]),
+                np.vstack([rim_jacobian, marker_jacobian / self._marker_sigma[:, None]]))
+
+    def _rims(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # LampMeasurement._rim with one conic per lamp, each point using its lamp's.
+        count = len(self.parts)
+        plane_axes = np.tile(np.eye(3), (count, 1, 1))
+        plane_axes[:, :, 2] = self._centres - position
+        image_to_plane = np.linalg.inv(rotation.T @ plane_axes)
+        conics = image_to_plane.transpose(0, 2, 1) @ (self._q_diagonals[:, :, None] * image_to_plane)
+        rays, lamp = self._rays, self._lamp_of_point
+        g00, g01, g10, g11 = self._lens
+        c_h = np.einsum('ni,nij->nj', rays, conics[lamp])
+        value = np.einsum('ni,ni->n', rays, c_h)
+        p0 = c_h[:, 0] * g00 + c_h[:, 1] * g10
+        p1 = c_h[:, 0] * g01 + c_h[:, 1] * g11
+        norm2 = p0 * p0 + p1 * p1
+        norm = np.sqrt(norm2)
+        residual = 0.5 * value / norm
+        a = rays * (0.5 / norm)[:, None]
+        pull = residual / norm2
+        a[:, 0] -= pull * (g00 * p0 + g01 * p1)
+        a[:, 1] -= pull * (g10 * p0 + g11 * p1)
+        d_h = np.zeros((count, 6, 3, 3))
+        d_h[:, :3, :, 2] = -rotation
+        d_h[:, 3:] = -(rotation.T @ _AXIS_SKEWS)[None] @ plane_axes[:, None]
+        m = conics[:, None] @ d_h @ image_to_plane[:, None]
+        d_conic = -(m + m.transpose(0, 1, 3, 2)).reshape(count, 6, 9)
+        outer = (a[:, :, None] * rays[:, None, :]).reshape(-1, 9)
+        return residual, np.einsum('nm,nkm->nk', outer, d_conic[lamp])
+
+    def _markers(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # LampMeasurement._marker for every marker in one projectPoints call.
+        offsets = self._marker_maps - position
+        camera = self.parts[0].camera
+        pixels, lens = cv2.projectPoints(offsets @ rotation, _ZERO3, _ZERO3, camera.K, camera.D)
+        to_pixel = lens[:, 3:6].reshape(-1, 2, 3) @ rotation.T
+        crosses = np.zeros((len(offsets), 3, 3))
+        crosses[:, 0, 1], crosses[:, 0, 2], crosses[:, 1, 2] = -offsets[:, 2], offsets[:, 1], -offsets[:, 0]
+        crosses -= crosses.transpose(0, 2, 1)
+        jacobian = np.concatenate([-to_pixel, to_pixel @ crosses], axis=2).reshape(-1, 6)
+        return (pixels.reshape(-1, 2) - self._marker_pixels).ravel(), jacobian
