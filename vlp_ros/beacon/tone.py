@@ -11,6 +11,8 @@ frequency" the rest, each band as likely per hertz as any other.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.special import gammaln, stdtr
 
@@ -27,19 +29,21 @@ _PARAMETERS = 6
 # keeping at least _MIN_ROWS_PER_PERIOD rows per stripe period.
 _MAX_ROWS = 128
 _MIN_ROWS_PER_PERIOD = 8.0
-# Phases tried around the sinusoid's (periods): the square wave's edges are sharper than its fundamental.
-_PHASE_OFFSETS = np.arange(-3, 4) / 48.0
+# Phases tried over half a period (the other half only flips the square wave's sign).
+_PHASES = 16
 # Unknown, the exposure is tried at these shares of the tone's period. Beyond half a period longer
 # exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
 _KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
 _MIN_EXPOSURE_ROWS = 0.05
-_GAUSS_NEWTON_STEPS = 4
+_GAUSS_NEWTON_STEPS = 3
+# Gauss-Newton stops once its steps are below this share of their parameters' standard deviations.
+_CONVERGED = 0.3
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
-_GRID = np.linspace(-10.0, 10.0, 61)
+_GRID = np.linspace(-10.0, 10.0, 41)
 _PASSES = 4
 # ... and must hold at least this many grid steps per standard deviation ...
-_MIN_STEPS_PER_SIGMA = 2.0
+_MIN_STEPS_PER_SIGMA = 1.5
 # ... and fall by this many nats towards the grid's ends, or span this many standard deviations each
 # side (beyond, a Student's t takes over).
 _GRID_DROP = 12.0
@@ -97,10 +101,9 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     search = (0.5 * centres.min(), min(1.5 * centres.max(), 0.9 * nyquist))
     # The envelope (vignetting, the disc's falloff) is fitted with the stripes, as a quadratic.
     fit = _ToneFit(values / (values @ w / w.sum()) - 1.0, w)
-    start = fit.spectral_peak(search[0] * duration, search[1] * duration)
-    if start is None:
-        return no_evidence(candidates, mapped, prior, 'no tone stands out of the noise')
-    cycles, phase = start
+    cycles = fit.spectral_peak(search[0] * duration, search[1] * duration)
+    if cycles is None:
+        return no_evidence(candidates, mapped, prior, 'no tone in the search range')
     if cycles < min_periods:
         return no_evidence(candidates, mapped, prior, f'fewer than {min_periods} stripe periods in view')
     exposure_rows = None if exposure is None else exposure / row_time
@@ -108,22 +111,38 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     fit.thin(cycles, exposure_rows or 1.0)
     if fit.dof < 1:
         return no_evidence(candidates, mapped, prior, 'too few rows')
-    peak = fit.peak(cycles, phase, exposure_rows)
+    phase, tried, evidence = fit.start(cycles, exposure_rows)
+    if evidence < MIN_TONE_EVIDENCE:
+        return no_evidence(candidates, mapped, prior, 'no tone stands out of the noise')
+    if abs(np.sinc(tried * cycles / fit.rows)) < _MIN_TRANSMISSION:
+        return no_evidence(candidates, mapped, prior, 'the exposure spans about whole periods: stripes washed out')
+    peak = fit.peak(cycles, phase, tried, exposure_rows is None)
     if peak is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
-    cycles, phase, exposure_rows, scale = peak
-    if abs(np.sinc(exposure_rows * cycles / fit.rows)) < _MIN_TRANSMISSION:
-        return no_evidence(candidates, mapped, prior, 'the exposure spans about whole periods: stripes washed out')
     # Unknown, the exposure may pass for blur across rows: edges are then known to a row, the period to a
     # row over the window.
-    quantum = _EDGE_QUANTUM * cycles / fit.rows if exposure is None else 0.0
-    likelihood = fit.likelihood(cycles, phase, exposure_rows, scale, quantum)
+    quantum = _EDGE_QUANTUM * peak.cycles / fit.rows if exposure is None else 0.0
+    likelihood = fit.likelihood(peak, quantum)
     if likelihood is None:
         return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
     grid, log_density = likelihood
     log_mass = _log_band_masses(grid / duration, log_density, fit.dof, centres - tolerance_hz,
                                 centres + tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
+
+
+@dataclass(frozen=True)
+class _Peak:
+    """The best square wave: cycles per window, phase (periods, at the window's centre), exposure (rows);
+    the spread (standard deviation, and at least the play of edges in the gaps between the rows'
+    exposures) of its cycles, how its best phase moves with them, and the phase's spread at fixed cycles."""
+
+    cycles: float
+    phase: float
+    exposure_rows: float
+    scale: float
+    slope: float
+    phase_spread: float
 
 
 class _ToneFit:
@@ -160,14 +179,13 @@ class _ToneFit:
         """``columns`` (..., rows) less their envelope part."""
         return columns - (columns @ self.envelope) @ self.envelope.T
 
-    def spectral_peak(self, low: float, high: float) -> tuple[float, float] | None:
-        """(cycles per window, phase) of the strongest sinusoid between ``low`` and ``high`` cycles (the
-        zero-padded FFT's peak); None unless it beats the envelope alone by MIN_TONE_EVIDENCE. The
-        phase is that of a square wave whose fundamental it is, seen over a vanishing exposure."""
+    def spectral_peak(self, low: float, high: float) -> float | None:
+        """Cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles (the zero-padded
+        FFT's peak); None if the range holds no frequency the FFT resolves."""
         n = len(self.y)
         size = _PAD * int(2 ** np.ceil(np.log2(n)))
         spectrum = np.abs(np.fft.rfft(self.y * self.sqrt_w, size)) ** 2
-        first, last = int(np.ceil(low * size / n)), int(high * size / n)
+        first, last = int(np.ceil(low * size / n)), min(int(high * size / n), len(spectrum) - 1)
         if last < first:
             return None
         peak = first + int(np.argmax(spectrum[first:last + 1]))
@@ -178,23 +196,10 @@ class _ToneFit:
             curvature = left - 2.0 * centre + right
             if curvature < 0.0:
                 cycles += n / size * float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5))
-        angle = 2.0 * np.pi * cycles * self.tau
-        columns = self._residual(np.stack([np.cos(angle), np.sin(angle)]) * self.sqrt_w)
-        gram = columns @ columns.T
-        projection = columns @ self.y
-        amplitudes = np.linalg.solve(gram + 1e-12 * np.trace(gram) * np.eye(2), projection)
-        explained = float(amplitudes @ projection)
-        sigma2 = max((self.null_rss - explained) / max(n - 5, 1), 1e-15 * self.null_rss, 1e-300)
-        if explained / (2.0 * sigma2) < MIN_TONE_EVIDENCE:
-            return None
-        # a cos + b sin = R sin(angle + psi); the square wave's fundamental is sin(2 pi (theta)), theta =
-        # cycles tau - phase.
-        return cycles, float(-np.arctan2(amplitudes[0], amplitudes[1]) / (2.0 * np.pi))
+        return cycles
 
-    def _rss(self, cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray | float,
-             with_step: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-        """Residual sum of squares of each (cycles, phase) with the best envelope and amplitude, and (if
-        ``with_step``) the Gauss-Newton step of its phase.
+    def _rss(self, cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray | float) -> np.ndarray:
+        """Residual sum of squares of each (cycles, phase) with the best envelope and amplitude.
 
         A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's
         integral, a triangle wave (0.5 - |frac(x) - 0.5|).
@@ -209,18 +214,7 @@ class _ToneFit:
         along = raw @ self.envelope
         norm = np.maximum(np.einsum('ij,ij->i', raw, raw) - np.einsum('ij,ij->i', along, along), 1e-300)
         projection = raw @ self.y
-        amplitude = projection / norm
-        rss = self.null_rss - projection * amplitude
-        if not with_step:
-            return rss
-        # The template's derivative by phase: the square wave's values at the exposure's ends.
-        derivative = (np.sign(late) - np.sign(early)) * (self.sqrt_w / kappa)
-        derivative_along = derivative @ self.envelope
-        cross = np.einsum('ij,ij->i', derivative, raw) - np.einsum('ij,ij->i', derivative_along, along)
-        curvature = amplitude * (np.einsum('ij,ij->i', derivative, derivative)
-                                 - np.einsum('ij,ij->i', derivative_along, derivative_along) - cross * cross / norm)
-        step = (derivative @ self.y - amplitude * cross) / np.where(curvature != 0.0, curvature, np.inf)
-        return rss, np.clip(step, -0.05, 0.05)
+        return self.null_rss - projection * projection / norm
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), the rows' sensitivities to cycles,
@@ -247,62 +241,74 @@ class _ToneFit:
         jacobian -= np.outer(jacobian @ template / norm, template)
         return float(residual @ residual), jacobian, residual
 
-    def peak(self, cycles: float, phase: float,
-             exposure_rows: float | None) -> tuple[float, float, float, float] | None:
-        """(cycles, phase, exposure rows, scale in cycles) of the best square wave near the sinusoid
-        (``cycles``, ``phase``): phases (and, unknown, exposures) tried around it, then Gauss-Newton. The
-        scale is the frequency's standard deviation, and at least the width over which edges in the gaps
-        between the rows' exposures move unseen."""
-        free = exposure_rows is None
-        exposures = _KAPPAS * self.rows / cycles if free else np.array([exposure_rows])
-        # The fundamental of a wave averaged over an exposure kappa lags by kappa / 2.
-        offsets, tried = (v.ravel() for v in np.meshgrid(_PHASE_OFFSETS, exposures))
-        phases = phase + 0.5 * tried * cycles / self.rows + offsets
-        best = int(np.argmin(self._rss(np.full(len(phases), cycles), phases, tried)))
-        params = np.array([cycles, phases[best], tried[best]])
+    def start(self, cycles: float, exposure_rows: float | None) -> tuple[float, float, float]:
+        """Phase, exposure rows (given, or the best of a scan) and evidence (nats by which the square wave
+        beats the envelope alone) of the best square wave at ``cycles`` among a scan of phases."""
+        exposures = _KAPPAS * self.rows / cycles if exposure_rows is None else np.array([exposure_rows])
+        phases, tried = (v.ravel() for v in np.meshgrid(np.arange(_PHASES) / (2.0 * _PHASES), exposures))
+        rss = self._rss(np.full(len(phases), cycles), phases, tried)
+        best = int(np.argmin(rss))
+        sigma2 = max(float(rss[best]) / self.dof, 1e-15 * self.null_rss, 1e-300)
+        return float(phases[best]), float(tried[best]), (self.null_rss - float(rss[best])) / (2.0 * sigma2)
+
+    def peak(self, cycles: float, phase: float, exposure_rows: float, free: bool) -> _Peak | None:
+        """The best square wave, by Gauss-Newton from (``cycles``, ``phase``, ``exposure_rows``; the
+        exposure ``free`` or not), with the spreads of its frequency and phase."""
+        params = np.array([cycles, phase, exposure_rows])
         rss, jacobian, residual = self._linearised(params, free)
-        for _ in range(_GAUSS_NEWTON_STEPS):
-            normal = jacobian @ jacobian.T
-            step = np.linalg.lstsq(normal, jacobian @ residual, rcond=1e-12)[0]
+        for iteration in range(_GAUSS_NEWTON_STEPS + 1):
+            inverse = _inverse(jacobian @ jacobian.T)
+            step = inverse @ (jacobian @ residual)
+            covariance = inverse * (rss / self.dof)
+            # Close enough once the steps are well inside the parameters' spreads: the grid finds the rest.
+            if iteration == _GAUSS_NEWTON_STEPS or np.all(step ** 2 <= _CONVERGED ** 2 * np.diag(covariance)):
+                break
             for _ in range(3):
                 trial = params.copy()
                 trial[:len(step)] += step
                 if free:
                     trial[2] = np.clip(trial[2], _MIN_EXPOSURE_ROWS, 0.5 * self.rows / trial[0])
                 trial_fit = self._linearised(trial, free)
-                if trial_fit[0] <= rss:
+                if trial_fit[0] < rss:
                     break
                 step *= 0.25
             else:
                 break
             params, (rss, jacobian, residual) = trial, trial_fit
-            if step[0] ** 2 * (normal[0, 0] + 1e-300) < 1e-4 * rss / self.dof:
-                break
-        # Frequency's information with the other parameters free.
-        others = jacobian[1:]
-        leftover = jacobian[0] - np.linalg.lstsq(others.T, jacobian[0], rcond=1e-10)[0] @ others
-        information = float(leftover @ leftover)
+        # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods): the
+        # period by about a gap over the window.
         gap = max(1.0 - params[2], 0.0) * params[0] / self.rows
-        sigma = np.sqrt(rss / self.dof / information) if information > 0.0 else 0.0 if gap > 0.0 else np.inf
-        if not np.isfinite(sigma):
-            return None
-        return float(params[0]), float(params[1]), float(params[2]), float(np.hypot(sigma, 0.5 * gap))
+        variance, cross, phase_variance = covariance[0, 0], covariance[0, 1], covariance[1, 1]
+        if not (0.0 < variance < np.inf and 0.0 < phase_variance < np.inf):
+            # No edge inside an exposure: all there is to go on is the gaps.
+            if gap == 0.0:
+                return None
+            variance, cross, phase_variance = 0.0, 0.0, 0.0
+        slope = cross / variance if variance > 0.0 else 0.0
+        return _Peak(float(params[0]), float(params[1]), float(params[2]), float(np.hypot(np.sqrt(variance), 0.5 * gap)),
+                     slope, float(np.hypot(np.sqrt(max(phase_variance - slope * cross, 0.0)), 0.5 * gap)))
 
-    def likelihood(self, cycles: float, phase: float, exposure_rows: float, scale: float,
-                   quantum: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """Cycles per window on a grid around ``cycles`` and the log likelihood of each (phase, envelope
+    def _phase_profile(self, cycles: np.ndarray, phase: np.ndarray, spread: float,
+                       exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
+        """Residual sum of squares at each of ``cycles`` with the phase at its best near ``phase`` (a
+        parabola through it and ``spread`` either side), and that phase."""
+        rss = self._rss(np.repeat(cycles, 3), (phase[:, None] + spread * np.array([-1.0, 0.0, 1.0])).ravel(),
+                        exposure_rows).reshape(-1, 3)
+        least, place = _parabola_minimum(rss[:, 0], rss[:, 1], rss[:, 2])
+        return least, phase + spread * place
+
+    def likelihood(self, peak: _Peak, quantum: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Cycles per window on a grid around the ``peak`` and the log likelihood of each (phase, envelope
         and amplitude at their best, the noise level marginalised), blurred by ``quantum`` (cycles);
-        None if no grid resolves it. ``scale`` is a first guess of its spread."""
-        centre, scale = cycles, max(scale, quantum)
+        None if no grid resolves it."""
+        centre, scale, spread = peak.cycles, max(peak.scale, quantum), peak.phase_spread
         for _ in range(_PASSES):
             grid = centre + scale * _GRID
             if grid[0] <= 0.0:
                 return None
-            # The phase at its best: a Gauss-Newton step, kept where it helps.
-            rss, step = self._rss(grid, np.full(len(grid), phase), exposure_rows, with_step=True)
-            stepped = self._rss(grid, phase + step, exposure_rows)
-            step = np.where(stepped < rss, step, 0.0)
-            rss = np.minimum(rss, stepped)
+            # Each frequency's best phase lies near the regression line through the peak.
+            rss, phases = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
+                                              peak.exposure_rows)
             log_density = -0.5 * (self.dof + 1) * np.log(np.maximum(rss, 1e-300))
             log_density -= log_density.max()
             density = np.exp(log_density)
@@ -310,10 +316,13 @@ class _ToneFit:
             # The spread after the blur by the edge quantum.
             sigma = float(np.hypot(np.sqrt(density @ (grid - mean) ** 2 / density.sum()), quantum))
             best = int(np.argmax(log_density))
-            step_size = scale * (_GRID[1] - _GRID[0])
-            if not len(grid) // 4 <= best < len(grid) - len(grid) // 4:
+            cornered = np.abs(phases - peak.phase - peak.slope * (grid - peak.cycles)) >= spread
+            if np.any(cornered & (log_density > -_GRID_DROP)):
+                # The best phase lies beyond the ones tried where the likelihood matters: try wider.
+                spread *= 3.0
+            elif not len(grid) // 4 <= best < len(grid) - len(grid) // 4:
                 centre, scale = grid[best], 3.0 * scale
-            elif sigma < _MIN_STEPS_PER_SIGMA * step_size:
+            elif sigma < _MIN_STEPS_PER_SIGMA * scale * (_GRID[1] - _GRID[0]):
                 # Narrower than the grid resolves (at most ten times: the spread of a sharp peak between
                 # grid points is not known yet).
                 centre, scale = mean, max(sigma, 0.1 * scale)
@@ -321,13 +330,44 @@ class _ToneFit:
                 centre, scale = mean, sigma
             else:
                 break
-            phase += float(step[best])
         else:
             return None
         if quantum > 0.0:
             kernel = np.exp(-0.5 * (np.subtract.outer(grid, grid) / quantum) ** 2)
             log_density = np.log(np.maximum(kernel @ density, 1e-300))
         return grid, log_density
+
+
+def _parabola_minimum(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least value and its place (in steps from the centre) of the parabola through values at -1, 0, 1,
+    trusted only between the outer points; else the least of the three."""
+    curvature = left + right - 2.0 * centre
+    place = 0.5 * (left - right) / np.where(curvature > 0.0, curvature, np.inf)
+    inside = np.abs(place) <= 1.0
+    least = np.minimum(np.minimum(left, right), centre)
+    corner = np.where(least == left, -1.0, np.where(least == right, 1.0, 0.0))
+    # Between samples a parabola falls at most curvature / 8 below the least of them; a steeper fall is
+    # the parabola misrepresenting a kinked curve.
+    value = np.where(inside, np.maximum(centre - 0.5 * curvature * place * place, least - 0.125 * curvature), least)
+    return value, np.where(inside, place, corner)
+
+
+def _inverse(m: np.ndarray) -> np.ndarray:
+    """Inverse of a 2x2 or 3x3 matrix by cofactors (numpy's general solvers cost more than the fit);
+    infinite on the diagonal where it is singular."""
+    if m.shape == (2, 2):
+        (a, b), (c, d) = m.tolist()
+        cofactors, det = [[d, -b], [-c, a]], a * d - b * c
+    else:
+        (a, b, c), (d, e, f), (g, h, i) = m.tolist()
+        cofactors = [[e * i - f * h, c * h - b * i, b * f - c * e],
+                     [f * g - d * i, a * i - c * g, c * d - a * f],
+                     [d * h - e * g, b * g - a * h, a * e - b * d]]
+        det = a * cofactors[0][0] + b * cofactors[1][0] + c * cofactors[2][0]
+    scale = float(np.abs(m).max()) ** len(m)
+    if not (np.isfinite(det) and abs(det) > 1e-12 * scale):
+        return np.diag(np.full(len(m), np.inf))
+    return np.array(cofactors) / det
 
 
 def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, low: np.ndarray, high: np.ndarray,
