@@ -65,8 +65,8 @@ class _Cumulative:
         """The first ``fields`` cumulative sums up to positions ``u`` (within [0, size]), shape
         (fields,) + u.shape."""
         i = u.astype(np.intp)
-        # np.take: several times faster than fancy indexing for these sizes.
-        totals, rows = np.take(self.sums[:, :fields], i, axis=2)
+        # take: several times faster than fancy indexing for these sizes.
+        totals, rows = self.sums[:, :fields].take(i, axis=2)
         return totals + (u - i) * rows
 
 
@@ -76,16 +76,13 @@ def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
     Pairs with an empty row count as noiseless; the median shrugs them off."""
     if np.count_nonzero(w) < 4:
         return float('inf')
-    d = np.diff(z)
+    d = z[1:] - z[:-1]
     inverse = 1.0 / np.maximum(w, 1e-12)
-    return _median(d * d / (inverse[:-1] + inverse[1:])) / _CHI2_1_MEDIAN
-
-
-def _median(values: np.ndarray) -> float:
-    """np.median without its overhead, which dominates for a few hundred values."""
-    n = len(values)
-    middle = np.partition(values, ((n - 1) // 2, n // 2))
-    return 0.5 * float(middle[(n - 1) // 2] + middle[n // 2])
+    ratios = d * d / (inverse[:-1] + inverse[1:])
+    # The median in place: np.median's overhead dominates for a few hundred values.
+    n = len(ratios)
+    ratios.partition(((n - 1) // 2, n // 2))
+    return 0.5 * float(ratios[(n - 1) // 2] + ratios[n // 2]) / _CHI2_1_MEDIAN
 
 
 def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
@@ -117,18 +114,18 @@ def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2
     edges = phase + period * np.arange(first, first + count) + np.array([[margin], [period - margin]])
     # Chips the window's ends cut short.
     whole = (edges[0] >= 0.0) & (edges[1] <= cum.size)
-    sums = cum.at(np.clip(edges, 0.0, cum.size), 4)
+    sums = cum.at(np.minimum(np.maximum(edges, 0.0), cum.size), 4)
     weight, total, square, rows = sums[:, 1] - sums[:, 0]
     # A sliver of a row at the window's ends is mostly rounding (differences of large sums). Counted
     # in rows, not pixels: the short rows near the lamp's top and bottom carry their own weights.
     filled = rows > _MIN_CHIP_ROWS
-    used = np.flatnonzero(filled)
+    used = filled.nonzero()[0]
     if used.size == 0:
         return None
     span = slice(used[0], used[-1] + 1)
     weight, total, square, rows, filled, whole = weight[span], total[span], square[span], rows[span], \
         filled[span], whole[span]
-    mean = np.divide(total, weight, out=np.zeros(len(weight)), where=filled)
+    mean = total / np.where(filled, weight, 1.0)
     # Within-chip scatter measures the noise where there is enough of it.
     dof = rows @ filled - used.size
     if dof >= _MIN_DOF:
@@ -158,11 +155,12 @@ def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.nda
     beyond noise."""
     offsets = phases % periods[:, None]
     chips = np.arange(-1.0, math.ceil(end / periods.min()) + 2.0)
-    bounds = np.clip(offsets[:, :, None] + periods[:, None, None] * chips, 0.0, end)
-    weight, total = np.diff(cum.at(bounds, 2), axis=-1)
+    bounds = np.minimum(np.maximum(offsets[:, :, None] + periods[:, None, None] * chips, 0.0), end)
+    sums = cum.at(bounds, 2)
+    weight, total = sums[..., 1:] - sums[..., :-1]
     # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
     energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=-1)
-    k, j = divmod(int(np.argmax(energy)), energy.shape[1])
+    k, j = divmod(int(energy.argmax()), energy.shape[1])
     return float(periods[k]), float(offsets[k, j])
 
 
@@ -183,7 +181,7 @@ def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarr
     upper, lower = extremes[0], -extremes[1]
     # A neighbourhood without both levels (too few whole chips, or noise only) borrows the lamp's
     # overall extremes.
-    top, bottom = mean[solid].max(), mean[solid].min()
+    top, bottom = upper.max(), lower.min()
     lone = ~(upper - lower > _MIN_LOCAL_CONTRAST * (top - bottom))
     upper[lone], lower[lone] = top, bottom
     contrast = np.maximum(0.5 * (upper - lower), 1e-12)

@@ -9,6 +9,7 @@ being matched to the nearest mapped one.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from functools import lru_cache
 
@@ -91,11 +92,11 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
 
 def _central_rows(z: np.ndarray, w: np.ndarray, rows: float) -> tuple[np.ndarray, np.ndarray]:
     """The lamp's rows (those with weight), cut to the central ``rows`` when there are more."""
-    used = np.flatnonzero(w > 0)
+    used = (w > 0).nonzero()[0]
     if used.size == 0:
         return z[:0], w[:0]
     first, last = int(used[0]), int(used[-1]) + 1
-    excess = last - first - int(np.ceil(rows))
+    excess = last - first - math.ceil(rows)
     if excess > 0:
         first, last = first + excess // 2, last - (excess - excess // 2)
     return z[first:last], w[first:last]
@@ -146,15 +147,12 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     # chips, (4, L, ids), each hypothesis along the last axis.
     vbasis = basis * v
     columns = np.concatenate([vbasis, (vx - baseline @ vbasis)[None]])
-    positions = (k % length + length * np.arange(4)[:, None]).ravel()
-    folded = np.take(np.bincount(positions, weights=columns.ravel(), minlength=4 * length).reshape(4, length),
-                     fold, axis=1)
+    folded = (columns @ (k[:, None] % length == np.arange(length))).take(fold, axis=1)
     per_bit = (folded @ chip_weights).reshape(4 * length, len(design)).astype(np.float32)
     sums = (per_bit @ design).reshape(4, length, ids)
     # With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it.
     total = np.float32(v.sum())
-    schur = np.maximum(total - (sums[0] * sums[0] + sums[1] * sums[1] + sums[2] * sums[2]),
-                       np.float32(1e-6) * total)
+    schur = np.maximum(total - np.square(sums[:3]).sum(axis=0), np.float32(1e-6) * total)
     target = np.maximum(sums[3], np.float32(0))
     gain = target * target / schur
     best = gain.max(axis=0)

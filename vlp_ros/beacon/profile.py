@@ -8,6 +8,7 @@ the disc, so both are left out; rows that keep fewer pixels are weighted less.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -56,7 +57,7 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
     mask = _usable_pixels(observation, (y1 - y0, x1 - x0), edge_margin, marker_margin)
     roi = image[y0:y1, x0:x1]
     if ceiling is None and image.dtype.kind in 'ui':
-        ceiling = float(np.iinfo(image.dtype).max)
+        ceiling = _integer_ceiling(image.dtype)
     if roi.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         roi = roi.astype(np.float32)
     luma = cv2.cvtColor(roi, cv2.COLOR_BGR2GRAY) if roi.ndim == 3 else roi
@@ -70,6 +71,11 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
     else:
         saturated = np.zeros(len(counts))
     return RowProfile(sums / valid, counts, saturated, y0)
+
+
+@lru_cache(maxsize=8)
+def _integer_ceiling(dtype: np.dtype) -> float:
+    return float(np.iinfo(dtype).max)
 
 
 def _row_sums(plane: np.ndarray) -> np.ndarray:
@@ -125,7 +131,7 @@ def modulation(profile: RowProfile, period: float | None = None, degree: int = 2
     """
     w = np.asarray(profile.weights, dtype=float)
     values = np.asarray(profile.values, dtype=float)
-    used = np.flatnonzero(w > 0)
+    used = (w > 0).nonzero()[0]
     out = np.zeros(len(w))
     if used.size == 0:
         return out

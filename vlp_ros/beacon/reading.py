@@ -1,6 +1,7 @@
 """What decoding one lamp yields: evidence over candidate IDs, and a decision that prefers None to a guess."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,10 +64,10 @@ def decide(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndarr
     if not 0.0 < min_confidence < 1.0:
         raise ValueError(f'min_confidence must lie in (0, 1), got {min_confidence}')
     log_post = np.asarray(log_likelihoods, dtype=float) + log_prior
-    best = int(np.argmax(log_post))
-    if not np.isfinite(log_post[best]):
+    best = int(log_post.argmax())
+    if not math.isfinite(log_post[best]):
         return Decision(None, 0.0, False, 'no candidate is possible')
-    confidence = float(1.0 / np.sum(np.exp(log_post - log_post[best])))
+    confidence = 1.0 / float(np.exp(log_post - log_post[best]).sum())
     if confidence < min_confidence:
         return Decision(None, confidence, False, f'not certain (best candidate {candidates[best]} at {confidence:.4g})')
     if not mapped[best]:
