@@ -12,6 +12,7 @@ frequency" the rest, each band as likely per hertz as any other.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.special import gammaln, stdtr
@@ -33,23 +34,24 @@ _MIN_ROWS_PER_PERIOD = 8.0
 _PHASES = 16
 # Unknown, the exposure is tried at these shares of the tone's period. Beyond half a period longer
 # exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
+# How far (in spreads) the phase may be taken towards a parabola's vertex at each frequency.
+_PHASE_REACH = 2.0
 _KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
 _MIN_EXPOSURE_ROWS = 0.05
-_GAUSS_NEWTON_STEPS = 3
-# Gauss-Newton stops once its steps are below this share of their parameters' standard deviations.
-_CONVERGED = 0.3
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
 _GRID = np.linspace(-10.0, 10.0, 41)
 _PASSES = 4
 # ... and must hold at least this many grid steps per standard deviation ...
-_MIN_STEPS_PER_SIGMA = 1.5
+_MIN_STEPS_PER_SIGMA = 1.0
 # ... and fall by this many nats towards the grid's ends, or span this many standard deviations each
 # side (beyond, a Student's t takes over).
 _GRID_DROP = 12.0
 _MIN_SPAN = 7.0
-# Log densities below this carry no mass worth counting (exp underflows).
-_NEGLIGIBLE = -700.0
+# Log densities (relative to the peak's) below these carry no mass worth counting: beyond the grid (a
+# tail's mass is then below 1e-5 of the whole), and on it.
+_NEGLIGIBLE = -15.0
+_FLOOR = -50.0
 # How well an edge is placed when the exposure is unknown, in rows (blur may pass for a longer exposure).
 _EDGE_QUANTUM = 0.3
 # Least share of the fundamental that the exposure lets through (|sinc(exposure x frequency)|): what is
@@ -78,17 +80,11 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
         raise ValueError(f'exposure must be positive, got {exposure}')
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
-    ids = np.array(sorted(frequencies), dtype=int)
-    if np.any(ids < 0):
-        raise ValueError(f'lamp ids must not be negative, got {ids[ids < 0].tolist()}')
-    centres = np.array([frequencies[i] for i in ids], dtype=float)
+    ids, centres, candidates, mapped, prior = _lamps(tuple(sorted(frequencies.items())), unmapped_weight)
     nyquist = 0.5 / row_time
-    if not (np.all(centres > 0.0) and np.all(centres + tolerance_hz < nyquist)):
+    if not centres.max() + tolerance_hz < nyquist:
         raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
                          f'(row Nyquist minus tolerance), got {centres.tolist()}')
-    candidates = np.append(ids, UNMAPPED)
-    mapped = np.append(np.ones(len(ids), dtype=bool), False)
-    prior = log_prior(mapped, unmapped_weight)
 
     w = np.asarray(profile.weights, dtype=float)
     used = np.flatnonzero(w > 0)
@@ -131,6 +127,21 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     return reading(candidates, mapped, log_mass, prior, min_confidence)
 
 
+@lru_cache(maxsize=16)
+def _lamps(items: tuple[tuple[int, float], ...],
+           unmapped_weight: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Lamp IDs and frequencies (by ID), candidates (the lamps, then UNMAPPED), which are mapped, and
+    their log prior: the same for every lamp of a frame."""
+    ids = np.array([i for i, _ in items], dtype=int)
+    centres = np.array([f for _, f in items], dtype=float)
+    if np.any(ids < 0):
+        raise ValueError(f'lamp ids must not be negative, got {ids[ids < 0].tolist()}')
+    if not np.all(centres > 0.0):
+        raise ValueError(f'lamp frequencies must be positive, got {centres.tolist()}')
+    mapped = np.append(np.ones(len(ids), dtype=bool), False)
+    return ids, centres, np.append(ids, UNMAPPED), mapped, log_prior(mapped, unmapped_weight)
+
+
 @dataclass(frozen=True)
 class _Peak:
     """The best square wave: cycles per window, phase (periods, at the window's centre), exposure (rows);
@@ -161,10 +172,18 @@ class _ToneFit:
         self.tau = (kept - 0.5 * (self.rows - 1)) / self.rows
         self.sqrt_w = np.sqrt(self.w[kept])
         u = 2.0 * self.tau
-        # Orthonormal (weighted) envelope basis: projecting it out leaves what the tone must explain.
-        self.envelope, _ = np.linalg.qr(np.stack([np.ones_like(u), u, u * u], axis=1) * self.sqrt_w[:, None])
+        # Orthonormal (weighted) envelope basis (rows), by Gram-Schmidt: projecting it out leaves what
+        # the tone must explain.
+        basis = np.stack([self.sqrt_w, u * self.sqrt_w, u * u * self.sqrt_w])
+        for k in range(3):
+            basis[k] -= (basis[:k] @ basis[k]) @ basis[:k]
+            basis[k] /= np.sqrt(basis[k] @ basis[k])
+        self.envelope = basis
         self.y = self._residual(self.z[kept] * self.sqrt_w)
         self.null_rss = float(self.y @ self.y)
+        self.weights = self.sqrt_w * self.sqrt_w
+        self.weighted_envelope = basis * self.sqrt_w
+        self.weighted_y = self.y * self.sqrt_w
         self.dof = len(kept) - _PARAMETERS
 
     def thin(self, cycles: float, exposure_rows: float) -> None:
@@ -177,7 +196,7 @@ class _ToneFit:
 
     def _residual(self, columns: np.ndarray) -> np.ndarray:
         """``columns`` (..., rows) less their envelope part."""
-        return columns - (columns @ self.envelope) @ self.envelope.T
+        return columns - (columns @ self.envelope.T) @ self.envelope
 
     def spectral_peak(self, low: float, high: float) -> float | None:
         """Cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles (the zero-padded
@@ -202,19 +221,23 @@ class _ToneFit:
         """Residual sum of squares of each (cycles, phase) with the best envelope and amplitude.
 
         A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's
-        integral, a triangle wave (0.5 - |frac(x) - 0.5|).
+        integral, a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the
+        template, which the amplitude absorbs).
         """
-        kappa = (cycles * exposure_rows / self.rows)[:, None]
-        theta = cycles[:, None] * self.tau - phase[:, None]
-        early = theta - np.floor(theta) - 0.5
-        late = theta + kappa
-        late -= np.floor(late) + 0.5
-        raw = (np.abs(early) - np.abs(late)) * (self.sqrt_w / kappa)
-        # Products with the envelope-free template from the raw one: y has no envelope part.
-        along = raw @ self.envelope
-        norm = np.maximum(np.einsum('ij,ij->i', raw, raw) - np.einsum('ij,ij->i', along, along), 1e-300)
-        projection = raw @ self.y
-        return self.null_rss - projection * projection / norm
+        early = np.multiply.outer(cycles, self.tau)
+        early -= phase[:, None]
+        late = early + (cycles * exposure_rows / self.rows)[:, None]
+        for x in (early, late):
+            x -= np.floor(x)
+            x -= 0.5
+            np.abs(x, out=x)
+        early -= late
+        # Products of the weighted template with y (free of the envelope) and with the envelope.
+        along = early @ self.weighted_envelope.T
+        norm = (early * early) @ self.weights
+        projection = early @ self.weighted_y
+        norm -= np.einsum('ij,ij->i', along, along)
+        return self.null_rss - projection * projection / np.maximum(norm, 1e-300)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), the rows' sensitivities to cycles,
@@ -243,59 +266,67 @@ class _ToneFit:
 
     def start(self, cycles: float, exposure_rows: float | None) -> tuple[float, float, float]:
         """Phase, exposure rows (given, or the best of a scan) and evidence (nats by which the square wave
-        beats the envelope alone) of the best square wave at ``cycles`` among a scan of phases."""
+        beats the envelope alone) of the best square wave at ``cycles``: a scan of phases over half a
+        period (the other half only flips the sign), refined by a parabola through the best and its
+        neighbours."""
         exposures = _KAPPAS * self.rows / cycles if exposure_rows is None else np.array([exposure_rows])
-        phases, tried = (v.ravel() for v in np.meshgrid(np.arange(_PHASES) / (2.0 * _PHASES), exposures))
-        rss = self._rss(np.full(len(phases), cycles), phases, tried)
-        best = int(np.argmin(rss))
-        sigma2 = max(float(rss[best]) / self.dof, 1e-15 * self.null_rss, 1e-300)
-        return float(phases[best]), float(tried[best]), (self.null_rss - float(rss[best])) / (2.0 * sigma2)
+        phases = np.arange(_PHASES) / (2.0 * _PHASES)
+        rss = self._rss(np.full(_PHASES * len(exposures), cycles), np.tile(phases, len(exposures)),
+                        np.repeat(exposures, _PHASES)).reshape(len(exposures), _PHASES)
+        row, best = divmod(int(np.argmin(rss)), _PHASES)
+        left, centre, right = rss[row, best - 1], rss[row, best], rss[row, (best + 1) % _PHASES]
+        # The parabola through the best and its neighbours (the best is the least of the three).
+        curvature = max(left + right - 2.0 * centre, 1e-300)
+        place = 0.5 * (left - right) / curvature
+        least = max(centre - 0.5 * curvature * place * place, 0.0)
+        sigma2 = max(least / self.dof, 1e-15 * self.null_rss, 1e-300)
+        return (float(phases[best] + place / (2.0 * _PHASES)), float(exposures[row]),
+                float(self.null_rss - least) / (2.0 * sigma2))
 
     def peak(self, cycles: float, phase: float, exposure_rows: float, free: bool) -> _Peak | None:
-        """The best square wave, by Gauss-Newton from (``cycles``, ``phase``, ``exposure_rows``; the
-        exposure ``free`` or not), with the spreads of its frequency and phase."""
+        """The best square wave near (``cycles``, ``phase``, ``exposure_rows``; the exposure ``free`` or
+        not): one Gauss-Newton step (the likelihood grid around it finds the rest), with the spreads of
+        its frequency and phase."""
         params = np.array([cycles, phase, exposure_rows])
         rss, jacobian, residual = self._linearised(params, free)
-        for iteration in range(_GAUSS_NEWTON_STEPS + 1):
-            inverse = _inverse(jacobian @ jacobian.T)
-            step = inverse @ (jacobian @ residual)
-            covariance = inverse * (rss / self.dof)
-            # Close enough once the steps are well inside the parameters' spreads: the grid finds the rest.
-            if iteration == _GAUSS_NEWTON_STEPS or np.all(step ** 2 <= _CONVERGED ** 2 * np.diag(covariance)):
-                break
-            for _ in range(3):
-                trial = params.copy()
-                trial[:len(step)] += step
-                if free:
-                    trial[2] = np.clip(trial[2], _MIN_EXPOSURE_ROWS, 0.5 * self.rows / trial[0])
-                trial_fit = self._linearised(trial, free)
-                if trial_fit[0] < rss:
-                    break
-                step *= 0.25
-            else:
-                break
-            params, (rss, jacobian, residual) = trial, trial_fit
+        inverse = _inverse(jacobian @ jacobian.T)
         # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods): the
         # period by about a gap over the window.
-        gap = max(1.0 - params[2], 0.0) * params[0] / self.rows
-        variance, cross, phase_variance = covariance[0, 0], covariance[0, 1], covariance[1, 1]
-        if not (0.0 < variance < np.inf and 0.0 < phase_variance < np.inf):
+        gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
+        if inverse is None or not (inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
             # No edge inside an exposure: all there is to go on is the gaps.
-            if gap == 0.0:
-                return None
-            variance, cross, phase_variance = 0.0, 0.0, 0.0
-        slope = cross / variance if variance > 0.0 else 0.0
-        return _Peak(float(params[0]), float(params[1]), float(params[2]), float(np.hypot(np.sqrt(variance), 0.5 * gap)),
-                     slope, float(np.hypot(np.sqrt(max(phase_variance - slope * cross, 0.0)), 0.5 * gap)))
+            return _Peak(cycles, phase, exposure_rows, 0.5 * gap, 0.0, 0.5 * gap) if gap > 0.0 else None
+        gradient = jacobian @ residual
+        step = inverse @ gradient
+        params[:len(step)] += step
+        if free:
+            params[2] = np.clip(params[2], _MIN_EXPOSURE_ROWS, 0.5 * self.rows / params[0])
+        # The noise from the residual the step leaves (as the linearised fit predicts it).
+        covariance = inverse * (max(rss - float(step @ gradient), 1e-3 * rss) / self.dof)
+        slope = covariance[0, 1] / covariance[0, 0]
+        phase_variance = max(covariance[1, 1] - slope * covariance[0, 1], 0.0)
+        return _Peak(float(params[0]), float(params[1]), float(params[2]),
+                     float(np.hypot(np.sqrt(covariance[0, 0]), 0.5 * gap)), float(slope),
+                     float(np.hypot(np.sqrt(phase_variance), 0.5 * gap)))
 
     def _phase_profile(self, cycles: np.ndarray, phase: np.ndarray, spread: float,
-                       exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
-        """Residual sum of squares at each of ``cycles`` with the phase at its best near ``phase`` (a
-        parabola through it and ``spread`` either side), and that phase."""
-        rss = self._rss(np.repeat(cycles, 3), (phase[:, None] + spread * np.array([-1.0, 0.0, 1.0])).ravel(),
-                        exposure_rows).reshape(-1, 3)
-        least, place = _parabola_minimum(rss[:, 0], rss[:, 1], rss[:, 2])
-        return least, phase + spread * place
+                       exposure_rows: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residual sum of squares at each of ``cycles`` with the phase at its best near ``phase``: tried
+        there, ``spread`` either side and at the vertex of the parabola through those (up to two spreads
+        out). Also the best phase found, and where the parabola points further out (or is no bowl)."""
+        tried = phase[:, None] + spread * np.array([-1.0, 0.0, 1.0])
+        rss = self._rss(np.repeat(cycles, 3), tried.ravel(), exposure_rows).reshape(-1, 3)
+        left, centre, right = rss.T
+        curvature = left + right - 2.0 * centre
+        vertex = np.where(curvature > 0.0, 0.5 * (left - right) / np.where(curvature > 0.0, curvature, 1.0),
+                          np.where(left < right, -np.inf, np.inf))
+        place = np.clip(vertex, -_PHASE_REACH, _PHASE_REACH)
+        refined = self._rss(cycles, phase + spread * place, exposure_rows)
+        best = np.argmin(rss, axis=1)
+        least = rss[np.arange(len(cycles)), best]
+        better = refined < least
+        return (np.where(better, refined, least), np.where(better, phase + spread * place, tried[np.arange(len(cycles)), best]),
+                np.abs(vertex) > _PHASE_REACH)
 
     def likelihood(self, peak: _Peak, quantum: float) -> tuple[np.ndarray, np.ndarray] | None:
         """Cycles per window on a grid around the ``peak`` and the log likelihood of each (phase, envelope
@@ -307,8 +338,8 @@ class _ToneFit:
             if grid[0] <= 0.0:
                 return None
             # Each frequency's best phase lies near the regression line through the peak.
-            rss, phases = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
-                                              peak.exposure_rows)
+            rss, phases, cornered = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
+                                                        peak.exposure_rows)
             log_density = -0.5 * (self.dof + 1) * np.log(np.maximum(rss, 1e-300))
             log_density -= log_density.max()
             density = np.exp(log_density)
@@ -316,7 +347,6 @@ class _ToneFit:
             # The spread after the blur by the edge quantum.
             sigma = float(np.hypot(np.sqrt(density @ (grid - mean) ** 2 / density.sum()), quantum))
             best = int(np.argmax(log_density))
-            cornered = np.abs(phases - peak.phase - peak.slope * (grid - peak.cycles)) >= spread
             if np.any(cornered & (log_density > -_GRID_DROP)):
                 # The best phase lies beyond the ones tried where the likelihood matters: try wider.
                 spread *= 3.0
@@ -338,23 +368,9 @@ class _ToneFit:
         return grid, log_density
 
 
-def _parabola_minimum(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least value and its place (in steps from the centre) of the parabola through values at -1, 0, 1,
-    trusted only between the outer points; else the least of the three."""
-    curvature = left + right - 2.0 * centre
-    place = 0.5 * (left - right) / np.where(curvature > 0.0, curvature, np.inf)
-    inside = np.abs(place) <= 1.0
-    least = np.minimum(np.minimum(left, right), centre)
-    corner = np.where(least == left, -1.0, np.where(least == right, 1.0, 0.0))
-    # Between samples a parabola falls at most curvature / 8 below the least of them; a steeper fall is
-    # the parabola misrepresenting a kinked curve.
-    value = np.where(inside, np.maximum(centre - 0.5 * curvature * place * place, least - 0.125 * curvature), least)
-    return value, np.where(inside, place, corner)
-
-
-def _inverse(m: np.ndarray) -> np.ndarray:
+def _inverse(m: np.ndarray) -> np.ndarray | None:
     """Inverse of a 2x2 or 3x3 matrix by cofactors (numpy's general solvers cost more than the fit);
-    infinite on the diagonal where it is singular."""
+    None if it is singular."""
     if m.shape == (2, 2):
         (a, b), (c, d) = m.tolist()
         cofactors, det = [[d, -b], [-c, a]], a * d - b * c
@@ -366,33 +382,43 @@ def _inverse(m: np.ndarray) -> np.ndarray:
         det = a * cofactors[0][0] + b * cofactors[1][0] + c * cofactors[2][0]
     scale = float(np.abs(m).max()) ** len(m)
     if not (np.isfinite(det) and abs(det) > 1e-12 * scale):
-        return np.diag(np.full(len(m), np.inf))
+        return None
     return np.array(cofactors) / det
 
 
 def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, low: np.ndarray, high: np.ndarray,
                      search: tuple[float, float]) -> np.ndarray:
-    """log P(f in each band) and, last, log P(f in none), for f's density given on a grid of
-    ``frequency`` (piecewise linear between), continued beyond it by the Student's t (``dof``
-    degrees of freedom, centred on the grid's peak) whose density meets the grid's ends, all cut to
-    the ``search`` range: a frequency outside it would have shown as another peak."""
-    log_density = log_density - log_density.max()
-    density = np.exp(log_density)
-    cumulative = np.concatenate([[0.0], np.cumsum(0.5 * (density[1:] + density[:-1]) * np.diff(frequency))])
-    edges = np.clip(np.concatenate([low, high, search]), search[0], search[1])
-    cdf = np.interp(edges, frequency, cumulative)
-    centre = frequency[np.argmax(density)]
-    # The t density is gamma((dof + 1) / 2) / (sqrt(dof pi) gamma(dof / 2)) at its centre.
-    peak = np.exp(gammaln(0.5 * (dof + 1)) - gammaln(0.5 * dof)) / np.sqrt(dof * np.pi)
+    """log P(f in each band) and, last, log P(f in none), for f's density given on an even grid of
+    ``frequency`` (exponential between grid points: a Gaussian's tails are integrated well from a
+    coarse grid), continued beyond it by the Student's t (``dof`` degrees of freedom, centred on the
+    grid's peak) whose density meets the grid's ends, all cut to the ``search`` range: a frequency
+    outside it would have shown as another peak."""
+    # Below _FLOOR there is nothing to count (and the exponentials stay finite).
+    log_density = np.maximum(log_density - log_density.max(), _FLOOR)
+    step = frequency[1] - frequency[0]
+    rate = np.diff(log_density) / step
+    cumulative = np.zeros(len(frequency))
+    np.cumsum(_exponential_mass(log_density[:-1], rate, step), out=cumulative[1:])
+    edges = np.minimum(np.maximum(np.concatenate([low, high, search]), search[0]), search[1])
+    segment = np.minimum(np.maximum(((edges - frequency[0]) // step).astype(int), 0), len(rate) - 1)
+    into = np.minimum(np.maximum(edges - frequency[segment], 0.0), step)
+    cdf = cumulative[segment] + _exponential_mass(log_density[segment], rate[segment], into)
     for end, beyond in ((0, edges < frequency[0]), (-1, edges > frequency[-1])):
         if log_density[end] < _NEGLIGIBLE or not beyond.any():
             continue
-        # The t's scale that makes it exp(log_density[end]) at the grid's end, 1 at the centre.
-        z = np.sqrt(dof * max(np.expm1(-2.0 * log_density[end] / (dof + 1)), 1e-12))
-        scale = max(abs(frequency[end] - centre), 1e-300) / z
-        tail = (stdtr(dof, (edges[beyond] - centre) / scale) - stdtr(dof, (frequency[end] - centre) / scale))
+        # The t's scale that makes it exp(log_density[end]) at the grid's end, 1 at the centre (where the
+        # t density is gamma((dof + 1) / 2) / (sqrt(dof pi) gamma(dof / 2))).
+        centre = frequency[np.argmax(log_density)]
+        scale = abs(frequency[end] - centre) / np.sqrt(dof * max(np.expm1(-2.0 * log_density[end] / (dof + 1)), 1e-12))
+        peak = np.exp(gammaln(0.5 * (dof + 1)) - gammaln(0.5 * dof)) / np.sqrt(dof * np.pi)
+        tail = stdtr(dof, (edges[beyond] - centre) / scale) - stdtr(dof, (frequency[end] - centre) / scale)
         cdf[beyond] += tail * scale / peak
-    masses = cdf[len(low):-2] - cdf[:len(low)]
-    band = np.maximum(masses, 1e-300) / max(cdf[-1] - cdf[-2], 1e-300)
-    outside = max(1.0 - float(band.sum()), 1e-300)
-    return np.log(np.append(band, outside))
+    band = np.maximum(cdf[len(low):-2] - cdf[:len(low)], 1e-300) / max(cdf[-1] - cdf[-2], 1e-300)
+    return np.log(np.append(band, max(1.0 - float(band.sum()), 1e-300)))
+
+
+def _exponential_mass(log_start: np.ndarray, rate: np.ndarray, length: np.ndarray | float) -> np.ndarray:
+    """Integral over [0, length] of exp(log_start + rate x)."""
+    rise = rate * length
+    steep = np.abs(rise) > 1e-6
+    return np.exp(log_start) * length * np.where(steep, np.expm1(rise) / np.where(steep, rise, 1.0), 1.0 + 0.5 * rise)
