@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
-from vlp_ros.ellipse import geometric_distances
+from vlp_ros.ellipse import ellipse_from_conic, geometric_distances
 
 _SQRT_2PI = np.sqrt(2.0 * np.pi)
 _MAX_ITERATIONS = 12
@@ -61,11 +61,14 @@ class MarkerFit:
 
     def ellipse(self, shift: np.ndarray) -> np.ndarray:
         """The marker's edge as (cx, cy, a, b, theta), moved by ``shift``."""
-        values, vectors = np.linalg.eigh(self.shape)
-        theta = float(np.arctan2(vectors[1, 0], vectors[0, 0]))
-        theta = (theta + np.pi / 2) % np.pi - np.pi / 2
-        return np.array([*(self.center + shift), self.radius / np.sqrt(values[0]),
-                         self.radius / np.sqrt(values[1]), theta])
+        # (p - c)^T shape (p - c) = radius^2 as a conic, converted in closed form.
+        centre = self.center + shift
+        moved = self.shape @ centre
+        conic = np.empty((3, 3))
+        conic[:2, :2] = self.shape
+        conic[:2, 2] = conic[2, :2] = -moved
+        conic[2, 2] = centre @ moved - self.radius ** 2
+        return ellipse_from_conic(conic)
 
 
 def redness(bgr: np.ndarray) -> np.ndarray:

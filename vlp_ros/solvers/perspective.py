@@ -154,7 +154,7 @@ def _refined_with_up(starts: list[Pose], measurement: LampMeasurement,
     # The start that agrees best with the measured up first: it sets the bar for the other.
     for start in sorted(starts, key=lambda pose: _chi_square(up, pose)):
         best = min((c.cost for c in found), default=np.inf)
-        if forecast_minimum(start, [measurement, *up]) > HOPELESS_FORECAST_MARGIN * (best + HOPELESS_GAP):
+        if found and forecast_minimum(start, [measurement, *up]) > HOPELESS_FORECAST_MARGIN * (best + HOPELESS_GAP):
             continue
         fit = refine_pose(start, [measurement], up, give_up=lambda pose, cost, best=best: cost > best + HOPELESS_GAP)
         if fit is not None:
