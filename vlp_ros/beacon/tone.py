@@ -32,15 +32,20 @@ _MAX_ROWS = 128
 _MIN_ROWS_PER_PERIOD = 8.0
 # Phases tried over half a period (the other half only flips the square wave's sign).
 _PHASES = 16
+# The first scan tries frequencies in 2 _START_STEPS + 1 steps over at least +-_START_REACH cycles per
+# window around the FFT's peak.
+_START_STEPS = 3
+_START_REACH = 0.05
 # Unknown, the exposure is tried at these shares of the tone's period. Beyond half a period longer
 # exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
-# How far (in spreads) the phase may be taken towards a parabola's vertex at each frequency.
-_PHASE_REACH = 2.0
+# Phases tried at each frequency of the grid, in spreads of the phase from the fit's line: off by half
+# a spread, the likelihood is off by 1/8 nat.
+_PHASE_STEPS = np.arange(-2.0, 3.0)
 _KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
 _MIN_EXPOSURE_ROWS = 0.05
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
-_GRID = np.linspace(-10.0, 10.0, 41)
+_GRID = np.linspace(-10.0, 10.0, 31)
 _PASSES = 4
 # ... and must hold at least this many grid steps per standard deviation ...
 _MIN_STEPS_PER_SIGMA = 1.0
@@ -107,12 +112,12 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     fit.thin(cycles, exposure_rows or 1.0)
     if fit.dof < 1:
         return no_evidence(candidates, mapped, prior, 'too few rows')
-    phase, tried, evidence = fit.start(cycles, exposure_rows)
-    if evidence < MIN_TONE_EVIDENCE:
+    start = fit.start(cycles, exposure_rows)
+    if start.evidence < MIN_TONE_EVIDENCE:
         return no_evidence(candidates, mapped, prior, 'no tone stands out of the noise')
-    if abs(np.sinc(tried * cycles / fit.rows)) < _MIN_TRANSMISSION:
+    if abs(np.sinc(start.exposure_rows * start.cycles / fit.rows)) < _MIN_TRANSMISSION:
         return no_evidence(candidates, mapped, prior, 'the exposure spans about whole periods: stripes washed out')
-    peak = fit.peak(cycles, phase, tried, exposure_rows is None)
+    peak = fit.peak(start, exposure_rows is None)
     if peak is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
     # Unknown, the exposure may pass for blur across rows: edges are then known to a row, the period to a
@@ -121,7 +126,11 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     likelihood = fit.likelihood(peak, quantum)
     if likelihood is None:
         return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
-    grid, log_density = likelihood
+    grid, log_density, least = likelihood
+    # A frequency of the scan beyond the grid that fits nearly as well: the likelihood has other peaks.
+    beyond = (start.tried < grid[0]) | (start.tried > grid[-1])
+    if np.any(beyond & (start.rss < least * np.exp(2.0 * _GRID_DROP / (fit.dof + 1)))):
+        return no_evidence(candidates, mapped, prior, 'the stripes fit frequencies apart about as well')
     log_mass = _log_band_masses(grid / duration, log_density, fit.dof, centres - tolerance_hz,
                                 centres + tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
@@ -143,10 +152,24 @@ def _lamps(items: tuple[tuple[int, float], ...],
 
 
 @dataclass(frozen=True)
+class _Start:
+    """The best square wave of a coarse scan (cycles per window, phase, exposure rows), the evidence
+    (nats) by which it beats the envelope alone, and the best residual sum of squares at each cycles
+    tried."""
+
+    cycles: float
+    phase: float
+    exposure_rows: float
+    evidence: float
+    tried: np.ndarray
+    rss: np.ndarray
+
+
+@dataclass(frozen=True)
 class _Peak:
     """The best square wave: cycles per window, phase (periods, at the window's centre), exposure (rows);
-    the spread (standard deviation, and at least the play of edges in the gaps between the rows'
-    exposures) of its cycles, how its best phase moves with them, and the phase's spread at fixed cycles."""
+    the spread (as the fit's curvature has it) of its cycles, how its best phase moves with them, and the
+    phase's spread at fixed cycles."""
 
     cycles: float
     phase: float
@@ -264,38 +287,41 @@ class _ToneFit:
         jacobian -= np.outer(jacobian @ template / norm, template)
         return float(residual @ residual), jacobian, residual
 
-    def start(self, cycles: float, exposure_rows: float | None) -> tuple[float, float, float]:
-        """Phase, exposure rows (given, or the best of a scan) and evidence (nats by which the square wave
-        beats the envelope alone) of the best square wave at ``cycles``: a scan of phases over half a
-        period (the other half only flips the sign), refined by a parabola through the best and its
-        neighbours."""
+    def start(self, cycles: float, exposure_rows: float | None) -> _Start:
+        """The best square wave among a scan of frequencies around ``cycles`` (the FFT's peak, which the
+        harmonics that few rows per period alias can pull aside), of phases over half a period (the other
+        half only flips the sign) and, unknown, of exposures; its phase refined by a parabola through the
+        best and its neighbours."""
         exposures = _KAPPAS * self.rows / cycles if exposure_rows is None else np.array([exposure_rows])
+        # Steps that move the window's ends by half a row, over at least +-_START_REACH cycles.
+        step = max(0.5 * cycles / self.rows, _START_REACH / _START_STEPS)
+        tried = cycles + step * np.arange(-_START_STEPS, _START_STEPS + 1)
         phases = np.arange(_PHASES) / (2.0 * _PHASES)
-        rss = self._rss(np.full(_PHASES * len(exposures), cycles), np.tile(phases, len(exposures)),
-                        np.repeat(exposures, _PHASES)).reshape(len(exposures), _PHASES)
-        row, best = divmod(int(np.argmin(rss)), _PHASES)
-        left, centre, right = rss[row, best - 1], rss[row, best], rss[row, (best + 1) % _PHASES]
+        shape = (len(tried), len(exposures), _PHASES)
+        rss = self._rss(np.repeat(tried, len(exposures) * _PHASES), np.tile(phases, len(tried) * len(exposures)),
+                        np.tile(np.repeat(exposures, _PHASES), len(tried))).reshape(shape)
+        at, row, best = np.unravel_index(int(np.argmin(rss)), shape)
+        left, centre, right = rss[at, row, best - 1], rss[at, row, best], rss[at, row, (best + 1) % _PHASES]
         # The parabola through the best and its neighbours (the best is the least of the three).
         curvature = max(left + right - 2.0 * centre, 1e-300)
         place = 0.5 * (left - right) / curvature
         least = max(centre - 0.5 * curvature * place * place, 0.0)
         sigma2 = max(least / self.dof, 1e-15 * self.null_rss, 1e-300)
-        return (float(phases[best] + place / (2.0 * _PHASES)), float(exposures[row]),
-                float(self.null_rss - least) / (2.0 * sigma2))
+        return _Start(float(tried[at]), float(phases[best] + place / (2.0 * _PHASES)), float(exposures[row]),
+                      float(self.null_rss - least) / (2.0 * sigma2), tried, rss.min(axis=(1, 2)))
 
-    def peak(self, cycles: float, phase: float, exposure_rows: float, free: bool) -> _Peak | None:
-        """The best square wave near (``cycles``, ``phase``, ``exposure_rows``; the exposure ``free`` or
-        not): one Gauss-Newton step (the likelihood grid around it finds the rest), with the spreads of
-        its frequency and phase."""
+    def peak(self, start: _Start, free: bool) -> _Peak | None:
+        """The best square wave near the ``start`` (the exposure ``free`` or not): one Gauss-Newton step
+        (the likelihood grid around it finds the rest), with the spreads of its frequency and phase."""
+        cycles, phase, exposure_rows = start.cycles, start.phase, start.exposure_rows
         params = np.array([cycles, phase, exposure_rows])
         rss, jacobian, residual = self._linearised(params, free)
         inverse = _inverse(jacobian @ jacobian.T)
-        # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods): the
-        # period by about a gap over the window.
-        gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
         if inverse is None or not (inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
-            # No edge inside an exposure: all there is to go on is the gaps.
-            return _Peak(cycles, phase, exposure_rows, 0.5 * gap, 0.0, 0.5 * gap) if gap > 0.0 else None
+            # No edge inside an exposure: all there is to go on is the gaps between the rows' exposures,
+            # where edges move unseen by up to a gap (in periods): the period by about a gap over the window.
+            gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
+            return _Peak(cycles, phase, exposure_rows, gap, 0.0, gap) if gap > 0.0 else None
         gradient = jacobian @ residual
         step = inverse @ gradient
         params[:len(step)] += step
@@ -304,42 +330,30 @@ class _ToneFit:
         # The noise from the residual the step leaves (as the linearised fit predicts it).
         covariance = inverse * (max(rss - float(step @ gradient), 1e-3 * rss) / self.dof)
         slope = covariance[0, 1] / covariance[0, 0]
-        phase_variance = max(covariance[1, 1] - slope * covariance[0, 1], 0.0)
-        return _Peak(float(params[0]), float(params[1]), float(params[2]),
-                     float(np.hypot(np.sqrt(covariance[0, 0]), 0.5 * gap)), float(slope),
-                     float(np.hypot(np.sqrt(phase_variance), 0.5 * gap)))
+        return _Peak(float(params[0]), float(params[1]), float(params[2]), float(np.sqrt(covariance[0, 0])),
+                     float(slope), float(np.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0))))
 
     def _phase_profile(self, cycles: np.ndarray, phase: np.ndarray, spread: float,
-                       exposure_rows: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Residual sum of squares at each of ``cycles`` with the phase at its best near ``phase``: tried
-        there, ``spread`` either side and at the vertex of the parabola through those (up to two spreads
-        out). Also the best phase found, and where the parabola points further out (or is no bowl)."""
-        tried = phase[:, None] + spread * np.array([-1.0, 0.0, 1.0])
-        rss = self._rss(np.repeat(cycles, 3), tried.ravel(), exposure_rows).reshape(-1, 3)
-        left, centre, right = rss.T
-        curvature = left + right - 2.0 * centre
-        vertex = np.where(curvature > 0.0, 0.5 * (left - right) / np.where(curvature > 0.0, curvature, 1.0),
-                          np.where(left < right, -np.inf, np.inf))
-        place = np.clip(vertex, -_PHASE_REACH, _PHASE_REACH)
-        refined = self._rss(cycles, phase + spread * place, exposure_rows)
+                       exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
+        """Residual sum of squares at each of ``cycles`` with the phase at its best among ``phase`` and
+        one and two ``spread`` either side, and where the best is the outermost (it may lie further out)."""
+        rss = self._rss(np.repeat(cycles, len(_PHASE_STEPS)), (phase[:, None] + spread * _PHASE_STEPS).ravel(),
+                        exposure_rows).reshape(-1, len(_PHASE_STEPS))
         best = np.argmin(rss, axis=1)
-        least = rss[np.arange(len(cycles)), best]
-        better = refined < least
-        return (np.where(better, refined, least), np.where(better, phase + spread * place, tried[np.arange(len(cycles)), best]),
-                np.abs(vertex) > _PHASE_REACH)
+        return rss[np.arange(len(cycles)), best], (best == 0) | (best == len(_PHASE_STEPS) - 1)
 
-    def likelihood(self, peak: _Peak, quantum: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """Cycles per window on a grid around the ``peak`` and the log likelihood of each (phase, envelope
-        and amplitude at their best, the noise level marginalised), blurred by ``quantum`` (cycles);
-        None if no grid resolves it."""
+    def likelihood(self, peak: _Peak, quantum: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """Cycles per window on a grid around the ``peak``, the log likelihood of each (phase, envelope
+        and amplitude at their best, the noise level marginalised; blurred by ``quantum`` cycles) and the
+        least residual sum of squares; None if no grid resolves it."""
         centre, scale, spread = peak.cycles, max(peak.scale, quantum), peak.phase_spread
         for _ in range(_PASSES):
             grid = centre + scale * _GRID
             if grid[0] <= 0.0:
                 return None
             # Each frequency's best phase lies near the regression line through the peak.
-            rss, phases, cornered = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
-                                                        peak.exposure_rows)
+            rss, cornered = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
+                                                peak.exposure_rows)
             log_density = -0.5 * (self.dof + 1) * np.log(np.maximum(rss, 1e-300))
             log_density -= log_density.max()
             density = np.exp(log_density)
@@ -353,8 +367,10 @@ class _ToneFit:
             elif not len(grid) // 4 <= best < len(grid) - len(grid) // 4:
                 centre, scale = grid[best], 3.0 * scale
             elif sigma < _MIN_STEPS_PER_SIGMA * scale * (_GRID[1] - _GRID[0]):
-                # Narrower than the grid resolves (at most ten times: the spread of a sharp peak between
-                # grid points is not known yet).
+                # Narrower than the grid resolves: the spread of a sharp peak shows better in its curvature
+                # (at most ten times narrower: between grid points it is not known yet).
+                bend = log_density[best - 1] + log_density[best + 1] - 2.0 * log_density[best]
+                sigma = min(sigma, scale * (_GRID[1] - _GRID[0]) / np.sqrt(max(-bend, 1e-12)))
                 centre, scale = mean, max(sigma, 0.1 * scale)
             elif max(log_density[0], log_density[-1]) >= -_GRID_DROP and sigma * _MIN_SPAN > scale * _GRID[-1]:
                 centre, scale = mean, sigma
@@ -365,7 +381,7 @@ class _ToneFit:
         if quantum > 0.0:
             kernel = np.exp(-0.5 * (np.subtract.outer(grid, grid) / quantum) ** 2)
             log_density = np.log(np.maximum(kernel @ density, 1e-300))
-        return grid, log_density
+        return grid, log_density, float(rss.min())
 
 
 def _inverse(m: np.ndarray) -> np.ndarray | None:
