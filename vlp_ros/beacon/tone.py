@@ -11,6 +11,7 @@ frequency" the rest, each band as likely per hertz as any other.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -195,14 +196,12 @@ class _ToneFit:
         self.tau = (kept - 0.5 * (self.rows - 1)) / self.rows
         self.sqrt_w = np.sqrt(self.w[kept])
         u = 2.0 * self.tau
-        # Orthonormal (weighted) envelope basis (rows), by Gram-Schmidt: projecting it out leaves what
-        # the tone must explain.
+        # Orthonormal (weighted) envelope basis (rows): projecting it out leaves what the tone must explain.
         basis = np.stack([self.sqrt_w, u * self.sqrt_w, u * u * self.sqrt_w])
-        for k in range(3):
-            basis[k] -= (basis[:k] @ basis[k]) @ basis[:k]
-            basis[k] /= np.sqrt(basis[k] @ basis[k])
+        basis = _whitening(basis @ basis.T) @ basis
         self.envelope = basis
-        self.y = self._residual(self.z[kept] * self.sqrt_w)
+        y = self.z[kept] * self.sqrt_w
+        self.y = y - (basis @ y) @ basis
         self.null_rss = float(self.y @ self.y)
         self.weights = self.sqrt_w * self.sqrt_w
         self.weighted_envelope = basis * self.sqrt_w
@@ -216,10 +215,6 @@ class _ToneFit:
                      int(exposure_rows))
         if stride > 1:
             self._use(np.arange(0, self.rows, stride))
-
-    def _residual(self, columns: np.ndarray) -> np.ndarray:
-        """``columns`` (..., rows) less their envelope part."""
-        return columns - (columns @ self.envelope.T) @ self.envelope
 
     def spectral_peak(self, low: float, high: float) -> float | None:
         """Cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles (the zero-padded
@@ -263,9 +258,10 @@ class _ToneFit:
         return self.null_rss - projection * projection / np.maximum(norm, 1e-300)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
-        """Residual sum of squares at (cycles, phase, exposure rows), the rows' sensitivities to cycles,
-        phase (and exposure) with envelope and amplitude at their best (Kaufman's variable projection
-        Jacobian) and the residual."""
+        """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient
+        (J^T J, J^T r) over cycles, phase (and exposure) with envelope and amplitude at their best
+        (Kaufman's variable projection Jacobian J), all from products of the template and its
+        derivatives."""
         cycles, phase, exposure = params
         kappa = cycles * exposure / self.rows
         theta = cycles * self.tau - phase
@@ -276,16 +272,18 @@ class _ToneFit:
         square = np.sign(0.5 - late)
         slope = (square - np.sign(0.5 - early)) / kappa
         by_kappa = (square - mean) / kappa
-        light = [slope * self.tau + by_kappa * (exposure / self.rows), -slope]
+        rows = [mean, slope * self.tau + by_kappa * (exposure / self.rows), -slope]
         if free_exposure:
-            light.append(by_kappa * (cycles / self.rows))
-        template, *derivatives = self._residual(np.stack([mean, *light]) * self.sqrt_w)
-        norm = max(float(template @ template), 1e-300)
-        amplitude = float(template @ self.y) / norm
-        residual = self.y - amplitude * template
-        jacobian = amplitude * np.stack(derivatives)
-        jacobian -= np.outer(jacobian @ template / norm, template)
-        return float(residual @ residual), jacobian, residual
+            rows.append(by_kappa * (cycles / self.rows))
+        columns = np.stack(rows) * self.sqrt_w
+        along = columns @ self.envelope.T
+        # Products of the envelope-free template (0) and derivatives (1...).
+        gram = columns @ columns.T - along @ along.T
+        with_y = columns @ self.y
+        norm = max(gram[0, 0], 1e-300)
+        amplitude = with_y[0] / norm
+        normal = amplitude * amplitude * (gram[1:, 1:] - np.outer(gram[0, 1:], gram[0, 1:]) / norm)
+        return float(self.null_rss - amplitude * with_y[0]), normal, amplitude * (with_y[1:] - amplitude * gram[0, 1:])
 
     def start(self, cycles: float, exposure_rows: float | None) -> _Start:
         """The best square wave among a scan of frequencies around ``cycles`` (the FFT's peak, which the
@@ -299,7 +297,8 @@ class _ToneFit:
         phases = np.arange(_PHASES) / (2.0 * _PHASES)
         shape = (len(tried), len(exposures), _PHASES)
         rss = self._rss(np.repeat(tried, len(exposures) * _PHASES), np.tile(phases, len(tried) * len(exposures)),
-                        np.tile(np.repeat(exposures, _PHASES), len(tried))).reshape(shape)
+                        exposure_rows if exposure_rows is not None
+                        else np.tile(np.repeat(exposures, _PHASES), len(tried))).reshape(shape)
         at, row, best = np.unravel_index(int(np.argmin(rss)), shape)
         left, centre, right = rss[at, row, best - 1], rss[at, row, best], rss[at, row, (best + 1) % _PHASES]
         # The parabola through the best and its neighbours (the best is the least of the three).
@@ -315,14 +314,13 @@ class _ToneFit:
         (the likelihood grid around it finds the rest), with the spreads of its frequency and phase."""
         cycles, phase, exposure_rows = start.cycles, start.phase, start.exposure_rows
         params = np.array([cycles, phase, exposure_rows])
-        rss, jacobian, residual = self._linearised(params, free)
-        inverse = _inverse(jacobian @ jacobian.T)
+        rss, normal, gradient = self._linearised(params, free)
+        inverse = _inverse(normal)
         if inverse is None or not (inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
             # No edge inside an exposure: all there is to go on is the gaps between the rows' exposures,
             # where edges move unseen by up to a gap (in periods): the period by about a gap over the window.
             gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
             return _Peak(cycles, phase, exposure_rows, gap, 0.0, gap) if gap > 0.0 else None
-        gradient = jacobian @ residual
         step = inverse @ gradient
         params[:len(step)] += step
         if free:
@@ -382,6 +380,20 @@ class _ToneFit:
             kernel = np.exp(-0.5 * (np.subtract.outer(grid, grid) / quantum) ** 2)
             log_density = np.log(np.maximum(kernel @ density, 1e-300))
         return grid, log_density, float(rss.min())
+
+
+def _whitening(gram: np.ndarray) -> np.ndarray:
+    """The inverse of the Cholesky factor of a 3x3 Gram matrix, in closed form (numpy's factorisations
+    cost more than the whole envelope)."""
+    (a, b, c), (_, d, e), (_, _, f) = gram.tolist()
+    l00 = math.sqrt(a)
+    l10, l20 = b / l00, c / l00
+    l11 = math.sqrt(d - l10 * l10)
+    l21 = (e - l20 * l10) / l11
+    l22 = math.sqrt(f - l20 * l20 - l21 * l21)
+    m10 = -l10 / (l00 * l11)
+    return np.array([[1.0 / l00, 0.0, 0.0], [m10, 1.0 / l11, 0.0],
+                     [-(l20 / l00 + l21 * m10) / l22, -l21 / (l11 * l22), 1.0 / l22]])
 
 
 def _inverse(m: np.ndarray) -> np.ndarray | None:
