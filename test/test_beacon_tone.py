@@ -12,9 +12,10 @@ FREQUENCIES = {10 + k: 1000.0 + 200.0 * k for k in range(21)}
 TOLERANCE = 60.0
 
 
-def tone_profile(frequency, periods=4.0, exposure=4e-5, depth=0.7, noise=0.3, seed=0):
-    rows = int(np.ceil(periods / (frequency * ROW_TIME)))
-    return flat_profile(tone_waveform(frequency, depth, offset=1.7e-4), rows, ROW_TIME, exposure, noise=noise,
+def tone_profile(frequency, periods=4.0, exposure=4e-5, depth=0.7, noise=0.3, seed=0, row_time=ROW_TIME,
+                 offset=1.7e-4):
+    rows = int(np.ceil(periods / (frequency * row_time)))
+    return flat_profile(tone_waveform(frequency, depth, offset=offset), rows, row_time, exposure, noise=noise,
                         rng=np.random.default_rng(seed))
 
 
@@ -31,6 +32,50 @@ def test_three_periods_suffice_at_any_known_exposure(exposure):
     reading = decode_tone(tone_profile(2600.0, periods=3.2, exposure=exposure), ROW_TIME, FREQUENCIES, TOLERANCE,
                           exposure=exposure)
     assert reading.lamp_id == 18
+
+
+@pytest.mark.parametrize('lamp_id', [28, 29, 30])
+def test_neighbouring_frequencies_told_apart_over_three_periods(lamp_id):
+    # 4.6-5 kHz at 20 us rows: about 11 rows per period, 34 rows; 200 Hz apart drift by 0.13 period.
+    reading = decode_tone(tone_profile(FREQUENCIES[lamp_id], periods=3.2, exposure=3e-5), ROW_TIME, FREQUENCIES,
+                          TOLERANCE, exposure=3e-5)
+    assert reading.lamp_id == lamp_id
+    others = reading.log_likelihoods[reading.candidates != lamp_id]
+    assert np.all(others < reading.log_likelihoods[reading.candidates == lamp_id] - 20.0)
+
+
+@pytest.mark.parametrize('frequency', [3300.0, 4900.0])
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_frequency_between_lamps_over_a_short_window_is_never_a_lamp(frequency, seed):
+    reading = decode_tone(tone_profile(frequency, periods=3.2, exposure=3e-5, seed=seed), ROW_TIME, FREQUENCIES,
+                          TOLERANCE, exposure=3e-5)
+    assert reading.lamp_id is None and reading.unknown
+
+
+def test_frequency_on_a_band_edge_gives_no_id():
+    # Lamp 20's band is 3000 +- 60 Hz: at its edge the frequency is as likely in as out.
+    reading = decode_tone(tone_profile(3060.0, periods=3.2, exposure=3e-5), ROW_TIME, FREQUENCIES, TOLERANCE,
+                          exposure=3e-5)
+    assert reading.lamp_id is None and not reading.unknown
+
+
+def test_exposure_shorter_than_a_row_never_gives_a_wrong_id():
+    # 4.6 kHz at 50 us rows: 4.3 rows per period, 15 rows, each exposed for 0.4 of a row; most edges fall
+    # between the rows' exposures, so the likelihood is rugged. Lamps either read right or not at all.
+    row_time = 5e-5
+    ids = [decode_tone(tone_profile(4600.0, periods=3.5, exposure=0.4 * row_time, noise=0.5, seed=seed,
+                                    row_time=row_time, offset=1e-4 * seed), row_time, FREQUENCIES, TOLERANCE,
+                       exposure=0.4 * row_time).lamp_id for seed in range(12)]
+    assert set(ids) <= {28, None} and ids.count(28) >= 6
+
+
+def test_noisy_fast_tone_over_few_rows_gives_no_id():
+    # 4.8 kHz at 50 us rows over 3 periods: 13 rows, too noisy to place the period within 60 Hz.
+    row_time = 5e-5
+    for seed in range(5):
+        reading = decode_tone(tone_profile(4800.0, periods=3.0, exposure=2 * row_time, noise=3.0, seed=seed,
+                                           row_time=row_time), row_time, FREQUENCIES, TOLERANCE, exposure=2 * row_time)
+        assert reading.lamp_id is None and not reading.unknown
 
 
 def test_exposure_of_about_a_period_gives_no_id():

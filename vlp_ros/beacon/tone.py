@@ -22,7 +22,7 @@ from vlp_ros.beacon.profile import RowProfile
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
                                     no_evidence, reading)
 
-# Evidence (nats) by which a sinusoid must beat the envelope alone before its frequency counts.
+# Evidence (nats) by which the square wave must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
 # Envelope terms (1, u, u^2) and the tone's amplitude (linear), frequency and phase (not).
@@ -39,11 +39,11 @@ _START_STEPS = 3
 _START_REACH = 0.05
 # Unknown, the exposure is tried at these shares of the tone's period. Beyond half a period longer
 # exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
+_KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
+_MIN_EXPOSURE_ROWS = 0.05
 # Phases tried at each frequency of the grid, in spreads of the phase from the fit's line: off by half
 # a spread, the likelihood is off by 1/8 nat.
 _PHASE_STEPS = np.arange(-2.0, 3.0)
-_KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
-_MIN_EXPOSURE_ROWS = 0.05
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
 _GRID = np.linspace(-10.0, 10.0, 31)
@@ -54,8 +54,8 @@ _MIN_STEPS_PER_SIGMA = 1.0
 # side (beyond, a Student's t takes over).
 _GRID_DROP = 12.0
 _MIN_SPAN = 7.0
-# Log densities (relative to the peak's) below these carry no mass worth counting: beyond the grid (a
-# tail's mass is then below 1e-5 of the whole), and on it.
+# Log densities (relative to the peak's) below these carry no mass worth counting (far below the 1e-4
+# a decision leaves to the others): at the grid's ends, for the tails beyond, and on the grid.
 _NEGLIGIBLE = -15.0
 _FLOOR = -50.0
 # How well an edge is placed when the exposure is unknown, in rows (blur may pass for a longer exposure).
