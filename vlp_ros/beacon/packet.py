@@ -146,7 +146,8 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     # shift and factored by bit, then for every (ID, shift): the sums over its bright minus its dark
     # chips, (4, L, ids), each hypothesis along the last axis.
     vbasis = basis * v
-    columns = np.concatenate([vbasis, (vx - baseline @ vbasis)[None]])
+    # The residual's row scaled by sqrt(1/2): its squares then come out as half gains (log-likelihoods).
+    columns = np.concatenate([vbasis, ((vx - baseline @ vbasis) * np.sqrt(0.5))[None]])
     folded = (columns @ (k[:, None] % length == np.arange(length))).take(fold, axis=1)
     per_bit = (folded @ chip_weights).reshape(4 * length, len(design)).astype(np.float32)
     sums = (per_bit @ design).reshape(4, length, ids)
@@ -154,10 +155,10 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     total = np.float32(v.sum())
     schur = np.maximum(total - np.square(sums[:3]).sum(axis=0), np.float32(1e-6) * total)
     target = np.maximum(sums[3], np.float32(0))
-    gain = target * target / schur
-    best = gain.max(axis=0)
-    spread = np.log(np.exp(np.float32(0.5) * (gain - best)).sum(axis=0) / length)
-    return 0.5 * best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - float(best.max())
+    half_gain = target * target / schur
+    best = half_gain.max(axis=0)
+    spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / length)
+    return best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - 2.0 * float(best.max())
 
 
 def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -171,5 +172,8 @@ def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
     lean = (m3 - m1 * m2 / m0) / linear_norm2
     quadratic = t2 - m2 / m0 - lean * linear
     quadratic_norm2 = m4 - m2 * m2 / m0 - lean * lean * linear_norm2
-    return np.array([np.full_like(t, 1.0 / np.sqrt(m0)), linear / np.sqrt(linear_norm2),
-                     quadratic / np.sqrt(max(quadratic_norm2, 1e-300))])
+    basis = np.empty((3, len(t)))
+    basis[0] = 1.0 / math.sqrt(m0)
+    np.multiply(linear, 1.0 / math.sqrt(linear_norm2), out=basis[1])
+    np.multiply(quadratic, 1.0 / math.sqrt(max(quadratic_norm2, 1e-300)), out=basis[2])
+    return basis
