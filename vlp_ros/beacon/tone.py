@@ -47,7 +47,7 @@ _PHASE_STEPS = np.arange(-2.0, 3.0)
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
 _GRID = np.linspace(-10.0, 10.0, 31)
-_PASSES = 4
+_PASSES = 6
 # ... and must hold at least this many grid steps per standard deviation ...
 _MIN_STEPS_PER_SIGMA = 1.0
 # ... and fall by this many nats towards the grid's ends, or span this many standard deviations each
@@ -170,7 +170,7 @@ class _Start:
 class _Peak:
     """The best square wave: cycles per window, phase (periods, at the window's centre), exposure (rows);
     the spread (as the fit's curvature has it) of its cycles, how its best phase moves with them, and the
-    phase's spread at fixed cycles."""
+    phase's spread at fixed cycles (at least half the gap between the rows' exposures)."""
 
     cycles: float
     phase: float
@@ -316,10 +316,11 @@ class _ToneFit:
         params = np.array([cycles, phase, exposure_rows])
         rss, normal, gradient = self._linearised(params, free)
         inverse = _inverse(normal)
+        # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods).
+        gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
         if inverse is None or not (inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
-            # No edge inside an exposure: all there is to go on is the gaps between the rows' exposures,
-            # where edges move unseen by up to a gap (in periods): the period by about a gap over the window.
-            gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
+            # No edge inside an exposure: all there is to go on is the gaps (the period moves by about a
+            # gap over the window).
             return _Peak(cycles, phase, exposure_rows, gap, 0.0, gap) if gap > 0.0 else None
         step = inverse @ gradient
         params[:len(step)] += step
@@ -329,7 +330,7 @@ class _ToneFit:
         covariance = inverse * (max(rss - float(step @ gradient), 1e-3 * rss) / self.dof)
         slope = covariance[0, 1] / covariance[0, 0]
         return _Peak(float(params[0]), float(params[1]), float(params[2]), float(np.sqrt(covariance[0, 0])),
-                     float(slope), float(np.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0))))
+                     float(slope), max(float(np.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0))), 0.5 * gap))
 
     def _phase_profile(self, cycles: np.ndarray, phase: np.ndarray, spread: float,
                        exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
