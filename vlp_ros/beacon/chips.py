@@ -141,7 +141,8 @@ def _search_grid(cum: _Cumulative, period: float, tolerance: float, sigma2: floa
     window (a period error drifts the grid in proportion to the rows it spans)."""
     end = min(float(cum.size), _FIRST_CHIPS * period)
     step = _COARSE_DRIFT * period / end
-    count = int(np.ceil(tolerance / step))
+    # Less a rounding error: 5 % in steps of 1.25 % is four steps, not five.
+    count = math.ceil(tolerance / step - 1e-9)
     phase_step = period / _COARSE_PHASES
     best = _best_grid(cum, end, period * (1.0 + step * np.arange(-count, count + 1)),
                       phase_step * np.arange(_COARSE_PHASES), sigma2)
