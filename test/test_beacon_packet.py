@@ -125,3 +125,12 @@ def test_short_rows_at_the_lamps_ends_still_give_chips():
     levels = chip_levels(z, w, 5.0, 0.05, None)
     assert levels.index.tolist() == list(range(13))
     np.testing.assert_allclose(levels.levels, chips, atol=0.05)
+
+
+@pytest.mark.parametrize('id_bits, lamp_id', [(1, 1), (4, 9), (12, 2741)])
+def test_other_id_widths_decode(id_bits, lamp_id):
+    wave = packet_waveform(lamp_id, CHIP_RATE, 0.7, id_bits, offset=3.3e-4)
+    rows = int(1.5 * (6 + 2 * (id_bits + 1)) * ROWS_PER_CHIP)
+    profile = flat_profile(wave, rows, ROW_TIME, 3e-5, noise=0.5, rng=np.random.default_rng(2))
+    reading = decode_packet(profile, CHIP_RATE, ROW_TIME, id_bits, None)
+    assert reading.lamp_id == lamp_id and np.argmax(reading.log_likelihoods) == lamp_id

@@ -31,12 +31,12 @@ MISFIT_PROBABILITY = 1e-6
 
 @lru_cache(maxsize=4)
 def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every ID's packet, factored: chip signs (+1 bright, -1 dark) = ``chip_weights.T @ design``.
+    """Every ID's packet, factored: its chip signs (+1 bright, -1 dark) are ``chip_weights @ design``.
 
-    ``design`` (1 + bits + parity, 2^id_bits) is a row of ones over the +-1 of each bit of each ID;
-    ``chip_weights`` (1 + bits, L) say what the constant (the preamble) and each bit contribute to
-    every packet position (Manchester: +-1 on the bit's two chips). ``fold`` is ``(p - shift) % L`` over (shift, p): it
-    folds window chips onto packet positions for every shift.
+    ``design`` (2 + id_bits, 2^id_bits) is a row of ones over the +-1 of each ID's bits and parity;
+    ``chip_weights`` (L, 2 + id_bits) say what the constant (the preamble) and each bit put on
+    every packet position (Manchester: +-1 on the bit's two chips). ``fold`` (shift, position) is
+    ``(position - shift) % L``: it folds window chips onto packet positions for every shift.
     """
     ids, length = 2 ** id_bits, packet_length(id_bits)
     signs = np.array([packet_chips(i, id_bits) for i in range(ids)], dtype=float) * 2 - 1
