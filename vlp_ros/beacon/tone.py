@@ -33,9 +33,10 @@ _MAX_ROWS = 128
 _MIN_ROWS_PER_PERIOD = 8.0
 # Phases tried over half a period (the other half only flips the square wave's sign).
 _PHASES = 16
+_PHASE_SCAN = np.arange(_PHASES) / (2.0 * _PHASES)
 # The first scan tries frequencies in 2 _START_STEPS + 1 steps over at least +-_START_REACH cycles per
 # window around the FFT's peak.
-_START_STEPS = 3
+_START_STEPS = 2
 _START_REACH = 0.05
 # Unknown, the exposure is tried at these shares of the tone's period. Beyond half a period longer
 # exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
@@ -86,7 +87,7 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
         raise ValueError(f'exposure must be positive, got {exposure}')
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
-    ids, centres, candidates, mapped, prior = _lamps(tuple(sorted(frequencies.items())), unmapped_weight)
+    ids, centres, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
     nyquist = 0.5 / row_time
     if not centres.max() + tolerance_hz < nyquist:
         raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
@@ -116,7 +117,7 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     start = fit.start(cycles, exposure_rows)
     if start.evidence < MIN_TONE_EVIDENCE:
         return no_evidence(candidates, mapped, prior, 'no tone stands out of the noise')
-    if abs(np.sinc(start.exposure_rows * start.cycles / fit.rows)) < _MIN_TRANSMISSION:
+    if abs(_sinc(start.exposure_rows * start.cycles / fit.rows)) < _MIN_TRANSMISSION:
         return no_evidence(candidates, mapped, prior, 'the exposure spans about whole periods: stripes washed out')
     peak = fit.peak(start, exposure_rows is None)
     if peak is None:
@@ -142,6 +143,7 @@ def _lamps(items: tuple[tuple[int, float], ...],
            unmapped_weight: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Lamp IDs and frequencies (by ID), candidates (the lamps, then UNMAPPED), which are mapped, and
     their log prior: the same for every lamp of a frame."""
+    items = sorted(items)
     ids = np.array([i for i, _ in items], dtype=int)
     centres = np.array([f for _, f in items], dtype=float)
     if np.any(ids < 0):
@@ -220,31 +222,33 @@ class _ToneFit:
         """Cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles (the zero-padded
         FFT's peak); None if the range holds no frequency the FFT resolves."""
         n = len(self.y)
-        size = _PAD * int(2 ** np.ceil(np.log2(n)))
-        spectrum = np.abs(np.fft.rfft(self.y * self.sqrt_w, size)) ** 2
-        first, last = int(np.ceil(low * size / n)), min(int(high * size / n), len(spectrum) - 1)
+        size = _PAD * (1 << (n - 1).bit_length())
+        spectrum = np.fft.rfft(self.weighted_y, size)
+        spectrum = spectrum.real ** 2 + spectrum.imag ** 2
+        first, last = math.ceil(low * size / n), min(int(high * size / n), len(spectrum) - 1)
         if last < first:
             return None
         peak = first + int(np.argmax(spectrum[first:last + 1]))
         cycles = peak * n / size
         if 0 < peak < len(spectrum) - 1:
             # Parabola through the log spectrum around the peak (a Gaussian-like lobe).
-            left, centre, right = np.log(spectrum[peak - 1:peak + 2] + 1e-300)
+            left, centre, right = (math.log(v + 1e-300) for v in spectrum[peak - 1:peak + 2].tolist())
             curvature = left - 2.0 * centre + right
             if curvature < 0.0:
-                cycles += n / size * float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5))
+                cycles += n / size * min(max(0.5 * (left - right) / curvature, -0.5), 0.5)
         return cycles
 
     def _rss(self, cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray | float) -> np.ndarray:
-        """Residual sum of squares of each (cycles, phase) with the best envelope and amplitude.
+        """Residual sum of squares of each (cycles, phase) (arrays of one shape) with the best envelope and
+        amplitude.
 
         A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's
         integral, a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the
         template, which the amplitude absorbs).
         """
         early = np.multiply.outer(cycles, self.tau)
-        early -= phase[:, None]
-        late = early + (cycles * exposure_rows / self.rows)[:, None]
+        early -= phase[..., None]
+        late = early + (cycles * exposure_rows / self.rows)[..., None]
         for x in (early, late):
             x -= np.floor(x)
             x -= 0.5
@@ -254,7 +258,7 @@ class _ToneFit:
         along = early @ self.weighted_envelope.T
         norm = (early * early) @ self.weights
         projection = early @ self.weighted_y
-        norm -= np.einsum('ij,ij->i', along, along)
+        norm -= np.einsum('...i,...i->...', along, along)
         return self.null_rss - projection * projection / np.maximum(norm, 1e-300)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
@@ -294,19 +298,17 @@ class _ToneFit:
         # Steps that move the window's ends by half a row, over at least +-_START_REACH cycles.
         step = max(0.5 * cycles / self.rows, _START_REACH / _START_STEPS)
         tried = cycles + step * np.arange(-_START_STEPS, _START_STEPS + 1)
-        phases = np.arange(_PHASES) / (2.0 * _PHASES)
         shape = (len(tried), len(exposures), _PHASES)
-        rss = self._rss(np.repeat(tried, len(exposures) * _PHASES), np.tile(phases, len(tried) * len(exposures)),
-                        exposure_rows if exposure_rows is not None
-                        else np.tile(np.repeat(exposures, _PHASES), len(tried))).reshape(shape)
+        rss = self._rss(np.broadcast_to(tried[:, None, None], shape), np.broadcast_to(_PHASE_SCAN, shape),
+                        exposures[:, None])
         at, row, best = np.unravel_index(int(np.argmin(rss)), shape)
-        left, centre, right = rss[at, row, best - 1], rss[at, row, best], rss[at, row, (best + 1) % _PHASES]
+        left, centre, right = rss[at, row, [best - 1, best, (best + 1) % _PHASES]].tolist()
         # The parabola through the best and its neighbours (the best is the least of the three).
         curvature = max(left + right - 2.0 * centre, 1e-300)
         place = 0.5 * (left - right) / curvature
         least = max(centre - 0.5 * curvature * place * place, 0.0)
         sigma2 = max(least / self.dof, 1e-15 * self.null_rss, 1e-300)
-        return _Start(float(tried[at]), float(phases[best] + place / (2.0 * _PHASES)), float(exposures[row]),
+        return _Start(float(tried[at]), float(_PHASE_SCAN[best] + place / (2.0 * _PHASES)), float(exposures[row]),
                       float(self.null_rss - least) / (2.0 * sigma2), tried, rss.min(axis=(1, 2)))
 
     def peak(self, start: _Start, free: bool) -> _Peak | None:
@@ -336,8 +338,8 @@ class _ToneFit:
                        exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
         """Residual sum of squares at each of ``cycles`` with the phase at its best among ``phase`` and
         one and two ``spread`` either side, and where the best is the outermost (it may lie further out)."""
-        rss = self._rss(np.repeat(cycles, len(_PHASE_STEPS)), (phase[:, None] + spread * _PHASE_STEPS).ravel(),
-                        exposure_rows).reshape(-1, len(_PHASE_STEPS))
+        tried = phase[:, None] + spread * _PHASE_STEPS
+        rss = self._rss(np.broadcast_to(cycles[:, None], tried.shape), tried, exposure_rows)
         best = np.argmin(rss, axis=1)
         return rss[np.arange(len(cycles)), best], (best == 0) | (best == len(_PHASE_STEPS) - 1)
 
@@ -383,6 +385,10 @@ class _ToneFit:
         return grid, log_density, float(rss.min())
 
 
+def _sinc(x: float) -> float:
+    return math.sin(math.pi * x) / (math.pi * x) if x != 0.0 else 1.0
+
+
 def _whitening(gram: np.ndarray) -> np.ndarray:
     """The inverse of the Cholesky factor of a 3x3 Gram matrix, in closed form (numpy's factorisations
     cost more than the whole envelope)."""
@@ -425,13 +431,12 @@ def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, l
     # Below _FLOOR there is nothing to count (and the exponentials stay finite).
     log_density = np.maximum(log_density - log_density.max(), _FLOOR)
     step = frequency[1] - frequency[0]
-    rate = np.diff(log_density) / step
     cumulative = np.zeros(len(frequency))
-    np.cumsum(_exponential_mass(log_density[:-1], rate, step), out=cumulative[1:])
-    edges = np.minimum(np.maximum(np.concatenate([low, high, search]), search[0]), search[1])
-    segment = np.minimum(np.maximum(((edges - frequency[0]) // step).astype(int), 0), len(rate) - 1)
-    into = np.minimum(np.maximum(edges - frequency[segment], 0.0), step)
-    cdf = cumulative[segment] + _exponential_mass(log_density[segment], rate[segment], into)
+    np.cumsum(_exponential_mass(log_density[:-1], np.diff(log_density), step), out=cumulative[1:])
+    edges = np.clip(np.concatenate([low, high, search]), search[0], search[1])
+    # Within a grid step the cumulative is taken as linear: where a band's edge falls in a tail, that
+    # gives the band around the peak a little less and "none" a little more than the exponential would.
+    cdf = np.interp(edges, frequency, cumulative)
     for end, beyond in ((0, edges < frequency[0]), (-1, edges > frequency[-1])):
         if log_density[end] < _NEGLIGIBLE or not beyond.any():
             continue
@@ -446,8 +451,7 @@ def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, l
     return np.log(np.append(band, max(1.0 - float(band.sum()), 1e-300)))
 
 
-def _exponential_mass(log_start: np.ndarray, rate: np.ndarray, length: np.ndarray | float) -> np.ndarray:
-    """Integral over [0, length] of exp(log_start + rate x)."""
-    rise = rate * length
+def _exponential_mass(log_start: np.ndarray, rise: np.ndarray, length: float) -> np.ndarray:
+    """Integral over [0, length] of exp(log_start + rise x / length)."""
     steep = np.abs(rise) > 1e-6
     return np.exp(log_start) * length * np.where(steep, np.expm1(rise) / np.where(steep, rise, 1.0), 1.0 + 0.5 * rise)
