@@ -59,7 +59,8 @@ _MIN_SPAN = 7.0
 # a decision leaves to the others): at the grid's ends, for the tails beyond, and on the grid.
 _NEGLIGIBLE = -15.0
 _FLOOR = -50.0
-# How well an edge is placed when the exposure is unknown, in rows (blur may pass for a longer exposure).
+# How well an edge is placed (standard deviation) when all that places it is a gap of this many rows
+# (uniform over it), as when the exposure is shorter than a row or (a row) unknown.
 _EDGE_QUANTUM = 0.3
 # Least share of the fundamental that the exposure lets through (|sinc(exposure x frequency)|): what is
 # left of stripes averaged over about a whole period is shaped by the exact exposure more than by the
@@ -123,8 +124,10 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if peak is None:
         return no_evidence(candidates, mapped, prior, 'the stripes fit no square wave')
     # Unknown, the exposure may pass for blur across rows: edges are then known to a row, the period to a
-    # row over the window.
-    quantum = _EDGE_QUANTUM * peak.cycles / fit.rows if exposure is None else 0.0
+    # row over the window. Shorter than a row, edges in the gaps between the rows' exposures move unseen
+    # (the likelihood has plateaus that no grid of phases follows): the period is known to a gap.
+    gap = 1.0 if exposure is None else max(1.0 - peak.exposure_rows, 0.0)
+    quantum = _EDGE_QUANTUM * gap * peak.cycles / fit.rows
     likelihood = fit.likelihood(peak, quantum)
     if likelihood is None:
         return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
