@@ -78,7 +78,8 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     ``min_periods`` stripe periods in view give no evidence: the envelope cannot be
     told from the stripes over less. ``exposure`` (s), when known, is fitted with
     exactly; unknown, it cannot be told from blur across rows, and edges are then
-    only trusted to the nearest row (a much wider frequency uncertainty).
+    only trusted to the nearest row (a much wider frequency uncertainty); shorter
+    than a row, edges between the rows' exposures are trusted to that gap.
     """
     if not row_time > 0.0:
         raise ValueError(f'row_time must be positive, got {row_time}')
