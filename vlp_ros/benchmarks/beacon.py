@@ -412,7 +412,7 @@ def main(argv: list[str] | None = None) -> None:
     track_results = {}
     for (lo, hi), (name, weight) in itertools.product(TRACK_SPANS, TRACK_PRIORS):
         tally, log = Tally(), TrackLog()
-        for _ in range(max(per_row // 2, 1)):
+        for _ in range(per_row):
             track_trial(rng, replace(PACKET_BASE, span=(lo, hi)), tally, log, packet_timer, weight)
         within, half, any_part = (100.0 * np.mean(np.array(v) <= TRACK_FRAMES) if v else 0.0
                                   for v in (log.tracker, log.bound_half, log.bound_any))
