@@ -42,9 +42,9 @@ _START_REACH = 0.05
 # exposures look the same (kappa and kappa + 1 give one shape, 1 - kappa its mirror).
 _KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
 _MIN_EXPOSURE_ROWS = 0.05
-# Phases tried at each frequency of the grid, in spreads of the phase from the fit's line: off by half
-# a spread, the likelihood is off by 1/8 nat.
-_PHASE_STEPS = np.arange(-2.0, 3.0)
+# Phases tried at each frequency of the grid, in spreads of the phase from the fit's line (the spread
+# widens where the best is an outer one): off by half a spread, the likelihood is off by 1/8 nat.
+_PHASE_STEPS = np.array([-1.0, 0.0, 1.0])
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
 _GRID = np.linspace(-10.0, 10.0, 31)
@@ -341,7 +341,7 @@ class _ToneFit:
     def _phase_profile(self, cycles: np.ndarray, phase: np.ndarray, spread: float,
                        exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
         """Residual sum of squares at each of ``cycles`` with the phase at its best among ``phase`` and
-        one and two ``spread`` either side, and where the best is the outermost (it may lie further out)."""
+        ``spread`` either side, and where the best is an outer one (it may lie further out)."""
         tried = phase[:, None] + spread * _PHASE_STEPS
         rss = self._rss(np.broadcast_to(cycles[:, None], tried.shape), tried, exposure_rows)
         best = np.argmin(rss, axis=1)
