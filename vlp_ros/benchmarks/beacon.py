@@ -289,9 +289,9 @@ def sampled_chips(scene: Scene, frame: RenderedFrame, profile: RowProfile) -> tu
 def ideal_frames(lamp_id: int, windows: list[tuple[float, float]], unmapped_weight: float, need: float) -> int:
     """Frames after which a noiseless decoder is certain of ``lamp_id`` (``len(windows) + 1``: never).
 
-    It reads every chip of which more than ``need`` lies in a frame's window exactly, but, as the
-    decoder, not where in the packet the window lies: each frame weighs every ID by the packet
-    shifts that fit its chips. The same prior and confidence as the decoder's.
+    It reads exactly every chip of which at least ``need`` (0: any part) lies in a frame's window,
+    but, as the decoder, not where in the packet the window lies: each frame weighs every ID by
+    the packet shifts that fit its chips. The same prior and confidence as the decoder's.
     """
     candidates = np.arange(len(CODEBOOK))
     mapped = np.isin(candidates, MAP_IDS)
