@@ -14,7 +14,9 @@ def test_benchmark_prints_tables_targets_and_times(capsys: pytest.CaptureFixture
     # The tracker table holds what a noiseless decoder could do with the same frames.
     assert 'bound %' in out.split('across frames (tracker')[1].split('== tone')[0]
     targets = out.split('== targets ==')[1]
-    assert targets.count('PASS') + targets.count('FAIL') == 10
+    assert targets.count('PASS') + targets.count('FAIL') == 11
+    # The tone target also on the trials whose frequency the image decides.
+    assert 'exp>=row sinc>=.3' in out.split('tone mode, one frame')[1]
 
 
 def test_benchmark_rejects_no_trials() -> None:
