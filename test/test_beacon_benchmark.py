@@ -17,6 +17,8 @@ def test_benchmark_prints_tables_targets_and_times(capsys: pytest.CaptureFixture
     assert targets.count('PASS') + targets.count('FAIL') == 11
     # The tone target also on the trials whose frequency the image decides.
     assert 'exp>=row sinc>=.3' in out.split('tone mode, one frame')[1]
+    # Demosaiced Bayer frames (rows mixed with their neighbours) have a row of their own.
+    assert 'Bayer RGGB, demosaiced' in out.split('tone mode, one frame')[1]
 
 
 def test_benchmark_rejects_no_trials() -> None:

@@ -1,10 +1,12 @@
 """Tone-mode decoding: the lamp whose frequency band holds the stripes' frequency, or None."""
+import cv2
 import numpy as np
 import pytest
 from beacon_scenes import flat_profile, lamp_image
 
 from vlp_ros.beacon.decoding import UNMAPPED, decode_tone, row_profile
 from vlp_ros.beacon.encoding import Waveform, tone_waveform
+from vlp_ros.beacon.profile import RowProfile
 
 ROW_TIME = 2e-5
 # Lamps 200 Hz apart from 1 to 5 kHz, ids 10, 11, ...
@@ -129,3 +131,30 @@ def test_bad_inputs_are_rejected():
         decode_tone(profile, ROW_TIME, FREQUENCIES, 0.0)
     with pytest.raises(ValueError, match='exposure'):
         decode_tone(profile, ROW_TIME, FREQUENCIES, TOLERANCE, exposure=0.0)
+
+
+def demosaiced_profile(frequency, row_time, exposure, rows, seed):
+    """A white lamp's rows through an RGGB mosaic, demosaiced as the locator reads bayer_rggb8: each row's
+    luma mixes in its neighbours (w about 0.13 and 0.22 on alternate rows)."""
+    rng = np.random.default_rng(seed)
+    profile = flat_profile(tone_waveform(frequency, 0.7, offset=rng.uniform(0.0, 1e-3)), rows + 2, row_time,
+                           exposure, noise=0.3, rng=rng)
+    mosaic = np.repeat(np.rint(100.0 * profile.values)[:, None], 8, axis=1).astype(np.uint16)
+    luma = cv2.cvtColor(cv2.cvtColor(mosaic, cv2.COLOR_BayerBG2BGR), cv2.COLOR_BGR2GRAY)[1:-1, 2:-2]
+    return RowProfile(luma.mean(axis=1), np.full(rows, 100.0), np.zeros(rows), 0)
+
+
+def test_demosaiced_rows_give_the_lamp_or_no_id_never_a_wrong_one():
+    # Exposed for half of each 34.6 us row, 8 rows per period: the mix fills the gaps between the rows'
+    # exposures, which a model of unmixed rows reads as edges moved (towards a neighbouring band).
+    row_time, exposure = 3.46e-5, 0.53 * 3.46e-5
+    read = []
+    for seed in range(8):
+        reading = decode_tone(demosaiced_profile(3600.0, row_time, exposure, 47, seed), row_time, FREQUENCIES,
+                              TOLERANCE, exposure=exposure)
+        assert reading.lamp_id in (23, None)
+        read.append(reading.lamp_id)
+        midway = decode_tone(demosaiced_profile(3700.0, row_time, exposure, 47, seed), row_time, FREQUENCIES,
+                             TOLERANCE, exposure=exposure)
+        assert midway.lamp_id is None
+    assert read.count(23) >= 4

@@ -3,7 +3,8 @@
 Row r samples the light at ``r * row_time``, so a square wave of frequency f
 shows stripes of period ``1 / (f * row_time)`` rows. A zero-padded FFT of the
 profile finds the tone; a least-squares fit of the square wave as the rows see
-it (averaged over the exposure, on a quadratic envelope) finds the best
+it (averaged over the exposure, on a quadratic envelope; or, as demosaicing
+a Bayer mosaic does, mixed with the neighbouring rows) finds the best
 frequency; the likelihood of every frequency around it (phase, envelope and
 amplitude at their best, the noise level marginalised) then gives each lamp's
 band (its frequency +- the tolerance) its probability, and "some other
@@ -43,8 +44,9 @@ _START_REACH = 0.05
 _KAPPAS = np.array([0.03, 0.08, 0.15, 0.22, 0.3, 0.38, 0.46])
 _MIN_EXPOSURE_ROWS = 0.05
 # Phases tried at each frequency of the grid, in spreads of the phase from the fit's line (the spread
-# widens where the best is an outer one): off by half a spread, the likelihood is off by 1/8 nat.
-_PHASE_STEPS = np.array([-1.0, 0.0, 1.0])
+# widens where the best is an outer one). The spread is the unmixed fit's: mixed rows place the phase
+# more sharply, and lie off the line, so the steps are a third of it.
+_PHASE_STEPS = np.linspace(-1.0, 1.0, 7)
 # The likelihood is evaluated on a grid of +-10 scales around its peak, the scale being the spread of
 # the likelihood (remeasured on the grid, which is redone if needed) ...
 _GRID = np.linspace(-10.0, 10.0, 31)
@@ -66,6 +68,16 @@ _EDGE_QUANTUM = 0.3
 # left of stripes averaged over about a whole period is shaped by the exact exposure more than by the
 # frequency.
 _MIN_TRANSMISSION = 0.1
+# Colour sensors read through a Bayer mosaic mix each row with its neighbours when demosaicing (bilinear
+# luma: about [w, 1 - 2 w, w] with w 0.13 on one row, 0.22 on the next). Unmodelled, the mix moves the
+# edges' apparent places by up to a row, and short exposures the frequency by a band. Either camera is
+# a hypothesis: a row's own light, or mixed (w at its best of _MIXES on even and odd rows) with a small
+# prior weight, so that mixing counts where it fits clearly better and leaves unmixed frames as they were.
+_NEIGHBOURS = np.array([0.0, -1.0, 1.0])
+_MIX_LEVELS = np.linspace(0.0, 0.3, 5)
+# (1, w on even rows, w on odd rows), no mixing first.
+_MIXES = np.array([(1.0, even, odd) for even in _MIX_LEVELS for odd in _MIX_LEVELS])
+_MIXED_WEIGHT = 0.01
 
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
@@ -200,6 +212,7 @@ class _ToneFit:
 
     def _use(self, kept: np.ndarray) -> None:
         self.tau = (kept - 0.5 * (self.rows - 1)) / self.rows
+        self.even = (kept % 2 == 0).astype(float)
         self.sqrt_w = np.sqrt(self.w[kept])
         u = 2.0 * self.tau
         # Orthonormal (weighted) envelope basis (rows): projecting it out leaves what the tone must explain.
@@ -244,7 +257,9 @@ class _ToneFit:
 
     def _rss(self, cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray | float) -> np.ndarray:
         """Residual sum of squares of each (cycles, phase) (arrays of one shape) with the best envelope and
-        amplitude.
+        amplitude, as both cameras together have it: the rows' own light, or mixed with the neighbouring
+        rows' (the best of _MIXES), with prior weight _MIXED_WEIGHT; that is the rss whose likelihood
+        (noise level marginalised) is the sum of theirs.
 
         A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's
         integral, a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the
@@ -252,18 +267,29 @@ class _ToneFit:
         """
         early = np.multiply.outer(cycles, self.tau)
         early -= phase[..., None]
-        late = early + (cycles * exposure_rows / self.rows)[..., None]
+        # The row itself, the row before and the row after (axis -2).
+        early = early[..., None, :] + np.multiply.outer(cycles / self.rows, _NEIGHBOURS)[..., None]
+        late = early + (cycles * exposure_rows / self.rows)[..., None, None]
         for x in (early, late):
             x -= np.floor(x)
             x -= 0.5
             np.abs(x, out=x)
         early -= late
-        # Products of the weighted template with y (free of the envelope) and with the envelope.
+        # The row's own template, and what mixing in its neighbours adds per unit of w, on even and odd rows.
+        mixing = early[..., 1, :] + early[..., 2, :] - 2.0 * early[..., 0, :]
+        early[..., 1, :] = mixing * self.even
+        early[..., 2, :] = mixing - early[..., 1, :]
+        # Products of the weighted templates with y (free of the envelope), the envelope and each other.
         along = early @ self.weighted_envelope.T
-        norm = (early * early) @ self.weights
-        projection = early @ self.weighted_y
-        norm -= np.einsum('...i,...i->...', along, along)
-        return self.null_rss - projection * projection / np.maximum(norm, 1e-300)
+        gram = (early * self.weights) @ np.swapaxes(early, -1, -2) - along @ np.swapaxes(along, -1, -2)
+        # Every mix tried: explained = (m . y)^2 / |m|^2 for m = own + w_even even + w_odd odd.
+        projection = (early @ self.weighted_y) @ _MIXES.T
+        norm = np.sum((gram @ _MIXES.T) * _MIXES.T, axis=-2)
+        explained = projection * projection / np.maximum(norm, 1e-300)
+        own = np.maximum(self.null_rss - explained[..., 0], 1e-300)
+        mixed = np.maximum(self.null_rss - explained.max(axis=-1), 1e-300)
+        power = 0.5 * (self.dof + 1)
+        return mixed * (_MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient

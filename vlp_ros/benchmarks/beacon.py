@@ -1,7 +1,8 @@
 """Beacon decoding on simulated lamps: python -m vlp_ros.benchmarks.beacon [--trials N] [--seed S].
 
 Every trial renders one lamp with the frame simulator (vlp_ros.sim: exact disc,
-rolling shutter, blur, shot and read noise, saturation, bgr8) in a small ROI,
+rolling shutter, blur, shot and read noise, saturation, bgr8; one tone row
+renders a raw RGGB mosaic and demosaics it as the locator does) in a small ROI,
 builds the observation a detector would report from the ground truth, and runs
 the pipeline's calls: ``row_profile`` and ``decode_packet`` / ``decode_tone`` with
 nominal timing that is off (chip rate by up to 2 %, row time by up to 1 %; tone:
@@ -26,6 +27,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -75,6 +77,8 @@ class Condition:
     # tone's fundamental (|sinc(exposure x frequency)| >= 0.3): the trials whose frequency the
     # image decides (docs/beacon.md).
     decidable: bool = False
+    # A raw RGGB mosaic, demosaiced as the locator does for bayer_rggb8 (which mixes neighbouring rows).
+    bayer: bool = False
 
 
 PACKET_BASE = Condition()
@@ -143,16 +147,24 @@ def lamp_scene(rng: np.random.Generator, lamp_id: int, rows: float, waveform, co
     distance = float(np.ptp(rim[:, 1])) / rows
     lamp = replace(lamp, position=distance * axis)
     sim = SimLamp(lamp, waveform, peak_dn=condition.peak_dn)
-    sensor = SensorModel(row_time=row_time, exposure=exposure, full_well=condition.full_well)
+    sensor = SensorModel(row_time=row_time, exposure=exposure, full_well=condition.full_well,
+                         bayer='rggb' if condition.bayer else None)
     rim = CAMERA.project(pose.map_to_camera(lamp.rim_points(64)))
     size = int(np.ceil(np.ptp(rim, axis=0).max())) + 16
-    return Scene(CAMERA, pose, sim, sensor, lamp_roi(CAMERA, pose, lamp, size))
+    x0, y0, width, height = lamp_roi(CAMERA, pose, lamp, size)
+    if condition.bayer:
+        # An even origin keeps the roi's mosaic RGGB.
+        x0, y0, width, height = x0 - x0 % 2, y0 - y0 % 2, width + x0 % 2, height + y0 % 2
+    return Scene(CAMERA, pose, sim, sensor, (x0, y0, width, height))
 
 
 def observe(scene: Scene, rng: np.random.Generator) -> tuple[RenderedFrame, LampObservation | None]:
     """Render at a random time (random packet phase) and report what an ideal detector would."""
     frame = render_frame(scene.camera, scene.pose, [scene.sim], scene.sensor, rng.uniform(0.0, 1.0), rng,
                          roi=scene.roi)
+    if scene.sensor.bayer is not None:
+        # As image_conversion reads bayer_rggb8: OpenCV's bilinear demosaic.
+        frame = replace(frame, image=cv2.cvtColor(frame.image, cv2.COLOR_BayerBG2BGR))
     truth = frame.truth(scene.sim.lamp.id)
     if not truth.fully_inside:
         return frame, None
@@ -349,6 +361,7 @@ TONE_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
     ('tilt (deg)', [(f'{t:g}', replace(TONE_BASE, tilt_deg=(t, t))) for t in (0, 30, 60)]),
     ('exposure not given (periods)', [(f'{lo:g}-{hi:g}', replace(TONE_BASE, span=(lo, hi), exposure_given=False))
                                       for lo, hi in [(3.0, 4.0), (6.0, 10.0), (10.0, 16.0)]]),
+    ('Bayer RGGB, demosaiced (periods)', [('3-6', replace(TONE_BASE, span=(3.0, 6.0), bayer=True))]),
 ]
 
 HEADER = f'{"":<26}{"trials":>7}{"correct %":>10}{"unmapped %":>12}{"wrong":>7}'
