@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vlp_ros.small_arrays import median
+
 _COARSE_PHASES = 6
 # Chips of the window the coarse grid looks at, and the largest drift of its period steps across them.
 _FIRST_CHIPS = 24
@@ -78,11 +80,7 @@ def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
         return float('inf')
     d = z[1:] - z[:-1]
     inverse = 1.0 / np.maximum(w, 1e-12)
-    ratios = d * d / (inverse[:-1] + inverse[1:])
-    # The median in place: np.median's overhead dominates for a few hundred values.
-    n = len(ratios)
-    ratios.partition(((n - 1) // 2, n // 2))
-    return 0.5 * float(ratios[(n - 1) // 2] + ratios[n // 2]) / _CHI2_1_MEDIAN
+    return median(d * d / (inverse[:-1] + inverse[1:])) / _CHI2_1_MEDIAN
 
 
 def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
