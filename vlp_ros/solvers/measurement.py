@@ -165,6 +165,9 @@ def cross_matrix(v: np.ndarray) -> np.ndarray:
 
 def _lens_jacobian(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
     """d(pixel)/d(normalised) (N, 2, 2) at normalised points (N, 2)."""
+    if not camera.is_distorted:
+        # A pinhole maps normalised to pixel coordinates linearly: K's upper-left block.
+        return np.broadcast_to(camera.K[:2, :2], (len(normalized), 2, 2))
     columns = []
     for axis in range(2):
         step = np.zeros(2)
