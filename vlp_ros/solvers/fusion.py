@@ -29,7 +29,7 @@ from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, 
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
-from vlp_ros.solvers.refinement import Measurement, descend, linearize, refine_pose
+from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_minimum, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
 # Poses closer than this (m, rad) lead to the same minimum: follow only the cheapest.
@@ -93,6 +93,9 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
             cost > _HOPELESS_FACTOR * min((c for _, c in reached), default=np.inf)
 
     for start in _distinct_poses(_starts(measurements), coarse):
+        best = min((c for _, c in reached), default=np.inf)
+        if forecast_minimum(start, coarse) > FORECAST_MARGIN * _HOPELESS_FACTOR * best:
+            continue
         probe = descend(start, coarse, _PROBE_ITERATIONS, give_up=known_or_hopeless)
         if probe is not None and not any(_near(probe[0], minimum) for minimum, _ in reached):
             reached.append(probe)

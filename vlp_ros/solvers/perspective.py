@@ -41,7 +41,7 @@ from vlp_ros.solvers.candidates import PoseCandidate, distinct
 from vlp_ros.solvers.circle_pose import CirclePose, circle_poses, normalized_conic
 from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
 from vlp_ros.solvers.measurement import LampMeasurement, cross_matrix
-from vlp_ros.solvers.refinement import Measurement, forecast_minimum, linearize, refine_pose
+from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, forecast_minimum, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
 # Squared Mahalanobis separation (under the cheaper candidate's covariance) below
@@ -55,12 +55,6 @@ FRONTAL_SEPARATION_M2 = 25000.0
 # such a start either creeps on to that candidate (10-20 more iterations against a
 # gravity measurement) or stops at its own minimum, far over ``COST_GAP`` above it.
 HOPELESS_GAP = 25.0 * COST_GAP
-# A start whose Gauss-Newton forecast of its minimum exceeds this many times the hopeless
-# bar is dropped before refining. The forecast tracks the minimum reached within 1 %
-# (measured: 270 second starts of the accuracy benchmark, IMU up, 4K and 1080p), except for
-# starts that creep on to the other candidate, which are dropped after ``PATIENCE`` anyway:
-# the same starts are dropped either way, at one linearisation instead of four.
-HOPELESS_FORECAST_MARGIN = 2.0
 # Innovation chi-square gap between the two poses of a frontal-straddling pair beyond
 # which the up measurements single one out (the other's posterior weight < 1e-3).
 PAIR_RESOLVED_GAP = 2.0 * np.log(1000.0)
@@ -154,7 +148,7 @@ def _refined_with_up(starts: list[Pose], measurement: LampMeasurement,
     # The start that agrees best with the measured up first: it sets the bar for the other.
     for start in sorted(starts, key=lambda pose: _chi_square(up, pose)):
         best = min((c.cost for c in found), default=np.inf)
-        if found and forecast_minimum(start, [measurement, *up]) > HOPELESS_FORECAST_MARGIN * (best + HOPELESS_GAP):
+        if found and forecast_minimum(start, [measurement, *up]) > FORECAST_MARGIN * (best + HOPELESS_GAP):
             continue
         fit = refine_pose(start, [measurement], up, give_up=lambda pose, cost, best=best: cost > best + HOPELESS_GAP)
         if fit is not None:
