@@ -113,30 +113,16 @@ class LampMeasurement:
     def _rim(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # H = R^T A maps lamp-plane (x, y, 1) to rays, A's columns being the lamp's map x
         # and y axes and its centre relative to the camera; the rim's image is the conic
-        # C = H^-T Q H^-1, Q = diag(1, 1, -r^2). For a ray h: value v = h^T C h, half the
-        # pixel gradient P = G^T (C h)_xy with G = d normalised / d pixel, residual
-        # s = v / (2 |P|).
+        # C = H^-T Q H^-1, Q = diag(1, 1, -r^2); each rim ray's residual is its pixel
+        # distance from C (``_edge_residuals``).
         plane_axes = np.eye(3)
         plane_axes[:, 2] = self.lamp.position - position
         _, image_to_plane = cv2.invert(rotation.T @ plane_axes, flags=cv2.DECOMP_LU)
         q_diagonal = np.array([1.0, 1.0, -self.lamp.radius ** 2])
         conic = image_to_plane.T @ (q_diagonal[:, None] * image_to_plane)
         rays = self.rim_rays
-        g00, g01, g10, g11 = self._lens
-        c_h = rays @ conic
-        value = np.einsum('ni,ni->n', rays, c_h)
-        p0 = c_h[:, 0] * g00 + c_h[:, 1] * g10
-        p1 = c_h[:, 0] * g01 + c_h[:, 1] * g11
-        norm2 = p0 * p0 + p1 * p1
-        norm = np.sqrt(norm2)
-        residual = 0.5 * value / norm
-        # Exact derivative (it matters far from the minimum, where v is large):
-        # ds = a^T dC h, a = h / (2|P|) - s (G P, 0) / |P|^2, and along each of the six
-        # perturbations dH of H, dC = -(M + M^T) with M = C dH H^-1.
-        a = rays * (0.5 / norm)[:, None]
-        pull = residual / norm2
-        a[:, 0] -= pull * (g00 * p0 + g01 * p1)
-        a[:, 1] -= pull * (g10 * p0 + g11 * p1)
+        residual, a = _edge_residuals(rays, rays @ conic, self._lens)
+        # Along each of the six perturbations dH of H, dC = -(M + M^T) with M = C dH H^-1.
         d_h = np.zeros((6, 3, 3))
         d_h[:3, :, 2] = -rotation
         d_h[3:] = -(rotation.T @ _AXIS_SKEWS) @ plane_axes
@@ -156,6 +142,29 @@ class LampMeasurement:
         jacobian[:, :3] = -to_pixel
         jacobian[:, 3:] = to_pixel @ cross_matrix(offset)
         return pixel.reshape(2) - self.marker_pixel, jacobian
+
+
+def _edge_residuals(rays: np.ndarray, c_h: np.ndarray,
+                    lens: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Each ray's signed pixel distance s from the rim conic C (``c_h`` = C h per ray), and the
+    vector a with ds = a^T dC h for any change dC of the conic.
+
+    v = h^T C h, P = G^T (C h)_xy half the pixel gradient (G = d normalised / d pixel,
+    ``lens`` its four entries per ray), s = v / (2 |P|). The derivative is exact (it matters
+    far from the minimum, where v is large): a = h / (2|P|) - s (G P, 0) / |P|^2.
+    """
+    g00, g01, g10, g11 = lens
+    value = np.einsum('ni,ni->n', rays, c_h)
+    p0 = c_h[:, 0] * g00 + c_h[:, 1] * g10
+    p1 = c_h[:, 0] * g01 + c_h[:, 1] * g11
+    norm2 = p0 * p0 + p1 * p1
+    norm = np.sqrt(norm2)
+    residual = 0.5 * value / norm
+    a = rays * (0.5 / norm)[:, None]
+    pull = residual / norm2
+    a[:, 0] -= pull * (g00 * p0 + g01 * p1)
+    a[:, 1] -= pull * (g10 * p0 + g11 * p1)
+    return residual, a
 
 
 def cross_matrix(v: np.ndarray) -> np.ndarray:
@@ -228,18 +237,7 @@ class LampMeasurements:
         image_to_plane = np.linalg.inv(rotation.T @ plane_axes)
         conics = image_to_plane.transpose(0, 2, 1) @ (self._q_diagonals[:, :, None] * image_to_plane)
         rays, lamp = self._rays, self._lamp_of_point
-        g00, g01, g10, g11 = self._lens
-        c_h = np.einsum('ni,nij->nj', rays, conics[lamp])
-        value = np.einsum('ni,ni->n', rays, c_h)
-        p0 = c_h[:, 0] * g00 + c_h[:, 1] * g10
-        p1 = c_h[:, 0] * g01 + c_h[:, 1] * g11
-        norm2 = p0 * p0 + p1 * p1
-        norm = np.sqrt(norm2)
-        residual = 0.5 * value / norm
-        a = rays * (0.5 / norm)[:, None]
-        pull = residual / norm2
-        a[:, 0] -= pull * (g00 * p0 + g01 * p1)
-        a[:, 1] -= pull * (g10 * p0 + g11 * p1)
+        residual, a = _edge_residuals(rays, np.einsum('ni,nij->nj', rays, conics[lamp]), self._lens)
         d_h = np.zeros((count, 6, 3, 3))
         d_h[:, :3, :, 2] = -rotation
         d_h[:, 3:] = -(rotation.T @ _AXIS_SKEWS)[None] @ plane_axes[:, None]
