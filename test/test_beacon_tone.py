@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from beacon_scenes import flat_profile, lamp_image
 
+from vlp_ros.beacon import tone
 from vlp_ros.beacon.decoding import UNMAPPED, decode_tone, row_profile
 from vlp_ros.beacon.encoding import Waveform, tone_waveform
 from vlp_ros.beacon.profile import RowProfile
@@ -158,3 +159,36 @@ def test_demosaiced_rows_give_the_lamp_or_no_id_never_a_wrong_one():
                              TOLERANCE, exposure=exposure)
         assert midway.lamp_id is None
     assert read.count(23) >= 4
+
+
+@pytest.mark.parametrize('stride', [1, 2, 5])
+def test_each_mix_is_fitted_exactly(stride):
+    # The fit takes each mix's |m|^2 and m . y from products of a few templates; here every mix is built
+    # row by row and fitted by least squares with the envelope.
+    rng = np.random.default_rng(stride)
+    rows, exposure_rows = 90, 1.3
+    z, w = rng.normal(size=rows), rng.uniform(0.5, 1.0, rows)
+    fit = tone._ToneFit(z, w)
+    fit._use(stride)
+    cycles, phase = rng.uniform(3.0, 9.0, (4, 2)), rng.uniform(0.0, 1.0, (4, 2))
+    kept = np.arange(0, rows, stride)
+    u = 2.0 * (kept - 0.5 * (rows - 1)) / rows
+    sqrt_w = np.sqrt(w[kept])
+    envelope = np.stack([np.ones_like(u), u, u * u], axis=1)
+    expected = np.empty(cycles.shape)
+    for index in np.ndindex(cycles.shape):
+        start = cycles[index] * ((np.arange(-1, rows + 1) - 0.5 * (rows - 1)) / rows) - phase[index]
+        # A row's mean of the square wave over its exposure, up to scale.
+        mean = np.abs(start - np.rint(start)) - np.abs(start + cycles[index] * exposure_rows / rows
+                                                        - np.rint(start + cycles[index] * exposure_rows / rows))
+        residuals = []
+        for _, even, odd in tone._MIXES:
+            mix = np.where(np.arange(rows) % 2 == 0, even, odd)
+            seen = (1.0 - 2.0 * mix) * mean[1:-1] + mix * (mean[:-2] + mean[2:])
+            design = np.column_stack([envelope, seen[kept]]) * sqrt_w[:, None]
+            residual = z[kept] * sqrt_w - design @ np.linalg.lstsq(design, z[kept] * sqrt_w, rcond=None)[0]
+            residuals.append(residual @ residual)
+        own, mixed = residuals[0], min(residuals)
+        power = 0.5 * (fit.dof + 1)
+        expected[index] = mixed * (tone._MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
+    np.testing.assert_allclose(fit._rss(cycles, phase, exposure_rows), expected, rtol=1e-9)

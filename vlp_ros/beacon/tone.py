@@ -73,10 +73,16 @@ _MIN_TRANSMISSION = 0.1
 # edges' apparent places by up to a row, and short exposures the frequency by a band. Either camera is
 # a hypothesis: a row's own light, or mixed (w at its best of _MIXES on even and odd rows) with a small
 # prior weight, so that mixing counts where it fits clearly better and leaves unmixed frames as they were.
-_NEIGHBOURS = np.array([0.0, -1.0, 1.0])
 _MIX_LEVELS = np.linspace(0.0, 0.3, 5)
 # (1, w on even rows, w on odd rows), no mixing first.
 _MIXES = np.array([(1.0, even, odd) for even in _MIX_LEVELS for odd in _MIX_LEVELS])
+# |m|^2 of each mix, from the products of its templates (the row's own, mixing on even rows, on odd rows):
+# each pair's coefficient. The envelope's share of a pair's product is the sum of the two templates'
+# envelope coefficients multiplied (_LEFT with _RIGHT, as _rss lays them out).
+_GRAM_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (2, 2), (1, 2))
+_MIX_SQUARES = np.array([(2.0 - (i == j)) * _MIXES[:, i] * _MIXES[:, j] for i, j in _GRAM_PAIRS])
+_LEFT, _RIGHT = (np.array([4 * pair[side] + k for pair in _GRAM_PAIRS for k in range(3)]) for side in (0, 1))
+_ENVELOPE_SQUARES = np.repeat(_MIX_SQUARES, 3, axis=0)
 _MIXED_WEIGHT = 0.01
 
 
@@ -208,11 +214,15 @@ class _ToneFit:
     def __init__(self, z: np.ndarray, w: np.ndarray) -> None:
         self.rows = len(z)
         self.z, self.w = z, w
-        self._use(np.arange(self.rows))
+        self._use(1)
 
-    def _use(self, kept: np.ndarray) -> None:
+    def _use(self, stride: int) -> None:
+        kept = np.arange(0, self.rows, stride)
         self.tau = (kept - 0.5 * (self.rows - 1)) / self.rows
-        self.even = (kept % 2 == 0).astype(float)
+        # Templates are taken at every row from the one before the first kept to the one after the last, a
+        # kept row's own and its neighbours' being views of them (about three per kept row, up to stride 3).
+        self.tau_around = (np.arange(-1, kept[-1] + 2) - 0.5 * (self.rows - 1)) / self.rows
+        self.before, self.at, self.after = (slice(shift, shift + stride * len(kept), stride) for shift in range(3))
         self.sqrt_w = np.sqrt(self.w[kept])
         u = 2.0 * self.tau
         # Orthonormal (weighted) envelope basis (rows): projecting it out leaves what the tone must explain.
@@ -222,9 +232,15 @@ class _ToneFit:
         y = self.z[kept] * self.sqrt_w
         self.y = y - (basis @ y) @ basis
         self.null_rss = float(self.y @ self.y)
-        self.weights = self.sqrt_w * self.sqrt_w
-        self.weighted_envelope = basis * self.sqrt_w
         self.weighted_y = self.y * self.sqrt_w
+        # What _rss multiplies the templates with: the weighted envelope and y (the mixing template's on even
+        # and odd rows apart), and the weights.
+        parity = np.equal.outer([0, 1], kept % 2)
+        products = np.vstack([basis * self.sqrt_w, self.weighted_y])
+        self.row_products = products.T
+        self.mixing_products = (products * parity[:, None]).reshape(8, -1).T
+        self.weights = self.sqrt_w * self.sqrt_w
+        self.parities = (parity * self.weights).T
         self.dof = len(kept) - _PARAMETERS
 
     def thin(self, cycles: float, exposure_rows: float) -> None:
@@ -233,7 +249,7 @@ class _ToneFit:
         stride = min(int(np.ceil(self.rows / _MAX_ROWS)), int(self.rows / cycles / _MIN_ROWS_PER_PERIOD),
                      int(exposure_rows))
         if stride > 1:
-            self._use(np.arange(0, self.rows, stride))
+            self._use(stride)
 
     def spectral_peak(self, low: float, high: float) -> float | None:
         """Cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles (the zero-padded
@@ -265,31 +281,36 @@ class _ToneFit:
         integral, a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the
         template, which the amplitude absorbs).
         """
-        early = np.multiply.outer(cycles, self.tau)
-        early -= phase[..., None]
-        # The row itself, the row before and the row after (axis -2).
-        early = early[..., None, :] + np.multiply.outer(cycles / self.rows, _NEIGHBOURS)[..., None]
-        late = early + (cycles * exposure_rows / self.rows)[..., None, None]
+        # One row per (cycles, phase): matrix products of 2-d arrays go to BLAS.
+        shape = cycles.shape
+        cycles = cycles.ravel()
+        early = np.multiply.outer(cycles, self.tau_around)
+        early -= phase.reshape(-1, 1)
+        late = early + (cycles * np.broadcast_to(exposure_rows, shape).ravel() / self.rows)[:, None]
+        # |x - rint(x)| is that triangle wave less 0.5; the sign of the difference is the amplitude's.
         for x in (early, late):
-            x -= np.floor(x)
-            x -= 0.5
+            x -= np.rint(x)
             np.abs(x, out=x)
         early -= late
-        # The row's own template, and what mixing in its neighbours adds per unit of w, on even and odd rows.
-        mixing = early[..., 1, :] + early[..., 2, :] - 2.0 * early[..., 0, :]
-        early[..., 1, :] = mixing * self.even
-        early[..., 2, :] = mixing - early[..., 1, :]
-        # Products of the weighted templates with y (free of the envelope), the envelope and each other.
-        along = early @ self.weighted_envelope.T
-        gram = (early * self.weights) @ np.swapaxes(early, -1, -2) - along @ np.swapaxes(along, -1, -2)
-        # Every mix tried: explained = (m . y)^2 / |m|^2 for m = own + w_even even + w_odd odd.
-        projection = (early @ self.weighted_y) @ _MIXES.T
-        norm = np.sum((gram @ _MIXES.T) * _MIXES.T, axis=-2)
+        # The row's own template, and what mixing in its neighbours adds per unit of w.
+        row = early[:, self.at]
+        mixing = early[:, self.before] + early[:, self.after]
+        mixing -= 2.0 * row
+        # Products of the weighted templates (the row's own, mixing on even rows, on odd rows) with the
+        # envelope and y (free of the envelope; four columns each), and with each other: the row's own enters
+        # every mix once, and even and odd rows meet only in the envelope.
+        along = np.concatenate([row @ self.row_products, mixing @ self.mixing_products], axis=1)
+        # Every mix tried: explained = (m . y)^2 / |m|^2 for m = row + w_even even + w_odd odd.
+        projection = along[:, 3::4] @ _MIXES.T
+        norm = ((row * mixing) @ self.parities) @ _MIX_SQUARES[1:3]
+        norm += ((mixing * mixing) @ self.parities) @ _MIX_SQUARES[3:5]
+        norm += ((row * row) @ self.weights)[:, None]
+        norm -= (along[:, _LEFT] * along[:, _RIGHT]) @ _ENVELOPE_SQUARES
         explained = projection * projection / np.maximum(norm, 1e-300)
-        own = np.maximum(self.null_rss - explained[..., 0], 1e-300)
-        mixed = np.maximum(self.null_rss - explained.max(axis=-1), 1e-300)
+        own = np.maximum(self.null_rss - explained[:, 0], 1e-300)
+        mixed = np.maximum(self.null_rss - explained.max(axis=1), 1e-300)
         power = 0.5 * (self.dof + 1)
-        return mixed * (_MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
+        return (mixed * (_MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)).reshape(shape)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient
