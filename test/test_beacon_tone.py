@@ -192,3 +192,15 @@ def test_each_mix_is_fitted_exactly(stride):
         power = 0.5 * (fit.dof + 1)
         expected[index] = mixed * (tone._MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
     np.testing.assert_allclose(fit._rss(cycles, phase, exposure_rows), expected, rtol=1e-9)
+
+
+def test_a_plateau_of_peaks_gives_no_id():
+    # A demosaiced lamp at an unmapped 6.9 kHz over 16 rows (4.2 rows per period, exposed 1.09 rows): the
+    # mixed rows fit everything from 6.8 to 7.1 kHz about as well, and the grid, narrowed onto the peak
+    # near 7 kHz, saw none of the others (this read lamp 30 at 7 kHz, 0.99999); its earlier passes did.
+    sums = [1064, 1094, 1002, 1847, 2496, 2101, 1429, 2077, 2839, 2284, 1437, 1669, 2314, 1071, 536, 432]
+    pixels = np.array([6, 9, 11, 13, 14, 16, 16, 16, 16, 16, 16, 14, 13, 7, 6, 4], dtype=float)
+    profile = RowProfile(np.array(sums) / pixels, pixels, np.zeros(len(pixels)), 0)
+    row_time = 3.4585e-5
+    lamps = {k: 1000.0 + 200.0 * k for k in range(46)}
+    assert decode_tone(profile, row_time, lamps, TOLERANCE, exposure=3.7857e-5).lamp_id is None

@@ -150,10 +150,14 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     likelihood = fit.likelihood(peak, quantum)
     if likelihood is None:
         return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
-    grid, log_density, least = likelihood
-    # A frequency of the scan beyond the grid that fits nearly as well: the likelihood has other peaks.
-    beyond = (start.tried < grid[0]) | (start.tried > grid[-1])
-    if np.any(beyond & (start.rss < least * np.exp(2.0 * _GRID_DROP / (fit.dof + 1)))):
+    grid, log_density, least = likelihood.grid, likelihood.log_density, likelihood.least
+    # A frequency beyond the grid that fits nearly as well, of the first scan or of an earlier grid (these
+    # with the grid's phases: a rugged plateau of peaks can leave the last grid on one of them, its t
+    # tails hiding the others): the likelihood has other peaks.
+    tried = np.concatenate([start.tried, likelihood.tried])
+    beyond = (tried < grid[0]) | (tried > grid[-1])
+    rss = np.concatenate([start.rss, likelihood.rss])
+    if np.any(beyond & (rss < least * np.exp(2.0 * _GRID_DROP / (fit.dof + 1)))):
         return no_evidence(candidates, mapped, prior, 'the stripes fit frequencies apart about as well')
     log_mass = _log_band_masses(grid / duration, log_density, fit.dof, centres - tolerance_hz,
                                 centres + tolerance_hz, search)
@@ -202,6 +206,18 @@ class _Peak:
     scale: float
     slope: float
     phase_spread: float
+
+
+@dataclass(frozen=True)
+class _Likelihood:
+    """Cycles per window on a grid, the log likelihood of each (relative to the best) and the least
+    residual sum of squares; and every cycles that the grid's passes tried, with its residual."""
+
+    grid: np.ndarray
+    log_density: np.ndarray
+    least: float
+    tried: np.ndarray
+    rss: np.ndarray
 
 
 class _ToneFit:
@@ -394,11 +410,12 @@ class _ToneFit:
         best = np.argmin(rss, axis=1)
         return rss[np.arange(len(cycles)), best], (best == 0) | (best == len(_PHASE_STEPS) - 1)
 
-    def likelihood(self, peak: _Peak, quantum: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    def likelihood(self, peak: _Peak, quantum: float) -> _Likelihood | None:
         """Cycles per window on a grid around the ``peak``, the log likelihood of each (phase, envelope
         and amplitude at their best, the noise level marginalised; blurred by ``quantum`` cycles) and the
-        least residual sum of squares; None if no grid resolves it."""
+        least residual sum of squares, with all that the passes tried; None if no grid resolves it."""
         centre, scale, spread = peak.cycles, max(peak.scale, quantum), peak.phase_spread
+        passes = []
         for _ in range(_PASSES):
             grid = centre + scale * _GRID
             if grid[0] <= 0.0:
@@ -406,6 +423,7 @@ class _ToneFit:
             # Each frequency's best phase lies near the regression line through the peak.
             rss, cornered = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
                                                 peak.exposure_rows)
+            passes.append((grid, rss))
             log_density = -0.5 * (self.dof + 1) * np.log(np.maximum(rss, 1e-300))
             log_density -= log_density.max()
             density = np.exp(log_density)
@@ -433,7 +451,8 @@ class _ToneFit:
         if quantum > 0.0:
             kernel = np.exp(-0.5 * (np.subtract.outer(grid, grid) / quantum) ** 2)
             log_density = np.log(np.maximum(kernel @ density, 1e-300))
-        return grid, log_density, float(rss.min())
+        tried, tried_rss = (np.concatenate(arrays) for arrays in zip(*passes))
+        return _Likelihood(grid, log_density, float(rss.min()), tried, tried_rss)
 
 
 def _sinc(x: float) -> float:
