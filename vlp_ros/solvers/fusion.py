@@ -29,7 +29,7 @@ from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, 
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
-from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_minimum, linearize, refine_pose
+from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_from, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
 # Poses closer than this (m, rad) lead to the same minimum: follow only the cheapest.
@@ -92,9 +92,9 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
         return any(_near(pose, minimum) for minimum, _ in reached) or \
             cost > _HOPELESS_FACTOR * min((c for _, c in reached), default=np.inf)
 
-    for start in _distinct_poses(_starts(measurements), coarse):
+    for start, forecast in _distinct_poses(_starts(measurements), coarse):
         best = min((c for _, c in reached), default=np.inf)
-        if forecast_minimum(start, coarse) > FORECAST_MARGIN * _HOPELESS_FACTOR * best:
+        if forecast > FORECAST_MARGIN * _HOPELESS_FACTOR * best:
             continue
         probe = descend(start, coarse, _PROBE_ITERATIONS, give_up=known_or_hopeless)
         if probe is not None and not any(_near(probe[0], minimum) for minimum, _ in reached):
@@ -140,21 +140,22 @@ def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Po
     return poses
 
 
-def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[Pose]:
-    """Poses with a finite joint cost, cheapest first, one per neighbourhood."""
+def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[tuple[Pose, float]]:
+    """Poses with a finite joint cost, cheapest first, one per neighbourhood, each with the
+    chi-square its Gauss-Newton model forecasts (from the same linearisation)."""
     scored = []
     for start in starts:
         try:
-            residuals, _ = linearize(measurements, start)
+            residuals, jacobian = linearize(measurements, start)
         except np.linalg.LinAlgError:
             continue
         cost = float(residuals @ residuals)
         if np.isfinite(cost):
-            scored.append((cost, start))
-    kept: list[Pose] = []
-    for _, start in sorted(scored, key=lambda item: item[0]):
-        if not any(_near(start, k) for k in kept):
-            kept.append(start)
+            scored.append((cost, start, forecast_from(residuals, jacobian)))
+    kept: list[tuple[Pose, float]] = []
+    for _, start, forecast in sorted(scored, key=lambda item: item[0]):
+        if not any(_near(start, k) for k, _ in kept):
+            kept.append((start, forecast))
     return kept
 
 

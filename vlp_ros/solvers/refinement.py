@@ -79,7 +79,11 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
 def forecast_minimum(initial: Pose, measurements: Sequence[Measurement]) -> float:
     """The chi-square that the Gauss-Newton model at ``initial`` forecasts for the nearest
     minimum: one linearisation, against the several iterations of reaching it."""
-    residuals, jacobian = linearize(measurements, initial)
+    return forecast_from(*linearize(measurements, initial))
+
+
+def forecast_from(residuals: np.ndarray, jacobian: np.ndarray) -> float:
+    """``forecast_minimum`` from a linearisation already at hand."""
     gradient = jacobian.T @ residuals
     try:
         decrease = gradient @ np.linalg.solve(jacobian.T @ jacobian, gradient)
