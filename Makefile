@@ -7,7 +7,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.requirements.stamp
 BUILT := install/vlp_ros/share/vlp_ros/package.xml
-SOURCES := $(shell find vlp_ros config launch resource -type f -not -name '*.pyc') setup.py setup.cfg package.xml
+SOURCES := $(shell find vlp_ros config launch resource -type f -not -path '*/__pycache__/*') setup.py setup.cfg package.xml
 RUN := source scripts/setup_env.sh &&
 
 .PHONY: all venv build test demo bench clean
@@ -22,8 +22,12 @@ $(STAMP): requirements/ros.txt requirements/tools.txt requirements/constraints.t
 
 venv: $(STAMP)
 
+# Numba caches machine code beside each copy of the modules: the installed one, which
+# the nodes run, and the source tree, which tests started from the root import.
 $(BUILT): $(STAMP) $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
+	$(RUN) cd build && python -m vlp_ros.compile_kernels
+	$(RUN) python -m vlp_ros.compile_kernels
 	touch $@
 
 build: $(BUILT)
