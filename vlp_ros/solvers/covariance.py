@@ -7,10 +7,10 @@ left). With residuals already divided by their sigmas, the covariance of
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from vlp_ros.pose import Pose
+from vlp_ros.solvers.fit_kernels import perturb
 
 # Beyond this condition number of J^T J scaled to unit diagonal (units cancel)
 # some pose direction is not observed to first order (e.g. an exactly frontal
@@ -20,8 +20,10 @@ _MAX_CONDITION = 1e12
 
 def perturbed(pose: Pose, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rotation, position) of ``pose`` moved by ``delta`` = (dx, dy, dz, rotation vector)."""
-    left, _ = cv2.Rodrigues(np.asarray(delta[3:], dtype=float))
-    return left @ pose.rotation, pose.position + delta[:3]
+    rotation, position = np.empty((3, 3)), np.empty(3)
+    perturb(np.ascontiguousarray(pose.rotation), np.ascontiguousarray(pose.position),
+            np.ascontiguousarray(delta, dtype=float), rotation, position)
+    return rotation, position
 
 
 def covariance_from_jacobian(jacobian: np.ndarray) -> np.ndarray:

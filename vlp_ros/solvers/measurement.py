@@ -10,26 +10,18 @@ lens distortion costs nothing per iteration. The first-order error is
 ~ sigma^2 / (ellipse radius): 1e-3 px for 0.3 px noise on a 90 px lamp.
 Marker residual: the pixel offset of the observed centroid from the projection
 of the marker's map position through the camera's K and D (OpenCV's model, as
-``CameraModel.project``, called directly for its Jacobian).
+``CameraModel.project``). Both are evaluated by ``fit_kernels``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
 from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
-
-# [e_j]x for the map axes j: rotation perturbations about them.
-_AXIS_SKEWS = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]],
-                        [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]],
-                        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]])
-# Step (normalised units, ~1e-3 px) of the central differences for the lens Jacobian.
-_LENS_STEP = 1e-6
-_ZERO3 = np.zeros(3)
+from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, project_points
 
 
 @dataclass(frozen=True)
@@ -38,7 +30,8 @@ class LampMeasurement:
 
     ``rim_rays`` (N, 3) are the rim points as homogeneous normalised coordinates;
     ``rim_pixel_jacobian`` (N, 2, 2) is d(normalised)/d(pixel) at each of them;
-    ``marker_ray`` is the marker centroid's homogeneous normalised coordinates.
+    ``marker_ray`` is the marker centroid's homogeneous normalised coordinates; ``terms``
+    all of it as the residual kernels take it.
     """
 
     lamp: Lamp
@@ -86,85 +79,27 @@ class LampMeasurement:
         return len(self.rim_rays) + (0 if self.marker_pixel is None else 2)
 
     def __post_init__(self) -> None:
-        # Per-iteration constants, laid out for elementwise products (cheaper than einsum on (N, 2, 2)).
-        lens = self.rim_pixel_jacobian
-        object.__setattr__(self, '_lens', tuple(np.ascontiguousarray(lens[:, i, j]) for i in (0, 1) for j in (0, 1)))
-        marker_map = None if self.marker_pixel is None else self.lamp.marker_position()
-        object.__setattr__(self, '_marker_map', marker_map)
+        lamp, count = self.lamp, len(self.rim_rays)
+        terms = Terms(rays=np.ascontiguousarray(self.rim_rays, dtype=float),
+                      lens=np.ascontiguousarray(self.rim_pixel_jacobian, dtype=float).reshape(count, 4),
+                      rim_sigma=np.full(count, self.rim_sigma), lamp_of_point=np.zeros(count, dtype=np.int64),
+                      centres=np.array(lamp.position, dtype=float).reshape(1, 3),
+                      radii_squared=np.array([lamp.radius ** 2]),
+                      intrinsics=self.camera.K, distortion=self.camera.D)
+        if self.marker_pixel is not None:
+            terms = terms._replace(marker_maps=np.array(lamp.marker_position(), dtype=float).reshape(1, 3),
+                                   marker_pixels=np.array(self.marker_pixel, dtype=float).reshape(1, 2),
+                                   marker_sigma=np.array([self.marker_sigma]))
+        object.__setattr__(self, 'terms', terms)
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals over their sigmas (M,) for the camera pose (``rotation`` camera to map,
         ``position``) and their Jacobian (M, 6) with respect to the pose perturbation of
-        ``covariance.perturbed``."""
-        n = len(self.rim_rays)
-        residuals, jacobian = np.empty(self.residual_count), np.empty((self.residual_count, 6))
-        residuals[:n], jacobian[:n] = self._rim(rotation, position)
-        residuals[:n] /= self.rim_sigma
-        jacobian[:n] /= self.rim_sigma
-        if self.marker_pixel is not None:
-            residuals[n:], jacobian[n:] = self._marker(rotation, position)
-            residuals[n:] /= self.marker_sigma
-            jacobian[n:] /= self.marker_sigma
-        return residuals, jacobian
+        ``covariance.perturbed``: the rim points' in order, then the marker's."""
+        return linearize(self.terms, rotation, position)
 
     def lamp_center_in_camera(self, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
         return (self.lamp.position - position) @ rotation
-
-    def _rim(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # H = R^T A maps lamp-plane (x, y, 1) to rays, A's columns being the lamp's map x
-        # and y axes and its centre relative to the camera; the rim's image is the conic
-        # C = H^-T Q H^-1, Q = diag(1, 1, -r^2); each rim ray's residual is its pixel
-        # distance from C (``_edge_residuals``).
-        plane_axes = np.eye(3)
-        plane_axes[:, 2] = self.lamp.position - position
-        _, image_to_plane = cv2.invert(rotation.T @ plane_axes, flags=cv2.DECOMP_LU)
-        q_diagonal = np.array([1.0, 1.0, -self.lamp.radius ** 2])
-        conic = image_to_plane.T @ (q_diagonal[:, None] * image_to_plane)
-        rays = self.rim_rays
-        residual, a = _edge_residuals(rays, rays @ conic, self._lens)
-        # Along each of the six perturbations dH of H, dC = -(M + M^T) with M = C dH H^-1.
-        d_h = np.zeros((6, 3, 3))
-        d_h[:3, :, 2] = -rotation
-        d_h[3:] = -(rotation.T @ _AXIS_SKEWS) @ plane_axes
-        m = conic @ d_h @ image_to_plane
-        d_conic = -(m + m.transpose(0, 2, 1))
-        # a^T dC_k h for all k at once: the outer products a h^T against the six flattened dC_k.
-        outer = (a[:, :, None] * rays[:, None, :]).reshape(-1, 9)
-        return residual, outer @ d_conic.reshape(6, 9).T
-
-    def _marker(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        offset = self._marker_map - position
-        pixel, lens = cv2.projectPoints(offset @ rotation, _ZERO3, _ZERO3, self.camera.K, self.camera.D)
-        # With zero rvec/tvec the tvec columns are d pixel / d point (camera frame);
-        # d point = R^T (offset x dtheta - dp).
-        to_pixel = lens[:, 3:6] @ rotation.T
-        jacobian = np.empty((2, 6))
-        jacobian[:, :3] = -to_pixel
-        jacobian[:, 3:] = to_pixel @ cross_matrix(offset)
-        return pixel.reshape(2) - self.marker_pixel, jacobian
-
-
-def _edge_residuals(rays: np.ndarray, c_h: np.ndarray,
-                    lens: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Each ray's signed pixel distance s from the rim conic C (``c_h`` = C h per ray), and the
-    vector a with ds = a^T dC h for any change dC of the conic.
-
-    v = h^T C h, P = G^T (C h)_xy half the pixel gradient (G = d normalised / d pixel,
-    ``lens`` its four entries per ray), s = v / (2 |P|). The derivative is exact (it matters
-    far from the minimum, where v is large): a = h / (2|P|) - s (G P, 0) / |P|^2.
-    """
-    g00, g01, g10, g11 = lens
-    value = np.einsum('ni,ni->n', rays, c_h)
-    p0 = c_h[:, 0] * g00 + c_h[:, 1] * g10
-    p1 = c_h[:, 0] * g01 + c_h[:, 1] * g11
-    norm2 = p0 * p0 + p1 * p1
-    norm = np.sqrt(norm2)
-    residual = 0.5 * value / norm
-    a = rays * (0.5 / norm)[:, None]
-    pull = residual / norm2
-    a[:, 0] -= pull * (g00 * p0 + g01 * p1)
-    a[:, 1] -= pull * (g10 * p0 + g11 * p1)
-    return residual, a
 
 
 def cross_matrix(v: np.ndarray) -> np.ndarray:
@@ -177,83 +112,26 @@ def _lens_jacobian(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
     if not camera.is_distorted:
         # A pinhole maps normalised to pixel coordinates linearly: K's upper-left block.
         return np.broadcast_to(camera.K[:2, :2], (len(normalized), 2, 2))
-    columns = []
-    for axis in range(2):
-        step = np.zeros(2)
-        step[axis] = _LENS_STEP
-        forward = camera.project(np.column_stack([normalized + step, np.ones(len(normalized))]))
-        backward = camera.project(np.column_stack([normalized - step, np.ones(len(normalized))]))
-        columns.append((forward - backward) / (2.0 * _LENS_STEP))
-    return np.stack(columns, axis=2)
+    # At z = 1 the derivatives in the point's x and y are those in its normalised coordinates.
+    _, jacobians = project_points(np.column_stack([normalized, np.ones(len(normalized))]), camera.K, camera.D)
+    return jacobians[:, :, :2]
 
 
 @dataclass(frozen=True)
 class LampMeasurements:
-    """Several lamps' measurements evaluated as one: the residuals of each lamp in turn (all rims,
-    then all markers), in one pass of array operations over all of them. Per-lamp numpy calls
-    dominate the cost of small (thinned) rims, and a multi-lamp fit evaluates them for every
-    start it probes."""
+    """Several lamps' measurements evaluated as one (all rims, then all markers, each kind in the
+    order of the lamps), with their ``Terms`` joined once: a multi-lamp fit evaluates them for
+    every start it probes."""
 
     parts: tuple[LampMeasurement, ...]
 
     def __post_init__(self) -> None:
-        parts = self.parts
-        rim_counts = [len(m.rim_rays) for m in parts]
-        with_marker = [m for m in parts if m.marker_pixel is not None]
-        constants = {
-            'lamp_of_point': np.repeat(np.arange(len(parts)), rim_counts),
-            'rays': np.vstack([m.rim_rays for m in parts]),
-            'lens': tuple(np.concatenate([m._lens[i] for m in parts]) for i in range(4)),
-            'rim_sigma': np.repeat([m.rim_sigma for m in parts], rim_counts),
-            'centres': np.array([m.lamp.position for m in parts]),
-            'q_diagonals': np.array([[1.0, 1.0, -m.lamp.radius ** 2] for m in parts]),
-            'marker_maps': np.array([m._marker_map for m in with_marker]).reshape(-1, 3),
-            'marker_pixels': np.array([m.marker_pixel for m in with_marker]).reshape(-1, 2),
-            'marker_sigma': np.repeat([m.marker_sigma for m in with_marker], 2),
-        }
-        for name, value in constants.items():
-            object.__setattr__(self, '_' + name, value)
+        object.__setattr__(self, 'terms', joined([m.terms for m in self.parts]))
 
     @property
     def residual_count(self) -> int:
         return sum(m.residual_count for m in self.parts)
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """As ``LampMeasurement.linearize``, for all the lamps at once."""
-        rim, rim_jacobian = self._rims(rotation, position)
-        rim /= self._rim_sigma
-        rim_jacobian /= self._rim_sigma[:, None]
-        if not len(self._marker_maps):
-            return rim, rim_jacobian
-        markers, marker_jacobian = self._markers(rotation, position)
-        return (np.concatenate([rim, markers / self._marker_sigma]),
-                np.vstack([rim_jacobian, marker_jacobian / self._marker_sigma[:, None]]))
-
-    def _rims(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # LampMeasurement._rim with one conic per lamp, each point using its lamp's.
-        count = len(self.parts)
-        plane_axes = np.tile(np.eye(3), (count, 1, 1))
-        plane_axes[:, :, 2] = self._centres - position
-        image_to_plane = np.linalg.inv(rotation.T @ plane_axes)
-        conics = image_to_plane.transpose(0, 2, 1) @ (self._q_diagonals[:, :, None] * image_to_plane)
-        rays, lamp = self._rays, self._lamp_of_point
-        residual, a = _edge_residuals(rays, np.einsum('ni,nij->nj', rays, conics[lamp]), self._lens)
-        d_h = np.zeros((count, 6, 3, 3))
-        d_h[:, :3, :, 2] = -rotation
-        d_h[:, 3:] = -(rotation.T @ _AXIS_SKEWS)[None] @ plane_axes[:, None]
-        m = conics[:, None] @ d_h @ image_to_plane[:, None]
-        d_conic = -(m + m.transpose(0, 1, 3, 2)).reshape(count, 6, 9)
-        outer = (a[:, :, None] * rays[:, None, :]).reshape(-1, 9)
-        return residual, np.einsum('nm,nkm->nk', outer, d_conic[lamp])
-
-    def _markers(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # LampMeasurement._marker for every marker in one projectPoints call.
-        offsets = self._marker_maps - position
-        camera = self.parts[0].camera
-        pixels, lens = cv2.projectPoints(offsets @ rotation, _ZERO3, _ZERO3, camera.K, camera.D)
-        to_pixel = lens[:, 3:6].reshape(-1, 2, 3) @ rotation.T
-        crosses = np.zeros((len(offsets), 3, 3))
-        crosses[:, 0, 1], crosses[:, 0, 2], crosses[:, 1, 2] = -offsets[:, 2], offsets[:, 1], -offsets[:, 0]
-        crosses -= crosses.transpose(0, 2, 1)
-        jacobian = np.concatenate([-to_pixel, to_pixel @ crosses], axis=2).reshape(-1, 6)
-        return (pixels.reshape(-1, 2) - self._marker_pixels).ravel(), jacobian
+        """As ``LampMeasurement.linearize``, for all the lamps at once: all rims, then all markers."""
+        return linearize(self.terms, rotation, position)

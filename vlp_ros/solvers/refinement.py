@@ -2,10 +2,11 @@
 
 A small Levenberg-Marquardt loop on the analytic Jacobians of ``measurement``
 rather than scipy.optimize.least_squares: the starts are close, so a solve
-takes 3-6 iterations of ~0.1 ms, while least_squares' per-call overhead alone
-is over 1 ms (python -m vlp_ros.solvers.benchmark). Measured up directions
-(``up_measurement``) join the lamps' residuals: their information enters the
-fit and its covariance like any other measurement's.
+takes 3-6 iterations, run whole in one kernel (``fit_kernels.iterate``), while
+least_squares' per-call overhead alone is over 1 ms (python -m
+vlp_ros.solvers.benchmark). Measured up directions (``up_measurement``) join the
+lamps' residuals: their information enters the fit and its covariance like any
+other measurement's.
 """
 from __future__ import annotations
 
@@ -16,16 +17,12 @@ import numpy as np
 
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
-from vlp_ros.solvers.covariance import covariance_from_jacobian, perturbed
+from vlp_ros.solvers.covariance import covariance_from_jacobian
+from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, iterate, joined, linearize_into
+from vlp_ros.solvers.fit_kernels import linearize as linearize_terms
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
-# Stop when the best step can lower the chi-square by less than this fraction of it, or
-# by less than the floor: the pose is then within sqrt(floor) = 0.03 sigma of the minimum
-# before its last step, far below the ~1 unit that noise moves the chi-square (this saves
-# the last one or two iterations of a quadratically converging fit).
-_COST_TOLERANCE = 1e-9
-_DECREMENT_FLOOR = 1e-3
 _MAX_ITERATIONS = 50
 _INITIAL_DAMPING = 1e-4
 # Iterations after which ``descend`` judges whether a start is still worth following.
@@ -43,14 +40,14 @@ class Measurement(Protocol):
     """Whitened residuals of a pose: a lamp's (``LampMeasurement``) or an up direction's."""
 
     residual_count: int
+    terms: Terms
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def linearize(measurements: Sequence[Measurement], pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """Stacked whitened residuals (M,) and their Jacobian (M, 6) of all measurements at ``pose``."""
-    parts = [m.linearize(pose.rotation, pose.position) for m in measurements]
-    return np.concatenate([r for r, _ in parts]), np.vstack([j for _, j in parts])
+    return linearize_terms(joined([m.terms for m in measurements]), pose.rotation, pose.position)
 
 
 def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequence[UpMeasurement] = (),
@@ -107,27 +104,17 @@ def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: 
 def _levenberg_marquardt(pose: Pose, measurements: Sequence[Measurement], max_iterations: int,
                          give_up: Callable[[Pose, float], bool] | None = None
                          ) -> tuple[Pose, np.ndarray, np.ndarray, bool]:
-    residuals, jacobian = linearize(measurements, pose)
-    cost = residuals @ residuals
-    damping = _INITIAL_DAMPING
-    for iteration in range(max_iterations):
-        if iteration == PATIENCE and give_up is not None and give_up(pose, cost):
-            break
-        information = jacobian.T @ jacobian
-        gradient = jacobian.T @ residuals
-        # Converged when even the undamped Gauss-Newton step promises no real decrease. That
-        # last step is still taken (its residuals, which it lowers by under the floor, are not
-        # evaluated): near the minimum it lands quadratically close to it.
-        newton = np.linalg.solve(information, -gradient)
-        if -(gradient @ newton) < max(_COST_TOLERANCE * cost, _DECREMENT_FLOOR):
-            return Pose(*perturbed(pose, newton)), residuals, jacobian, True
-        step = np.linalg.solve(information + damping * np.diag(np.diag(information)), -gradient)
-        trial = Pose(*perturbed(pose, step))
-        trial_residuals, trial_jacobian = linearize(measurements, trial)
-        trial_cost = trial_residuals @ trial_residuals
-        if not np.isfinite(trial_cost) or trial_cost > cost:
-            damping *= 10.0
-            continue
-        pose, residuals, jacobian, cost = trial, trial_residuals, trial_jacobian, trial_cost
-        damping = max(damping / 10.0, 1e-12)
-    return pose, residuals, jacobian, False
+    terms = joined([m.terms for m in measurements])
+    rotation, position = np.array(pose.rotation, dtype=float), np.array(pose.position, dtype=float)
+    residuals, jacobian = np.empty(terms.residual_count), np.empty((terms.residual_count, 6))
+    cost = linearize_into(rotation, position, *terms, residuals, jacobian)
+    pause = PATIENCE if give_up is not None and max_iterations > PATIENCE else max_iterations
+    outcome, cost, damping = iterate(rotation, position, residuals, jacobian, cost, _INITIAL_DAMPING, 0, pause, *terms)
+    if outcome == PAUSED and pause < max_iterations:
+        if give_up(Pose(rotation.copy(), position.copy()), cost):
+            return Pose(rotation, position), residuals, jacobian, False
+        outcome, cost, damping = iterate(rotation, position, residuals, jacobian, cost, damping, pause,
+                                         max_iterations, *terms)
+    if outcome == SINGULAR:
+        raise np.linalg.LinAlgError('singular normal equations')
+    return Pose(rotation, position), residuals, jacobian, outcome == CONVERGED

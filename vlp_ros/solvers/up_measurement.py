@@ -18,9 +18,7 @@ import numpy as np
 
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
-
-# d(R^T e_z) / d(rotation vector on the left) = R^T [e_z]x.
-_UP_SKEW = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+from vlp_ros.solvers.fit_kernels import Terms, linearize
 # Largest innovation chi-square (2 dof) of a measured up direction that agrees with the
 # lamps: exceeded by chance with probability 1e-4 (exp(-18.42 / 2)).
 UP_INNOVATION_GATE = 18.42
@@ -43,7 +41,7 @@ class UpMeasurement:
 
     direction: np.ndarray
     sigma: float
-    _tangents: np.ndarray = field(init=False, repr=False)
+    terms: Terms = field(init=False, repr=False)
 
     residual_count = 2
 
@@ -51,24 +49,19 @@ class UpMeasurement:
         if not (np.isfinite(self.sigma) and self.sigma > 0.0):
             raise ValueError(f'up sigma must be positive and finite, got {self.sigma}')
         direction = unit_direction(self.direction)
-        least_aligned = np.eye(3)[np.argmin(np.abs(direction))]
-        first = np.cross(direction, least_aligned)
+        # Tangent axes: g x e for the axis e least aligned with g, then g x that.
+        first = _cross(direction, np.eye(3)[np.argmin(np.abs(direction))])
         first /= np.linalg.norm(first)
         object.__setattr__(self, 'direction', direction)
         object.__setattr__(self, 'sigma', float(self.sigma))
-        object.__setattr__(self, '_tangents', np.vstack([first, np.cross(direction, first)]))
+        object.__setattr__(self, 'terms', Terms(up_directions=direction.reshape(1, 3),
+                                                up_tangents=np.array([[first, _cross(direction, first)]]),
+                                                up_sigma=np.array([self.sigma])))
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals over sigma (2,) for the camera pose and their Jacobian (2, 6) with respect
         to the pose perturbation of ``covariance.perturbed`` (the position columns are zero)."""
-        up = rotation[2, :]
-        scale = 2.0 / (self.sigma * (1.0 + self.direction @ up))
-        residual = scale * (self._tangents @ up)
-        # d residual / d up, then d up / d rotation vector = R^T [e_z]x.
-        d_up = scale * self._tangents - 0.5 * self.sigma * scale * np.outer(residual, self.direction)
-        jacobian = np.zeros((2, 6))
-        jacobian[:, 3:] = d_up @ rotation.T @ _UP_SKEW
-        return residual, jacobian
+        return linearize(self.terms, rotation, position)
 
     def innovation(self, pose: Pose) -> float:
         """Chi-square (2 dof) of this measurement against the rest of a fit that included it,
@@ -81,6 +74,11 @@ class UpMeasurement:
         residual, jacobian = self.linearize(pose.rotation, pose.position)
         left = np.eye(2) - jacobian @ pose.covariance @ jacobian.T
         return float(residual @ np.linalg.pinv(left, rcond=1e-9, hermitian=True) @ residual)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    # np.cross costs ~10 us on 3-vectors (axis bookkeeping), and hints are made every frame.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def with_agreeing_up(solve: Callable[[Sequence[UpMeasurement]], list[PoseCandidate]],

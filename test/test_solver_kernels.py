@@ -1,0 +1,94 @@
+"""The pose fit's kernels equal the direct numpy/OpenCV formulations they compute."""
+import cv2
+import numpy as np
+import pytest
+
+from solver_scenes import camera_wide, grid_lamps, looking_up, measured_up, observe
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.covariance import perturbed
+from vlp_ros.solvers.fit_kernels import project_points
+from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
+from vlp_ros.solvers.refinement import linearize
+from vlp_ros.solvers.up_measurement import UpMeasurement
+
+WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
+AWAY = looking_up((0.7, 0.2, 0.5), (0.2, 0.1, 0.0))
+
+
+@pytest.mark.parametrize('distortion', [np.zeros(5), np.array([-0.05, 0.004, 0.0, 0.0, 0.0]),
+                                        np.array([-0.3, 0.12, 1e-3, -2e-3, -0.02])])
+def test_projection_and_its_jacobian_are_opencvs(distortion: np.ndarray) -> None:
+    rng = np.random.default_rng(2)
+    points = np.column_stack([rng.uniform(-0.8, 0.8, (200, 2)), np.ones(200)]) * rng.uniform(0.3, 5.0, (200, 1))
+    intrinsics = np.array([[900.0, 0.0, 955.5], [0.0, 905.0, 539.5], [0.0, 0.0, 1.0]])
+    pixels, jacobians = project_points(points, intrinsics, distortion)
+    expected, lens = cv2.projectPoints(points, np.zeros(3), np.zeros(3), intrinsics, distortion)
+    np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0.0, atol=1e-9)
+    # With zero rvec and tvec, the tvec columns of OpenCV's Jacobian are d pixel / d point.
+    np.testing.assert_allclose(jacobians, lens[:, 3:6].reshape(-1, 2, 3), rtol=1e-9, atol=1e-9)
+
+
+def test_perturbation_is_the_rodrigues_rotation_on_the_left() -> None:
+    rng = np.random.default_rng(4)
+    for delta in [*rng.normal(scale=0.3, size=(20, 6)), np.zeros(6), np.array([0.1, 0.2, 0.3, 1e-17, 0.0, 0.0])]:
+        rotation, position = perturbed(WIDE_TRUTH, delta)
+        left, _ = cv2.Rodrigues(delta[3:])
+        np.testing.assert_allclose(rotation, left @ WIDE_TRUTH.rotation, rtol=0.0, atol=1e-15)
+        np.testing.assert_array_equal(position, WIDE_TRUTH.position + delta[:3])
+
+
+def _direct_residuals(measurement: LampMeasurement, pose: Pose) -> np.ndarray:
+    """The rim points' distance from the rim conic's image and the marker's offset, over their sigmas."""
+    lamp, camera = measurement.lamp, measurement.camera
+    plane = np.column_stack([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], lamp.position - pose.position])
+    inverse = np.linalg.inv(pose.rotation.T @ plane)
+    conic = inverse.T @ np.diag([1.0, 1.0, -lamp.radius ** 2]) @ inverse
+    rays = measurement.rim_rays
+    c_h = rays @ conic
+    gradient = np.einsum('nji,nj->ni', measurement.rim_pixel_jacobian, c_h[:, :2])
+    rim = np.sum(rays * c_h, axis=1) / (2.0 * np.linalg.norm(gradient, axis=1)) / measurement.rim_sigma
+    marker = camera.project(pose.map_to_camera(lamp.marker_position()))[0] - measurement.marker_pixel
+    return np.concatenate([rim, marker / measurement.marker_sigma])
+
+
+@pytest.mark.parametrize('pose', [WIDE_TRUTH, AWAY])
+def test_lamp_residuals_are_the_direct_formulation(pose: Pose) -> None:
+    lamp = grid_lamps(2)[1]
+    observation = observe(lamp, WIDE_TRUTH, camera_wide(), rng=np.random.default_rng(1))
+    measurement = LampMeasurement.from_observation(observation, lamp, camera_wide())
+    residuals, _ = measurement.linearize(pose.rotation, pose.position)
+    expected = _direct_residuals(measurement, pose)
+    np.testing.assert_allclose(residuals, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+
+def test_lens_jacobian_inverts_the_undistortion() -> None:
+    lamp = grid_lamps(2)[1]
+    camera = camera_wide()
+    assert camera.is_distorted
+    observation = observe(lamp, WIDE_TRUTH, camera, rng=np.random.default_rng(1))
+    measurement = LampMeasurement.from_observation(observation, lamp, camera)
+    pixels = np.asarray(observation.rim_points, dtype=float).reshape(-1, 2)
+    step = 1e-3
+    for axis in range(2):
+        shift = np.zeros(2)
+        shift[axis] = step
+        numeric = (camera.normalize(pixels + shift) - camera.normalize(pixels - shift)) / (2.0 * step)
+        np.testing.assert_allclose(measurement.rim_pixel_jacobian[:, :, axis], numeric, rtol=1e-6, atol=1e-12)
+
+
+def test_joined_terms_stack_every_kind_in_order() -> None:
+    camera = camera_wide()
+    rng = np.random.default_rng(5)
+    lamps = grid_lamps(3)[:3]
+    measurements = [LampMeasurement.from_observation(observe(lamp, WIDE_TRUTH, camera, rng=rng, with_marker=marked),
+                                                     lamp, camera).thinned(16)
+                    for lamp, marked in zip(lamps, (True, False, True))]
+    ups = [UpMeasurement(measured_up(WIDE_TRUTH, error=np.radians(e)), np.radians(0.5))
+           for e in ([1.0, 2.0], [0.0, -1.0])]
+    residuals, jacobian = linearize([LampMeasurements(tuple(measurements[:2])), measurements[2], *ups], AWAY)
+    parts = [m.linearize(AWAY.rotation, AWAY.position) for m in [*measurements, *ups]]
+    rims = [len(m.rim_rays) for m in measurements]
+    order = ([(k, slice(0, rims[k])) for k in range(3)] + [(k, slice(rims[k], None)) for k in range(3)]
+             + [(3, slice(None)), (4, slice(None))])
+    np.testing.assert_array_equal(residuals, np.concatenate([parts[k][0][s] for k, s in order]))
+    np.testing.assert_array_equal(jacobian, np.vstack([parts[k][1][s] for k, s in order]))

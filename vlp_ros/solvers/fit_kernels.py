@@ -1,0 +1,428 @@
+"""The pose fit's compiled numerics: every measurement's residuals and Jacobian, and the
+Levenberg-Marquardt loop over them.
+
+A fit is a few iterations on a few hundred residuals, where each numpy or OpenCV call
+costs more in argument handling than in arithmetic: the loop runs whole in one kernel.
+The measurements enter as ``Terms``, flat arrays of every kind at once (rim points of
+any number of lamps, markers, up directions), residuals in that order. All kernels
+stay in this one module because numba's cache of a kernel notices changes to its own
+file only, and the loop compiles the others into itself.
+
+Formulas (derived in ``measurement`` and ``up_measurement``): rim residual s = v / (2|P|)
+with v = h^T C h for the rim conic C = H^-T diag(1, 1, -r^2) H^-1, H = R^T [e_x, e_y,
+centre - position], and P = G^T (C h)_xy; marker residual the projected marker (pinhole
+and plumb_bob, as ``cv2.projectPoints``) minus its pixel; up residual 2 T u / (1 + g.u)
+over sigma with u = R^T e_z.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from vlp_ros.compiled import kernel
+
+# Stop when the best step can lower the chi-square by less than this fraction of it, or
+# by less than the floor: the pose is then within sqrt(floor) = 0.03 sigma of the minimum
+# before its last step, far below the ~1 unit that noise moves the chi-square (this saves
+# the last one or two iterations of a quadratically converging fit).
+_COST_TOLERANCE = 1e-9
+_DECREMENT_FLOOR = 1e-3
+_MIN_DAMPING = 1e-12
+# ``iterate``'s outcomes.
+CONVERGED = 0
+PAUSED = 1
+SINGULAR = 2
+
+
+class Terms(NamedTuple):
+    """Measurements as flat arrays (C-contiguous float64, writable: numba compiles once per
+    array type), passed to the kernels as separate arguments; a kind left out has none.
+
+    Rim points: ``rays`` (N, 3) homogeneous normalised, ``lens`` (N, 4) d(normalised)/d(pixel)
+    as (g00, g01, g10, g11), ``rim_sigma`` (N,), ``lamp_of_point`` (N,) into ``centres`` (L, 3)
+    and ``radii_squared`` (L,). Markers: map positions (K, 3), pixels (K, 2), sigmas (K,),
+    seen through ``intrinsics`` (3, 3) and plumb_bob ``distortion`` (5,). Up directions:
+    unit ``up_directions`` (U, 3), tangent axes ``up_tangents`` (U, 2, 3), ``up_sigma`` (U,).
+    """
+
+    rays: np.ndarray = np.empty((0, 3))
+    lens: np.ndarray = np.empty((0, 4))
+    rim_sigma: np.ndarray = np.empty(0)
+    lamp_of_point: np.ndarray = np.empty(0, dtype=np.int64)
+    centres: np.ndarray = np.empty((0, 3))
+    radii_squared: np.ndarray = np.empty(0)
+    marker_maps: np.ndarray = np.empty((0, 3))
+    marker_pixels: np.ndarray = np.empty((0, 2))
+    marker_sigma: np.ndarray = np.empty(0)
+    intrinsics: np.ndarray = np.eye(3)
+    distortion: np.ndarray = np.zeros(5)
+    up_directions: np.ndarray = np.empty((0, 3))
+    up_tangents: np.ndarray = np.empty((0, 2, 3))
+    up_sigma: np.ndarray = np.empty(0)
+
+    @property
+    def residual_count(self) -> int:
+        return len(self.rays) + 2 * len(self.marker_maps) + 2 * len(self.up_directions)
+
+
+def joined(parts: Sequence[Terms]) -> Terms:
+    """All ``parts`` as one: each kind's entries in the order of the parts (lamps renumbered),
+    seen through the first camera that has lamps."""
+    if len(parts) == 1:
+        return parts[0]
+    lamp_offsets = np.cumsum([0] + [len(t.centres) for t in parts[:-1]])
+    fields = {}
+    for name in Terms._fields:
+        if name in ('intrinsics', 'distortion'):
+            continue
+        arrays = [getattr(t, name) + offset if name == 'lamp_of_point' else getattr(t, name)
+                  for t, offset in zip(parts, lamp_offsets) if len(getattr(t, name))]
+        if arrays:
+            fields[name] = arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+    camera = next((t for t in parts if len(t.centres)), parts[0])
+    return Terms(intrinsics=camera.intrinsics, distortion=camera.distortion, **fields)
+
+
+def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened residuals (M,) of ``terms`` at the pose (``rotation`` camera to map, ``position``)
+    and their Jacobian (M, 6) in the pose perturbation of ``covariance.perturbed``."""
+    count = terms.residual_count
+    residuals, jacobian = np.empty(count), np.empty((count, 6))
+    linearize_into(np.ascontiguousarray(rotation, dtype=float), np.ascontiguousarray(position, dtype=float),
+                   *terms, residuals, jacobian)
+    return residuals, jacobian
+
+
+@kernel
+def project_point(point, intrinsics, distortion, jacobian):
+    """Pixel (u, v) of a camera-frame point as ``cv2.projectPoints`` (K's skew ignored, as
+    there), and d pixel / d point into ``jacobian`` (2, 3)."""
+    z = 1.0 / point[2] if point[2] != 0.0 else 1.0
+    x, y = point[0] * z, point[1] * z
+    k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
+    fx, fy = intrinsics[0, 0], intrinsics[1, 1]
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    radial = 1.0 + k1 * r2 + k2 * r4 + k3 * r4 * r2
+    xd = x * radial + p1 * (2.0 * x * y) + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * (2.0 * x * y)
+    # d radial / d r2, then the distorted coordinates' derivatives in the normalised ones.
+    slope = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4
+    dxd_dx = radial + 2.0 * x * x * slope + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = 2.0 * x * y * slope + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dx = 2.0 * x * y * slope + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dy = radial + 2.0 * y * y * slope + 6.0 * p1 * y + 2.0 * p2 * x
+    # x = X / Z, y = Y / Z.
+    jacobian[0, 0] = fx * dxd_dx * z
+    jacobian[0, 1] = fx * dxd_dy * z
+    jacobian[0, 2] = -fx * (dxd_dx * x + dxd_dy * y) * z
+    jacobian[1, 0] = fy * dyd_dx * z
+    jacobian[1, 1] = fy * dyd_dy * z
+    jacobian[1, 2] = -fy * (dyd_dx * x + dyd_dy * y) * z
+    return fx * xd + intrinsics[0, 2], fy * yd + intrinsics[1, 2]
+
+
+@kernel
+def project_points(points, intrinsics, distortion):
+    """``project_point`` for points (N, 3): pixels (N, 2) and d pixel / d point (N, 2, 3)."""
+    count = points.shape[0]
+    pixels = np.empty((count, 2))
+    jacobians = np.empty((count, 2, 3))
+    for n in range(count):
+        pixels[n, 0], pixels[n, 1] = project_point(points[n], intrinsics, distortion, jacobians[n])
+    return pixels, jacobians
+
+
+@kernel
+def perturb(rotation, position, delta, rotation_out, position_out):
+    """The pose moved by ``delta`` = (dx, dy, dz, rotation vector on the left), the rotation
+    vector's matrix formed as ``cv2.Rodrigues`` forms it."""
+    rx, ry, rz = delta[3], delta[4], delta[5]
+    theta = math.sqrt(rx * rx + ry * ry + rz * rz)
+    left = np.eye(3)
+    if theta >= 2.220446049250313e-16:
+        c, s = math.cos(theta), math.sin(theta)
+        c1 = 1.0 - c
+        rx, ry, rz = rx / theta, ry / theta, rz / theta
+        left[0, 0] = c + c1 * rx * rx
+        left[0, 1] = c1 * rx * ry - s * rz
+        left[0, 2] = c1 * rx * rz + s * ry
+        left[1, 0] = c1 * rx * ry + s * rz
+        left[1, 1] = c + c1 * ry * ry
+        left[1, 2] = c1 * ry * rz - s * rx
+        left[2, 0] = c1 * rx * rz - s * ry
+        left[2, 1] = c1 * ry * rz + s * rx
+        left[2, 2] = c + c1 * rz * rz
+    for i in range(3):
+        for j in range(3):
+            rotation_out[i, j] = left[i, 0] * rotation[0, j] + left[i, 1] * rotation[1, j] + left[i, 2] * rotation[2, j]
+        position_out[i] = position[i] + delta[i]
+
+
+@kernel
+def _inverse3(m, out):
+    """3x3 inverse by cofactors (inf/nan if singular, as the residuals then are)."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    inverse_det = 1.0 / (m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02)
+    out[0, 0] = c00 * inverse_det
+    out[1, 0] = c01 * inverse_det
+    out[2, 0] = c02 * inverse_det
+    out[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) * inverse_det
+    out[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) * inverse_det
+    out[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) * inverse_det
+    out[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) * inverse_det
+    out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) * inverse_det
+    out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) * inverse_det
+
+
+@kernel
+def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_conic):
+    """The lamp's rim conic C (3, 3) and its derivatives dC_k (6, 3, 3) along the six pose
+    perturbations: dH_k of H, then dC = -(M + M^T) with M = C dH H^-1."""
+    plane = np.empty((3, 3))
+    offset = np.empty(3)
+    for m in range(3):
+        offset[m] = centre[m] - position[m]
+    for i in range(3):
+        plane[i, 0] = rotation[0, i]
+        plane[i, 1] = rotation[1, i]
+        plane[i, 2] = rotation[0, i] * offset[0] + rotation[1, i] * offset[1] + rotation[2, i] * offset[2]
+    inverse = np.empty((3, 3))
+    _inverse3(plane, inverse)
+    for i in range(3):
+        for j in range(3):
+            conic[i, j] = (inverse[0, i] * inverse[0, j] + inverse[1, i] * inverse[1, j]
+                           - radius_squared * inverse[2, i] * inverse[2, j])
+    d_plane = np.zeros((3, 3))
+    skew_r = np.zeros((3, 3))  # R^T [e_j]x
+    m_matrix = np.empty((3, 3))
+    c_dh = np.empty((3, 3))
+    for k in range(6):
+        if k < 3:
+            # Position: only the column of the centre moves, by -R^T e_k.
+            for i in range(3):
+                d_plane[i, 0] = 0.0
+                d_plane[i, 1] = 0.0
+                d_plane[i, 2] = -rotation[k, i]
+        else:
+            # Rotation about map axis j: dH = -R^T [e_j]x A, A = [e_x, e_y, offset].
+            j = k - 3
+            skew_r[:, :] = 0.0
+            for i in range(3):
+                if j == 0:
+                    skew_r[i, 1] = rotation[2, i]
+                    skew_r[i, 2] = -rotation[1, i]
+                elif j == 1:
+                    skew_r[i, 0] = -rotation[2, i]
+                    skew_r[i, 2] = rotation[0, i]
+                else:
+                    skew_r[i, 0] = rotation[1, i]
+                    skew_r[i, 1] = -rotation[0, i]
+            for i in range(3):
+                d_plane[i, 0] = -skew_r[i, 0]
+                d_plane[i, 1] = -skew_r[i, 1]
+                d_plane[i, 2] = -(skew_r[i, 0] * offset[0] + skew_r[i, 1] * offset[1] + skew_r[i, 2] * offset[2])
+        for i in range(3):
+            for j in range(3):
+                c_dh[i, j] = conic[i, 0] * d_plane[0, j] + conic[i, 1] * d_plane[1, j] + conic[i, 2] * d_plane[2, j]
+        for i in range(3):
+            for j in range(3):
+                m_matrix[i, j] = c_dh[i, 0] * inverse[0, j] + c_dh[i, 1] * inverse[1, j] + c_dh[i, 2] * inverse[2, j]
+        for i in range(3):
+            for j in range(3):
+                d_conic[k, i, j] = -(m_matrix[i, j] + m_matrix[j, i])
+
+
+@kernel
+def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, centres, radii_squared,
+                   marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,
+                   up_directions, up_tangents, up_sigma, residuals, jacobian):
+    """Whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose, written
+    into ``residuals`` and ``jacobian``; returns the chi-square."""
+    lamps = centres.shape[0]
+    conics = np.empty((lamps, 3, 3))
+    d_conics = np.empty((lamps, 6, 3, 3))
+    for lamp in range(lamps):
+        _conic_derivatives(rotation, position, centres[lamp], radii_squared[lamp], conics[lamp], d_conics[lamp])
+    a = np.empty(3)
+    for n in range(rays.shape[0]):
+        conic, d_conic, h = conics[lamp_of_point[n]], d_conics[lamp_of_point[n]], rays[n]
+        c_h0 = conic[0, 0] * h[0] + conic[0, 1] * h[1] + conic[0, 2] * h[2]
+        c_h1 = conic[1, 0] * h[0] + conic[1, 1] * h[1] + conic[1, 2] * h[2]
+        c_h2 = conic[2, 0] * h[0] + conic[2, 1] * h[1] + conic[2, 2] * h[2]
+        g00, g01, g10, g11 = lens[n, 0], lens[n, 1], lens[n, 2], lens[n, 3]
+        value = h[0] * c_h0 + h[1] * c_h1 + h[2] * c_h2
+        p0 = c_h0 * g00 + c_h1 * g10
+        p1 = c_h0 * g01 + c_h1 * g11
+        norm2 = p0 * p0 + p1 * p1
+        norm = math.sqrt(norm2)
+        residual = 0.5 * value / norm
+        # ds = a^T dC h exactly (it matters far from the minimum, where v is large).
+        pull = residual / norm2
+        half = 0.5 / norm
+        a[0] = h[0] * half - pull * (g00 * p0 + g01 * p1)
+        a[1] = h[1] * half - pull * (g10 * p0 + g11 * p1)
+        a[2] = h[2] * half
+        sigma = rim_sigma[n]
+        residuals[n] = residual / sigma
+        for k in range(6):
+            total = 0.0
+            for i in range(3):
+                total += a[i] * (d_conic[k, i, 0] * h[0] + d_conic[k, i, 1] * h[1] + d_conic[k, i, 2] * h[2])
+            jacobian[n, k] = total / sigma
+    row = rays.shape[0]
+    point = np.empty(3)
+    offset = np.empty(3)
+    lens_jacobian = np.empty((2, 3))
+    to_pixel = np.empty((2, 3))
+    w = np.empty(3)
+    for marker in range(marker_maps.shape[0]):
+        # Camera-frame point R^T (m - p); its change is R^T (offset x dtheta - dp).
+        for m in range(3):
+            offset[m] = marker_maps[marker, m] - position[m]
+        for i in range(3):
+            point[i] = rotation[0, i] * offset[0] + rotation[1, i] * offset[1] + rotation[2, i] * offset[2]
+        u, v = project_point(point, intrinsics, distortion, lens_jacobian)
+        sigma = marker_sigma[marker]
+        residuals[row] = (u - marker_pixels[marker, 0]) / sigma
+        residuals[row + 1] = (v - marker_pixels[marker, 1]) / sigma
+        for i in range(2):
+            for m in range(3):
+                to_pixel[i, m] = (lens_jacobian[i, 0] * rotation[m, 0] + lens_jacobian[i, 1] * rotation[m, 1]
+                                  + lens_jacobian[i, 2] * rotation[m, 2])
+            r = row + i
+            jacobian[r, 0] = -to_pixel[i, 0] / sigma
+            jacobian[r, 1] = -to_pixel[i, 1] / sigma
+            jacobian[r, 2] = -to_pixel[i, 2] / sigma
+            jacobian[r, 3] = (to_pixel[i, 1] * offset[2] - to_pixel[i, 2] * offset[1]) / sigma
+            jacobian[r, 4] = (to_pixel[i, 2] * offset[0] - to_pixel[i, 0] * offset[2]) / sigma
+            jacobian[r, 5] = (to_pixel[i, 0] * offset[1] - to_pixel[i, 1] * offset[0]) / sigma
+        row += 2
+    for k in range(up_directions.shape[0]):
+        g, tangents, sigma = up_directions[k], up_tangents[k], up_sigma[k]
+        # u = R^T e_z, the pose's map up in the camera.
+        scale = 2.0 / (sigma * (1.0 + g[0] * rotation[2, 0] + g[1] * rotation[2, 1] + g[2] * rotation[2, 2]))
+        for i in range(2):
+            residual = scale * (tangents[i, 0] * rotation[2, 0] + tangents[i, 1] * rotation[2, 1]
+                                + tangents[i, 2] * rotation[2, 2])
+            residuals[row + i] = residual
+            # d residual / d u, then d u / d rotation vector = R^T [e_z]x.
+            pull = 0.5 * sigma * scale * residual
+            for m in range(3):
+                w[m] = 0.0
+                for j in range(3):
+                    w[m] += (scale * tangents[i, j] - pull * g[j]) * rotation[m, j]
+            jacobian[row + i, 0] = 0.0
+            jacobian[row + i, 1] = 0.0
+            jacobian[row + i, 2] = 0.0
+            jacobian[row + i, 3] = w[1]
+            jacobian[row + i, 4] = -w[0]
+            jacobian[row + i, 5] = 0.0
+        row += 2
+    cost = 0.0
+    for r in range(residuals.shape[0]):
+        cost += residuals[r] * residuals[r]
+    return cost
+
+
+@kernel
+def _solve6(matrix, rhs, out):
+    """out = matrix^-1 rhs by LU with partial pivoting (as LAPACK's gesv); False if a pivot is zero."""
+    a = matrix.copy()
+    b = rhs.copy()
+    size = 6
+    for col in range(size):
+        pivot = col
+        for r in range(col + 1, size):
+            if abs(a[r, col]) > abs(a[pivot, col]):
+                pivot = r
+        if a[pivot, col] == 0.0:
+            return False
+        if pivot != col:
+            for j in range(size):
+                a[col, j], a[pivot, j] = a[pivot, j], a[col, j]
+            b[col], b[pivot] = b[pivot], b[col]
+        for r in range(col + 1, size):
+            factor = a[r, col] / a[col, col]
+            for j in range(col + 1, size):
+                a[r, j] -= factor * a[col, j]
+            b[r] -= factor * b[col]
+    for r in range(size - 1, -1, -1):
+        total = b[r]
+        for j in range(r + 1, size):
+            total -= a[r, j] * out[j]
+        out[r] = total / a[r, r]
+    return True
+
+
+@kernel
+def _normal_equations(residuals, jacobian, information, gradient):
+    for i in range(6):
+        total = 0.0
+        for n in range(residuals.shape[0]):
+            total += jacobian[n, i] * residuals[n]
+        gradient[i] = total
+        for j in range(i, 6):
+            total = 0.0
+            for n in range(residuals.shape[0]):
+                total += jacobian[n, i] * jacobian[n, j]
+            information[i, j] = total
+            information[j, i] = total
+
+
+@kernel
+def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
+            rays, lens, rim_sigma, lamp_of_point, centres, radii_squared, marker_maps, marker_pixels,
+            marker_sigma, intrinsics, distortion, up_directions, up_tangents, up_sigma):
+    """Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose, updating
+    ``rotation``, ``position``, ``residuals`` and ``jacobian`` in place; returns (outcome, cost,
+    damping). CONVERGED when even the undamped Gauss-Newton step promises no real decrease:
+    that last step is still taken, its residuals (lower by under the floor) not evaluated,
+    since near the minimum it lands quadratically close to it. PAUSED at ``stop``; SINGULAR
+    when the normal equations are."""
+    information = np.empty((6, 6))
+    damped = np.empty((6, 6))
+    gradient = np.empty(6)
+    step = np.empty(6)
+    trial_rotation = np.empty((3, 3))
+    trial_position = np.empty(3)
+    trial_residuals = np.empty_like(residuals)
+    trial_jacobian = np.empty_like(jacobian)
+    for _ in range(first, stop):
+        _normal_equations(residuals, jacobian, information, gradient)
+        for i in range(6):
+            gradient[i] = -gradient[i]
+        if not _solve6(information, gradient, step):
+            return SINGULAR, cost, damping
+        decrease = 0.0
+        for i in range(6):
+            decrease += gradient[i] * step[i]
+        if decrease < max(_COST_TOLERANCE * cost, _DECREMENT_FLOOR):
+            perturb(rotation, position, step, trial_rotation, trial_position)
+            rotation[:, :] = trial_rotation
+            position[:] = trial_position
+            return CONVERGED, cost, damping
+        damped[:, :] = information
+        for i in range(6):
+            damped[i, i] += damping * information[i, i]
+        if not _solve6(damped, gradient, step):
+            return SINGULAR, cost, damping
+        perturb(rotation, position, step, trial_rotation, trial_position)
+        trial_cost = linearize_into(trial_rotation, trial_position, rays, lens, rim_sigma, lamp_of_point, centres,
+                                    radii_squared, marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,
+                                    up_directions, up_tangents, up_sigma, trial_residuals, trial_jacobian)
+        if not np.isfinite(trial_cost) or trial_cost > cost:
+            damping *= 10.0
+            continue
+        rotation[:, :] = trial_rotation
+        position[:] = trial_position
+        residuals[:] = trial_residuals
+        jacobian[:, :] = trial_jacobian
+        cost = trial_cost
+        damping = max(damping / 10.0, _MIN_DAMPING)
+    return PAUSED, cost, damping
