@@ -9,17 +9,23 @@ move. A curved edge's can: blur pulls the half level of a convex disc inward
 by kappa s^2 / 2 (``blur_shifts``). A clipped row's plateau is not its
 brightness, so its crossing lies outside the edge: ``clipped_edge_offset``
 measures by how much.
+
+The per-row loops (crossings, normals, the fit's outlier rounds) are compiled
+kernels (``vlp_ros.compiled``): a lamp has a few hundred rim points, on which
+numpy's per-call cost exceeds the arithmetic.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import ndtr, ndtri
 
+from vlp_ros.compiled import kernel
 from vlp_ros.detection.rows import RowLevels
-from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse, geometric_distances
+from vlp_ros.ellipse import OK, conic_of, distances, fit_error, fit_points, geometric_distances
 from vlp_ros.small_arrays import median
 
 # Robust (MAD) standard deviation of a normal distribution.
@@ -52,36 +58,54 @@ def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
     the first pixel above threshold the crossing may lie. Rows whose edge leaves the
     array give no point.
     """
-    if levels.rows.size == 0:
-        return np.zeros((0, 2)), np.zeros(0)
-    half = 0.5 * (levels.plateau + background)
+    return _crossings(brightness, levels.rows, levels.first, levels.last, levels.plateau, float(background),
+                      int(reach))
+
+
+@kernel
+def _crossings(brightness: np.ndarray, rows: np.ndarray, first: np.ndarray, last: np.ndarray,
+               plateau: np.ndarray, background: float, reach: int) -> tuple[np.ndarray, np.ndarray]:
+    """``row_crossings``: left crossings in row order, then right ones."""
     width = brightness.shape[1]
-    steps = np.arange(-1, reach + 1)
-    points, plateaus = [], []
-    for start, direction in ((levels.first, 1), (levels.last, -1)):
-        cols = start[:, None] + direction * steps[None, :]
-        inside = (cols >= 0) & (cols < width)
-        values = brightness[levels.rows[:, None], np.clip(cols, 0, width - 1)].astype(float)
-        # Outside the array counts as bright, so a clipped edge yields no crossing.
-        values[~inside] = np.inf
-        reached = values >= half[:, None]
-        k = np.argmax(reached, axis=1)
-        ok = (k > 0) & reached[np.arange(k.size), k]
-        rows = np.flatnonzero(ok)
-        k = k[ok]
-        outer, inner = values[rows, k - 1], values[rows, k]
-        fraction = (half[rows] - outer) / (inner - outer)
-        x = cols[rows, k - 1] + direction * fraction
-        points.append(np.column_stack([x, levels.rows[rows].astype(float)]))
-        plateaus.append(levels.plateau[rows])
-    return np.concatenate(points), np.concatenate(plateaus)
+    points = np.empty((2 * rows.size, 2))
+    plateaus = np.empty(2 * rows.size)
+    count = 0
+    for side in range(2):
+        direction = 1 if side == 0 else -1
+        for i in range(rows.size):
+            half = 0.5 * (plateau[i] + background)
+            start = first[i] if side == 0 else last[i]
+            # Steps -1 .. reach from the first pixel above threshold; outside the array counts as
+            # bright, so a clipped edge yields no crossing.
+            outer = 0.0
+            for k in range(reach + 2):
+                col = start + direction * (k - 1)
+                value = float(brightness[rows[i], col]) if 0 <= col < width else np.inf
+                if value >= half:
+                    if k > 0:
+                        points[count, 0] = start + direction * (k - 2) + direction * ((half - outer) / (value - outer))
+                        points[count, 1] = float(rows[i])
+                        plateaus[count] = plateau[i]
+                        count += 1
+                    break
+                outer = value
+    return points[:count], plateaus[:count]
 
 
 def outward_normals(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Unit normals (N, 2) of the ellipse's level curves at ``points``, pointing outward."""
-    C = conic_from_ellipse(ellipse)
-    gradient = (np.column_stack([points, np.ones(len(points))]) @ C)[:, :2]
-    return gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-12)
+    return _normals(conic_of(np.asarray(ellipse, dtype=float)), np.ascontiguousarray(points, dtype=float))
+
+
+@kernel
+def _normals(conic: np.ndarray, points: np.ndarray) -> np.ndarray:
+    normals = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        gx = points[i, 0] * conic[0, 0] + points[i, 1] * conic[1, 0] + conic[2, 0]
+        gy = points[i, 0] * conic[0, 1] + points[i, 1] * conic[1, 1] + conic[2, 1]
+        norm = max(math.sqrt(gx * gx + gy * gy), 1e-12)
+        normals[i, 0], normals[i, 1] = gx / norm, gy / norm
+    return normals
 
 
 def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.ndarray, background: float,
@@ -148,19 +172,34 @@ def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarr
     The pixel's square adds its variance 1/12 along every direction, as a Gaussian
     of that variance would.
     """
-    cols = np.floor(points[:, 0]).astype(int)
-    rows = points[:, 1].astype(int)
-    inside = (cols >= 0) & (cols + 1 < brightness.shape[1]) & (plateaus > background)
-    cols, rows = cols[inside], rows[inside]
-    step = plateaus[inside] - background
-    left = (brightness[rows, cols] - background) / step
-    right = (brightness[rows, cols + 1] - background) / step
-    usable = (np.minimum(left, right) > _PROBIT_MARGIN) & (np.maximum(left, right) < 1.0 - _PROBIT_MARGIN)
-    if np.count_nonzero(usable) < _MIN_BLUR_ROWS:
+    left, right, across = _ramps(brightness, points, plateaus, float(background),
+                                 conic_of(np.asarray(ellipse, dtype=float)))
+    if len(left) < _MIN_BLUR_ROWS:
         return None
-    across = np.abs(outward_normals(ellipse, points[inside][usable])[:, 0])
-    sigma = across / np.abs(ndtri(right[usable]) - ndtri(left[usable]))
+    sigma = across / np.abs(ndtri(right) - ndtri(left))
     return median(sigma) ** 2
+
+
+@kernel
+def _ramps(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
+           conic: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of the crossings whose two pixels both lie on the ramp: their levels (0 background, 1 plateau)
+    and |n_x| of the edge's normal."""
+    n = points.shape[0]
+    left, right, across = np.empty(n), np.empty(n), np.empty(n)
+    count = 0
+    normals = _normals(conic, points)
+    for i in range(n):
+        col, row = int(math.floor(points[i, 0])), int(points[i, 1])
+        if not (col >= 0 and col + 1 < brightness.shape[1] and plateaus[i] > background):
+            continue
+        step = plateaus[i] - background
+        low = (brightness[row, col] - background) / step
+        high = (brightness[row, col + 1] - background) / step
+        if min(low, high) > _PROBIT_MARGIN and max(low, high) < 1.0 - _PROBIT_MARGIN:
+            left[count], right[count], across[count] = low, high, abs(normals[i, 0])
+            count += 1
+    return left[:count], right[:count], across[:count]
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:
@@ -173,21 +212,34 @@ def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.
     point, so it shrinks the fitted ellipse: by twice the size's own standard deviation
     (0.0045 px against 0.0023 px) for a 4K lamp 2 m away.
     """
-    cx, cy, a, b, theta = (float(v) for v in ellipse)
-    c, s = np.cos(theta), np.sin(theta)
-    local = (points - [cx, cy]) @ np.array([[c, -s], [s, c]])
-    # The curvature of the ellipse at the parameter angle t of each point.
-    t = np.arctan2(local[:, 1] / b, local[:, 0] / a)
-    curvature = a * b / (a * a * np.sin(t) ** 2 + b * b * np.cos(t) ** 2) ** 1.5
-    return (0.5 * variance * curvature)[:, None] * outward_normals(ellipse, points)
+    return _shifts(np.asarray(ellipse, dtype=float), np.ascontiguousarray(points, dtype=float), float(variance))
 
 
-def edge_slopes(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """|dx/dy| of the ellipse's edge near each point: large where a row meets the edge at a grazing angle."""
-    C = conic_from_ellipse(ellipse)
-    h = np.column_stack([points, np.ones(len(points))])
-    gradient = (h @ C)[:, :2]
-    return np.abs(gradient[:, 1]) / np.maximum(np.abs(gradient[:, 0]), 1e-12)
+@kernel
+def _shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:
+    cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
+    c, s = math.cos(theta), math.sin(theta)
+    shifts = _normals(conic_of(ellipse), points)
+    for i in range(points.shape[0]):
+        dx, dy = points[i, 0] - cx, points[i, 1] - cy
+        # The curvature of the ellipse at the parameter angle t of the point.
+        t = math.atan2((dx * -s + dy * c) / b, (dx * c + dy * s) / a)
+        curvature = a * b / (a * a * math.sin(t) ** 2 + b * b * math.cos(t) ** 2) ** 1.5
+        shifts[i, 0] *= 0.5 * variance * curvature
+        shifts[i, 1] *= 0.5 * variance * curvature
+    return shifts
+
+
+@kernel
+def edge_slopes(conic: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """|dx/dy| of the edge of the ellipse ``conic`` (3x3) near each point: large where a row meets
+    the edge at a grazing angle."""
+    slopes = np.empty(points.shape[0])
+    for i in range(points.shape[0]):
+        gx = points[i, 0] * conic[0, 0] + points[i, 1] * conic[1, 0] + conic[2, 0]
+        gy = points[i, 0] * conic[0, 1] + points[i, 1] * conic[1, 1] + conic[2, 1]
+        slopes[i] = abs(gy) / max(abs(gx), 1e-12)
+    return slopes
 
 
 def fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float,
@@ -197,21 +249,46 @@ def fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float,
     ``near``: an ellipse already close to the points, to tell the grazing rows by.
     Raises ValueError when too few points remain for a fit.
     """
-    # A rough ellipse through a quarter of the points is enough to tell the grazing rows.
-    ellipse = near if near is not None else fit_ellipse(points[::4] if len(points) >= 40 else points)
-    kept = points[edge_slopes(ellipse, points) <= max_slope]
-    ellipse = fit_ellipse(kept)
-    candidates = len(kept)
-    distances = geometric_distances(ellipse, kept)
-    scale = max(_MAD_TO_SIGMA * median(np.abs(distances)), min_sigma)
-    inliers = np.abs(distances) <= outlier_sigmas * scale
+    status, count, ellipse, kept, sigma, candidates = _fit_rim(
+        np.ascontiguousarray(points, dtype=float), float(max_slope), float(outlier_sigmas), float(min_sigma),
+        np.zeros(5) if near is None else np.asarray(near, dtype=float), near is not None)
+    if status != OK:
+        raise fit_error(status, count)
+    return RimFit(ellipse, kept, sigma, candidates)
+
+
+@kernel
+def _fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float, min_sigma: float,
+             near: np.ndarray, use_near: bool) -> tuple[int, int, np.ndarray, np.ndarray, float, int]:
+    """``fit_rim``: (status, points given to the failed fit, ellipse, kept points, sigma, candidates)."""
+    failed = np.zeros((0, 2))
+    ellipse = near
+    if not use_near:
+        # A rough ellipse through a quarter of the points is enough to tell the grazing rows.
+        rough = np.ascontiguousarray(points[::4]) if points.shape[0] >= 40 else points
+        status, ellipse = fit_points(rough)
+        if status != OK:
+            return status, rough.shape[0], ellipse, failed, 0.0, 0
+    kept = points[edge_slopes(conic_of(ellipse), points) <= max_slope]
+    candidates = kept.shape[0]
+    status, ellipse = fit_points(kept)
+    if status != OK:
+        return status, candidates, ellipse, failed, 0.0, 0
+    residuals = distances(ellipse, kept)
+    scale = max(_MAD_TO_SIGMA * np.median(np.abs(residuals)), min_sigma)
+    inliers = np.abs(residuals) <= outlier_sigmas * scale
     if not inliers.all():
         kept = kept[inliers]
-        ellipse = fit_ellipse(kept)
-        distances = geometric_distances(ellipse, kept)
+        status, ellipse = fit_points(kept)
+        if status != OK:
+            return status, kept.shape[0], ellipse, failed, 0.0, 0
+        residuals = distances(ellipse, kept)
     # The pose fit weighs every point alike, so its covariance scales with their mean square
     # distance (over the degrees of freedom the ellipse leaves), not with their median spread:
     # rows differ in brightness, hence in noise, and the points' spread is heavier-tailed than
     # a normal's (MAD-based sigma 3-7 % short of the RMS).
-    sigma = max(float(np.sqrt(distances @ distances / max(len(distances) - _ELLIPSE_PARAMETERS, 1))), min_sigma)
-    return RimFit(ellipse, kept, sigma, candidates)
+    square = 0.0
+    for residual in residuals:
+        square += residual * residual
+    sigma = max(math.sqrt(square / max(residuals.size - _ELLIPSE_PARAMETERS, 1)), min_sigma)
+    return OK, 0, ellipse, kept, sigma, candidates

@@ -1,16 +1,20 @@
 """Rows of a rolling-shutter lamp: each row has one brightness across the disc.
 
 A row's level is the median of samples over the middle half of its chord, well
-away from the blurred edge and from a marker at the rim.
+away from the blurred edge and from a marker at the rim. The per-row loops are
+compiled kernels (``vlp_ros.compiled``): numpy's per-call cost on a lamp's few
+hundred rows exceeds the arithmetic.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
 
-from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
+from vlp_ros.compiled import kernel
+from vlp_ros.ellipse import conic_distance, conic_of
 from vlp_ros.small_arrays import percentile
 
 # Plateau samples per row, spread over the middle half of the row's chord.
@@ -37,20 +41,47 @@ def row_levels(brightness: np.ndarray, threshold: float, background: float,
 
     ``brightness`` holds one lamp (2D); ``threshold`` separates it from the background.
     """
-    above = brightness > threshold
-    lit = np.flatnonzero(above.any(axis=1))
-    if lit.size == 0:
+    rows, first, last, plateau = _lit_rows(brightness, float(threshold))
+    if rows.size == 0:
         return RowLevels(*(np.zeros(0, dtype=int),) * 3, np.zeros(0))
-    above = above[lit]
-    first = np.argmax(above, axis=1)
-    last = brightness.shape[1] - 1 - np.argmax(above[:, ::-1], axis=1)
-    span = last - first
-    # The middle half of the chord is well away from the blurred edge (and from a marker at the rim).
-    cols = np.rint(first[:, None] + span[:, None] * _FRACTIONS[None, :]).astype(int)
-    plateau = _median_of_rows(brightness[lit[:, None], cols])
+    keep = _level_rows(first, last, plateau, float(background), float(level_fraction))
+    return RowLevels(rows[keep], first[keep], last[keep], plateau[keep])
+
+
+@kernel
+def _lit_rows(brightness: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rows with a pixel above ``threshold``: index, first and last such pixel, plateau level."""
+    height, width = brightness.shape
+    rows, first, last = np.empty(height, np.int64), np.empty(height, np.int64), np.empty(height, np.int64)
+    plateau = np.empty(height)
+    samples = np.empty(_FRACTIONS.size)
+    count = 0
+    for row in range(height):
+        start = -1
+        for col in range(width):
+            if brightness[row, col] > threshold:
+                start = col
+                break
+        if start < 0:
+            continue
+        end = width - 1
+        while not brightness[row, end] > threshold:
+            end -= 1
+        # The middle half of the chord is well away from the blurred edge (and from a marker at the rim).
+        for k in range(_FRACTIONS.size):
+            samples[k] = brightness[row, int(np.rint(start + (end - start) * _FRACTIONS[k]))]
+        rows[count], first[count], last[count] = row, start, end
+        plateau[count] = _middle(samples)
+        count += 1
+    return rows[:count], first[:count], last[:count], plateau[:count]
+
+
+@kernel
+def _level_rows(first: np.ndarray, last: np.ndarray, plateau: np.ndarray, background: float,
+                level_fraction: float) -> np.ndarray:
+    """Which lit rows are wide enough and bright enough (against the 90th percentile) to carry edges."""
     reference = percentile(plateau, 90.0)
-    keep = (span >= 2) & (plateau - background >= level_fraction * (reference - background))
-    return RowLevels(lit[keep], first[keep], last[keep], plateau[keep])
+    return (last - first >= 2) & (plateau - background >= level_fraction * (reference - background))
 
 
 def clear_levels(brightness: np.ndarray, levels: RowLevels, ellipse: np.ndarray, clearance: float,
@@ -66,20 +97,38 @@ def clear_levels(brightness: np.ndarray, levels: RowLevels, ellipse: np.ndarray,
     the rows it crosses. (The median of noisy samples, some of them dimmed, is lower
     than the noise-free one, so both grow with the noise.)
     """
-    left, right, crossed = ellipse_chords(ellipse, levels.rows)
-    cols = left[:, None] + (right - left)[:, None] * _CLEAR_FRACTIONS[None, :]
-    rows = np.broadcast_to(levels.rows[:, None], cols.shape)
-    depth = -geometric_distances(ellipse, np.column_stack([cols.ravel(), rows.ravel()])).reshape(cols.shape)
-    samples = brightness[rows, np.clip(np.rint(cols), 0, brightness.shape[1] - 1).astype(int)].astype(float)
-    usable = depth >= clearance
-    if marker is not None:
-        usable &= np.hypot(cols - marker[0][0], rows - marker[0][1]) > marker[1]
-    count = np.count_nonzero(usable, axis=1)
-    keep = crossed & (count >= _MIN_CLEAR_SAMPLES)
-    # Unusable samples sort last (np.nanmedian costs ten times as much).
-    ordered = np.sort(np.where(usable, samples, np.inf)[keep], axis=1)
-    plateau = np.take_along_axis(ordered, (count[keep] // 2)[:, None], axis=1)[:, 0]
-    return RowLevels(levels.rows[keep], levels.first[keep], levels.last[keep], plateau)
+    has_marker = marker is not None
+    centre, radius = (np.asarray(marker[0], dtype=float), float(marker[1])) if has_marker else (np.zeros(2), 0.0)
+    keep, plateau = _clear_plateaus(brightness, levels.rows, np.asarray(ellipse, dtype=float), float(clearance),
+                                    has_marker, centre, radius)
+    return RowLevels(levels.rows[keep], levels.first[keep], levels.last[keep], plateau[keep])
+
+
+@kernel
+def _clear_plateaus(brightness: np.ndarray, rows: np.ndarray, ellipse: np.ndarray, clearance: float,
+                    has_marker: bool, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """``clear_levels``: which rows keep a plateau, and the plateaus (the upper median of the usable samples)."""
+    conic = conic_of(ellipse)
+    left, right, crossed = chords(conic, rows.astype(np.float64))
+    keep = np.zeros(rows.size, np.bool_)
+    plateau = np.zeros(rows.size)
+    usable = np.empty(_CLEAR_FRACTIONS.size)
+    for i in range(rows.size):
+        if not crossed[i]:
+            continue
+        count = 0
+        for k in range(_CLEAR_FRACTIONS.size):
+            col = left[i] + (right[i] - left[i]) * _CLEAR_FRACTIONS[k]
+            if -conic_distance(conic, col, float(rows[i])) < clearance:
+                continue
+            if has_marker and not math.hypot(col - centre[0], rows[i] - centre[1]) > radius:
+                continue
+            usable[count] = brightness[rows[i], min(max(int(np.rint(col)), 0), brightness.shape[1] - 1)]
+            count += 1
+        if count >= _MIN_CLEAR_SAMPLES:
+            keep[i] = True
+            plateau[i] = np.sort(usable[:count])[count // 2]
+    return keep, plateau
 
 
 def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
@@ -97,15 +146,23 @@ def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarr
 
 def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(left, right, crossed): where each row (y = ``rows``) enters and leaves the ellipse."""
-    conic = conic_from_ellipse(ellipse)
-    y = np.asarray(rows, dtype=float)
-    # The row's conic in x: a x^2 + b x + c = 0.
+    return chords(conic_of(np.asarray(ellipse, dtype=float)), np.asarray(rows, dtype=float).ravel())
+
+
+@kernel
+def chords(conic: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``ellipse_chords`` of a conic (3x3) and float rows."""
+    left, right, crossed = np.empty(rows.size), np.empty(rows.size), np.empty(rows.size, np.bool_)
     a = conic[0, 0]
-    b = 2.0 * (conic[0, 1] * y + conic[0, 2])
-    c = conic[1, 1] * y * y + 2.0 * conic[1, 2] * y + conic[2, 2]
-    discriminant = b * b - 4.0 * a * c
-    root = np.sqrt(np.maximum(discriminant, 0.0))
-    return (-b - root) / (2.0 * a), (-b + root) / (2.0 * a), discriminant > 0.0
+    for i in range(rows.size):
+        y = rows[i]
+        # The row's conic in x: a x^2 + b x + c = 0.
+        b = 2.0 * (conic[0, 1] * y + conic[0, 2])
+        c = conic[1, 1] * y * y + 2.0 * conic[1, 2] * y + conic[2, 2]
+        discriminant = b * b - 4.0 * a * c
+        root = math.sqrt(max(discriminant, 0.0))
+        left[i], right[i], crossed[i] = (-b - root) / (2.0 * a), (-b + root) / (2.0 * a), discriminant > 0.0
+    return left, right, crossed
 
 
 def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float, blur: float) -> np.ndarray:
@@ -116,17 +173,36 @@ def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float, 
     (Gaussian ``blur``). NaN for rows that miss the ellipse or whose chord middle
     lies within two blurs of the edge, where that correction would dominate.
     """
-    rows = np.arange(brightness.shape[0])
-    left, right, crossed = ellipse_chords(ellipse, rows)
-    clearance = -geometric_distances(ellipse, np.column_stack([0.5 * (left + right), rows]))
-    crossed &= (left >= 0.0) & (right <= brightness.shape[1] - 1) & (clearance >= 2.0 * blur)
-    profile = np.full(rows.size, np.nan)
-    inside = np.flatnonzero(crossed)
-    cols = np.rint(left[inside, None] + (right - left)[inside, None] * _FRACTIONS[None, :]).astype(int)
-    plateau = _median_of_rows(brightness[inside[:, None], cols]) - background
-    profile[inside] = plateau / ndtr(clearance[inside] / blur)
+    inside, plateau, clearance = _chord_plateaus(brightness, np.asarray(ellipse, dtype=float), float(background),
+                                                 float(blur))
+    profile = np.full(brightness.shape[0], np.nan)
+    profile[inside] = plateau / ndtr(clearance / blur)
     return profile
 
 
-def _median_of_rows(samples: np.ndarray) -> np.ndarray:
-    return np.partition(samples, samples.shape[1] // 2, axis=1)[:, samples.shape[1] // 2].astype(float)
+@kernel
+def _chord_plateaus(brightness: np.ndarray, ellipse: np.ndarray, background: float,
+                    blur: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows whose chord lies in the array with its middle two blurs inside the edge, their
+    plateaus above ``background`` and the clearance of their chord's middle."""
+    height, width = brightness.shape
+    conic = conic_of(ellipse)
+    left, right, crossed = chords(conic, np.arange(height).astype(np.float64))
+    rows, plateau, clearance = np.empty(height, np.int64), np.empty(height), np.empty(height)
+    samples = np.empty(_FRACTIONS.size)
+    count = 0
+    for row in range(height):
+        depth = -conic_distance(conic, 0.5 * (left[row] + right[row]), float(row))
+        if not (crossed[row] and left[row] >= 0.0 and right[row] <= width - 1 and depth >= 2.0 * blur):
+            continue
+        for k in range(_FRACTIONS.size):
+            samples[k] = brightness[row, int(np.rint(left[row] + (right[row] - left[row]) * _FRACTIONS[k]))]
+        rows[count], plateau[count], clearance[count] = row, _middle(samples) - background, depth
+        count += 1
+    return rows[:count], plateau[:count], clearance[:count]
+
+
+@kernel
+def _middle(samples: np.ndarray) -> float:
+    """The middle one of an odd number of samples."""
+    return np.sort(samples)[samples.size // 2]
