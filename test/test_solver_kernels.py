@@ -6,7 +6,7 @@ import pytest
 from solver_scenes import camera_wide, grid_lamps, looking_up, measured_up, observe
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.covariance import perturbed
-from vlp_ros.solvers.fit_kernels import project_points
+from vlp_ros.solvers.fit_kernels import project_point
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.refinement import linearize
 from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -21,7 +21,8 @@ def test_projection_and_its_jacobian_are_opencvs(distortion: np.ndarray) -> None
     rng = np.random.default_rng(2)
     points = np.column_stack([rng.uniform(-0.8, 0.8, (200, 2)), np.ones(200)]) * rng.uniform(0.3, 5.0, (200, 1))
     intrinsics = np.array([[900.0, 0.0, 955.5], [0.0, 905.0, 539.5], [0.0, 0.0, 1.0]])
-    pixels, jacobians = project_points(points, intrinsics, distortion)
+    jacobians = np.empty((len(points), 2, 3))
+    pixels = np.array([project_point(point, intrinsics, distortion, out) for point, out in zip(points, jacobians)])
     expected, lens = cv2.projectPoints(points, np.zeros(3), np.zeros(3), intrinsics, distortion)
     np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0.0, atol=1e-9)
     # With zero rvec and tvec, the tvec columns of OpenCV's Jacobian are d pixel / d point.
@@ -61,7 +62,7 @@ def test_lamp_residuals_are_the_direct_formulation(pose: Pose) -> None:
     np.testing.assert_allclose(residuals, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
 
 
-def test_lens_jacobian_inverts_the_undistortion() -> None:
+def test_rim_pixel_jacobian_is_the_undistortions() -> None:
     lamp = grid_lamps(2)[1]
     camera = camera_wide()
     assert camera.is_distorted

@@ -7,8 +7,11 @@ left). With residuals already divided by their sigmas, the covariance of
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from vlp_ros.compiled import kernel
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.fit_kernels import perturb
 
@@ -28,12 +31,35 @@ def perturbed(pose: Pose, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def covariance_from_jacobian(jacobian: np.ndarray) -> np.ndarray:
     """(J^T J)^-1 of a whitened residual Jacobian; ValueError if the pose is not fully observed."""
-    information = jacobian.T @ jacobian
-    if not np.all(np.isfinite(information)) or not np.all(np.diag(information) > 0.0):
+    covariance = _covariance(np.ascontiguousarray(jacobian, dtype=float), _MAX_CONDITION)
+    if covariance is None:
         raise ValueError('the measurements do not determine all six pose degrees of freedom')
-    scale = 1.0 / np.sqrt(np.diag(information))
-    if np.linalg.cond(information * np.outer(scale, scale)) > _MAX_CONDITION:
-        raise ValueError('the measurements do not determine all six pose degrees of freedom')
+    return covariance
+
+
+@kernel
+def _covariance(jacobian, max_condition):
+    """Symmetrised (J^T J)^-1, or None if J^T J is not finite, has an unobserved direction or a
+    condition number (scaled to unit diagonal) over ``max_condition``."""
+    information = np.empty((6, 6))
+    for i in range(6):
+        for j in range(i, 6):
+            total = 0.0
+            for n in range(jacobian.shape[0]):
+                total += jacobian[n, i] * jacobian[n, j]
+            information[i, j] = total
+            information[j, i] = total
+    if not np.all(np.isfinite(information)):
+        return None
+    scaled = np.empty((6, 6))
+    for i in range(6):
+        if not information[i, i] > 0.0:
+            return None
+    for i in range(6):
+        for j in range(6):
+            scaled[i, j] = information[i, j] / math.sqrt(information[i, i] * information[j, j])
+    if np.linalg.cond(scaled) > max_condition:
+        return None
     covariance = np.linalg.inv(information)
     return 0.5 * (covariance + covariance.T)
 

@@ -68,20 +68,27 @@ class Terms(NamedTuple):
         return len(self.rays) + 2 * len(self.marker_maps) + 2 * len(self.up_directions)
 
 
+# Fields that come and go together: a lamp's rim points (and the lamp), markers, up directions.
+_KINDS = (('rays', 'lens', 'rim_sigma', 'lamp_of_point', 'centres', 'radii_squared'),
+          ('marker_maps', 'marker_pixels', 'marker_sigma'), ('up_directions', 'up_tangents', 'up_sigma'))
+
+
 def joined(parts: Sequence[Terms]) -> Terms:
     """All ``parts`` as one: each kind's entries in the order of the parts (lamps renumbered),
     seen through the first camera that has lamps."""
     if len(parts) == 1:
         return parts[0]
-    lamp_offsets = np.cumsum([0] + [len(t.centres) for t in parts[:-1]])
     fields = {}
-    for name in Terms._fields:
-        if name in ('intrinsics', 'distortion'):
-            continue
-        arrays = [getattr(t, name) + offset if name == 'lamp_of_point' else getattr(t, name)
-                  for t, offset in zip(parts, lamp_offsets) if len(getattr(t, name))]
-        if arrays:
-            fields[name] = arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+    for kind in _KINDS:
+        having = [t for t in parts if len(getattr(t, kind[0]))]
+        if len(having) == 1:
+            # The common case (one lamp term, one up term): nothing to copy.
+            fields.update((name, getattr(having[0], name)) for name in kind)
+        elif having:
+            fields.update((name, np.concatenate([getattr(t, name) for t in having])) for name in kind)
+            if kind[0] == 'rays':
+                offsets = np.cumsum([0] + [len(t.centres) for t in having[:-1]])
+                fields['lamp_of_point'] = np.concatenate([t.lamp_of_point + o for t, o in zip(having, offsets)])
     camera = next((t for t in parts if len(t.centres)), parts[0])
     return Terms(intrinsics=camera.intrinsics, distortion=camera.distortion, **fields)
 
@@ -126,14 +133,22 @@ def project_point(point, intrinsics, distortion, jacobian):
 
 
 @kernel
-def project_points(points, intrinsics, distortion):
-    """``project_point`` for points (N, 3): pixels (N, 2) and d pixel / d point (N, 2, 3)."""
-    count = points.shape[0]
-    pixels = np.empty((count, 2))
-    jacobians = np.empty((count, 2, 3))
+def normalized_per_pixel(normalized, intrinsics, distortion):
+    """d(normalised)/d(pixel) (N, 2, 2) at undistorted normalised points (N, 2): the inverse of
+    ``project_point``'s Jacobian, whose x and y columns at z = 1 are d pixel / d normalised."""
+    count = normalized.shape[0]
+    inverses = np.empty((count, 2, 2))
+    point = np.ones(3)
+    forward = np.empty((2, 3))
     for n in range(count):
-        pixels[n, 0], pixels[n, 1] = project_point(points[n], intrinsics, distortion, jacobians[n])
-    return pixels, jacobians
+        point[0], point[1] = normalized[n, 0], normalized[n, 1]
+        project_point(point, intrinsics, distortion, forward)
+        inverse_det = 1.0 / (forward[0, 0] * forward[1, 1] - forward[0, 1] * forward[1, 0])
+        inverses[n, 0, 0] = forward[1, 1] * inverse_det
+        inverses[n, 0, 1] = -forward[0, 1] * inverse_det
+        inverses[n, 1, 0] = -forward[1, 0] * inverse_det
+        inverses[n, 1, 1] = forward[0, 0] * inverse_det
+    return inverses
 
 
 @kernel

@@ -21,7 +21,7 @@ import numpy as np
 from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
-from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, project_points
+from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, normalized_per_pixel
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ class LampMeasurement:
         marker_ray = None if marker is None else np.append(camera.normalize(marker)[0], 1.0)
         return cls(lamp=lamp, camera=camera,
                    rim_rays=np.column_stack([normalized, np.ones(len(normalized))]),
-                   rim_pixel_jacobian=np.linalg.inv(_lens_jacobian(camera, normalized)),
+                   rim_pixel_jacobian=_normalized_per_pixel(camera, normalized),
                    rim_sigma=float(observation.rim_sigma), marker_pixel=marker,
                    marker_sigma=float(observation.marker_sigma), marker_ray=marker_ray)
 
@@ -107,14 +107,12 @@ def cross_matrix(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _lens_jacobian(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
-    """d(pixel)/d(normalised) (N, 2, 2) at normalised points (N, 2)."""
+def _normalized_per_pixel(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
+    """d(normalised)/d(pixel) (N, 2, 2) at normalised points (N, 2)."""
     if not camera.is_distorted:
-        # A pinhole maps normalised to pixel coordinates linearly: K's upper-left block.
-        return np.broadcast_to(camera.K[:2, :2], (len(normalized), 2, 2))
-    # At z = 1 the derivatives in the point's x and y are those in its normalised coordinates.
-    _, jacobians = project_points(np.column_stack([normalized, np.ones(len(normalized))]), camera.K, camera.D)
-    return jacobians[:, :, :2]
+        # A pinhole maps pixel to normalised coordinates linearly: K's upper-left block inverted.
+        return np.broadcast_to(np.linalg.inv(camera.K[:2, :2]), (len(normalized), 2, 2))
+    return normalized_per_pixel(np.ascontiguousarray(normalized, dtype=float), camera.K, camera.D)
 
 
 @dataclass(frozen=True)
