@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -46,7 +47,8 @@ class CameraModel:
     def focal(self) -> float:
         return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
 
-    @property
+    # Cached (in the instance's __dict__, which a frozen dataclass allows): the solvers ask per lamp.
+    @cached_property
     def is_distorted(self) -> bool:
         return bool(np.any(self.D != 0.0))
 

@@ -86,11 +86,35 @@ def with_rotation_curvature(covariance: np.ndarray, lever: np.ndarray) -> np.nda
     matters only when rotations are uncertain by degrees (one lamp seen near-frontally,
     its tilt from gravity), and is then many sigma of the bearing.
     """
-    unit = lever / np.linalg.norm(lever)
-    across = np.eye(3) - np.outer(unit, unit)
-    b = 0.5 * (across[:, :, None] * lever[None, None, :] + lever[None, :, None] * across[:, None, :])
-    b_p = b @ covariance[3:, 3:]
-    mean = 0.5 * np.trace(b_p, axis1=1, axis2=2)
-    widened = covariance.copy()
-    widened[:3, :3] += 0.5 * np.einsum('ijk,lkj->il', b_p, b_p) + np.outer(mean, mean)
+    widened = np.array(covariance, dtype=float)
+    _add_rotation_curvature(widened, np.ascontiguousarray(lever, dtype=float))
     return widened
+
+
+@kernel
+def _add_rotation_curvature(covariance, lever):
+    """``with_rotation_curvature`` in place: B_i = sym(p_i lever^T) against the rotation block P."""
+    length = math.sqrt(lever[0] * lever[0] + lever[1] * lever[1] + lever[2] * lever[2])
+    b = np.empty((3, 3, 3))
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                across_ij = (1.0 if i == j else 0.0) - lever[i] * lever[j] / (length * length)
+                across_ik = (1.0 if i == k else 0.0) - lever[i] * lever[k] / (length * length)
+                b[i, j, k] = 0.5 * (across_ij * lever[k] + lever[j] * across_ik)
+    b_p = np.zeros((3, 3, 3))
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                for m in range(3):
+                    b_p[i, j, k] += b[i, j, m] * covariance[3 + m, 3 + k]
+    mean = np.empty(3)
+    for i in range(3):
+        mean[i] = 0.5 * (b_p[i, 0, 0] + b_p[i, 1, 1] + b_p[i, 2, 2])
+    for i in range(3):
+        for m in range(3):
+            total = 0.0
+            for j in range(3):
+                for k in range(3):
+                    total += b_p[i, j, k] * b_p[m, k, j]
+            covariance[i, m] += 0.5 * total + mean[i] * mean[m]

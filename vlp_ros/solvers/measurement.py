@@ -102,11 +102,6 @@ class LampMeasurement:
         return (self.lamp.position - position) @ rotation
 
 
-def cross_matrix(v: np.ndarray) -> np.ndarray:
-    """[v]x: [v]x @ u = v x u."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _normalized_per_pixel(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
     """d(normalised)/d(pixel) (N, 2, 2) at normalised points (N, 2)."""
     if not camera.is_distorted:

@@ -27,12 +27,14 @@ sigma). A measurement no candidate agrees with (an accelerating IMU) is left out
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from functools import cache
 
 import numpy as np
 
 from vlp_ros.camera import CameraModel
+from vlp_ros.compiled import kernel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
@@ -40,7 +42,7 @@ from vlp_ros.solvers.ambiguity import COST_GAP
 from vlp_ros.solvers.candidates import PoseCandidate, distinct
 from vlp_ros.solvers.circle_pose import CirclePose, circle_poses, normalized_conic
 from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
-from vlp_ros.solvers.measurement import LampMeasurement, cross_matrix
+from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, forecast_minimum, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
@@ -64,24 +66,52 @@ def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np
     """Camera pose from the lamp's circle in the camera frame and the ray (normalised,
     homogeneous) towards a map point ``target`` off the lamp's vertical axis: its marker,
     or another lamp's centre. None if the ray cannot reach the target's height."""
-    up = circle.normal
-    height = up @ circle.center + (target[2] - lamp.position[2])
-    along_ray = up @ ray
+    rotation, position = np.empty((3, 3)), np.empty(3)
+    if not _pose_from_circle(np.ascontiguousarray(circle.normal, dtype=float),
+                             np.ascontiguousarray(circle.center, dtype=float),
+                             np.ascontiguousarray(lamp.position, dtype=float), np.ascontiguousarray(ray, dtype=float),
+                             np.ascontiguousarray(target, dtype=float), rotation, position):
+        return None
+    return Pose(rotation, position)
+
+
+@kernel
+def _pose_from_circle(up, center, lamp_position, ray, target, rotation, position):
+    """``pose_from_circle`` into ``rotation`` and ``position``; False if there is none. The ray
+    meets the target's height on the lamp's plane (``up`` its normal); the heading from the
+    lamp centre to that point, in the camera and in the map, fixes the yaw."""
+    height = up[0] * center[0] + up[1] * center[1] + up[2] * center[2] + (target[2] - lamp_position[2])
+    along_ray = up[0] * ray[0] + up[1] * ray[1] + up[2] * ray[2]
     if not (along_ray > 0.0 and height > 0.0):
-        return None
-    offset = ray * (height / along_ray) - circle.center
-    offset -= (offset @ up) * up
-    heading_map = np.array([target[0] - lamp.position[0], target[1] - lamp.position[1], 0.0])
-    if not (np.linalg.norm(offset) > 0.0 and np.linalg.norm(heading_map) > 0.0):
-        return None
-    heading_camera = offset / np.linalg.norm(offset)
-    heading_map /= np.linalg.norm(heading_map)
-    # np.cross costs ~40 us on 3-vectors (axis bookkeeping); the skew matrix product is the same cross product.
-    camera_basis = np.column_stack([heading_camera, cross_matrix(up) @ heading_camera, up])
-    map_basis = np.array([[heading_map[0], -heading_map[1], 0.0], [heading_map[1], heading_map[0], 0.0],
-                          [0.0, 0.0, 1.0]])
-    rotation = map_basis @ camera_basis.T
-    return Pose(rotation, lamp.position - rotation @ circle.center)
+        return False
+    offset = np.empty(3)
+    for i in range(3):
+        offset[i] = ray[i] * (height / along_ray) - center[i]
+    along_up = offset[0] * up[0] + offset[1] * up[1] + offset[2] * up[2]
+    for i in range(3):
+        offset[i] -= along_up * up[i]
+    heading_x, heading_y = target[0] - lamp_position[0], target[1] - lamp_position[1]
+    offset_norm = math.sqrt(offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2])
+    heading_norm = math.sqrt(heading_x * heading_x + heading_y * heading_y)
+    if not (offset_norm > 0.0 and heading_norm > 0.0):
+        return False
+    # Camera basis: the heading, up x heading, up; map basis: the heading, its left turn, +z.
+    camera = np.empty((3, 3))
+    for i in range(3):
+        camera[i, 0] = offset[i] / offset_norm
+        camera[i, 2] = up[i]
+    camera[0, 1] = up[1] * camera[2, 0] - up[2] * camera[1, 0]
+    camera[1, 1] = up[2] * camera[0, 0] - up[0] * camera[2, 0]
+    camera[2, 1] = up[0] * camera[1, 0] - up[1] * camera[0, 0]
+    cos_yaw, sin_yaw = heading_x / heading_norm, heading_y / heading_norm
+    for j in range(3):
+        rotation[0, j] = cos_yaw * camera[j, 0] - sin_yaw * camera[j, 1]
+        rotation[1, j] = sin_yaw * camera[j, 0] + cos_yaw * camera[j, 1]
+        rotation[2, j] = camera[j, 2]
+    for i in range(3):
+        position[i] = lamp_position[i] - (rotation[i, 0] * center[0] + rotation[i, 1] * center[1]
+                                          + rotation[i, 2] * center[2])
+    return True
 
 
 def closed_form_poses(measurement: LampMeasurement) -> list[Pose]:

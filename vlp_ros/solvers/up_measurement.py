@@ -11,17 +11,21 @@ from the line of sight, these two residuals fix it.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from vlp_ros.compiled import kernel
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.fit_kernels import Terms, linearize
 # Largest innovation chi-square (2 dof) of a measured up direction that agrees with the
 # lamps: exceeded by chance with probability 1e-4 (exp(-18.42 / 2)).
 UP_INNOVATION_GATE = 18.42
+# Relative size below which an eigenvalue of I - J P J^T is a direction the lamps do not observe.
+_PSEUDO_INVERSE_RCOND = 1e-9
 
 
 def unit_direction(vector: np.ndarray) -> np.ndarray:
@@ -73,7 +77,33 @@ class UpMeasurement:
             raise ValueError('the pose has no covariance')
         residual, jacobian = self.linearize(pose.rotation, pose.position)
         left = np.eye(2) - jacobian @ pose.covariance @ jacobian.T
-        return float(residual @ np.linalg.pinv(left, rcond=1e-9, hermitian=True) @ residual)
+        return _pseudo_inverse_form(left, residual, _PSEUDO_INVERSE_RCOND)
+
+
+@kernel
+def _pseudo_inverse_form(matrix, vector, rcond):
+    """v^T M^+ v for a symmetric 2x2 M, its pseudo-inverse as ``np.linalg.pinv(M, rcond,
+    hermitian=True)`` forms it: eigenvalues under rcond times the largest in magnitude count as zero."""
+    a, b, c = matrix[0, 0], 0.5 * (matrix[0, 1] + matrix[1, 0]), matrix[1, 1]
+    middle, radius = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    values = (middle + radius, middle - radius)
+    cutoff = rcond * max(abs(values[0]), abs(values[1]))
+    kept = (abs(values[0]) > cutoff, abs(values[1]) > cutoff)
+    if kept[0] and kept[1]:
+        # Both count: the plain inverse, which does not need the eigenvectors.
+        x, y = vector[0], vector[1]
+        return (c * x * x - 2.0 * b * x * y + a * y * y) / (a * c - b * b)
+    total = 0.0
+    for value, keep in ((values[0], kept[0]), (values[1], kept[1])):
+        if keep:
+            # (M - value I) u = 0: u normal to a row of M - value I, the longer row for accuracy.
+            if math.hypot(value - c, b) >= math.hypot(b, value - a):
+                u0, u1 = value - c, b
+            else:
+                u0, u1 = b, value - a
+            projection = (u0 * vector[0] + u1 * vector[1]) / math.hypot(u0, u1)
+            total += projection * projection / value
+    return total
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
