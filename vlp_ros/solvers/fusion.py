@@ -85,7 +85,8 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
     """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps
     and any measured up directions."""
     measurements = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs]
-    coarse = [LampMeasurements(tuple(m.thinned(_PROBE_RIM_POINTS) for m in measurements)), *up]
+    # Joined once: every start is scored and probed on it.
+    coarse = [LampMeasurements((*(m.thinned(_PROBE_RIM_POINTS) for m in measurements), *up))]
     reached: list[tuple[Pose, float]] = []
 
     def known_or_hopeless(pose: Pose, cost: float) -> bool:

@@ -15,6 +15,7 @@ of the marker's map position through the camera's K and D (OpenCV's model, as
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +23,9 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
 from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, normalized_per_pixel
+
+if TYPE_CHECKING:
+    from vlp_ros.solvers.up_measurement import UpMeasurement
 
 
 @dataclass(frozen=True)
@@ -112,19 +116,20 @@ def _normalized_per_pixel(camera: CameraModel, normalized: np.ndarray) -> np.nda
 
 @dataclass(frozen=True)
 class LampMeasurements:
-    """Several lamps' measurements evaluated as one (all rims, then all markers, each kind in the
-    order of the lamps), with their ``Terms`` joined once: a multi-lamp fit evaluates them for
-    every start it probes."""
+    """Several lamps' measurements, and any up measurements (``UpMeasurement``), evaluated as
+    one (all rims, then all markers, then all up directions, each kind in the order of the
+    parts), with their ``Terms`` joined once: a multi-lamp fit evaluates them for every start
+    it probes."""
 
-    parts: tuple[LampMeasurement, ...]
+    parts: tuple[LampMeasurement | UpMeasurement, ...]
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'terms', joined([m.terms for m in self.parts]))
 
     @property
     def residual_count(self) -> int:
-        return sum(m.residual_count for m in self.parts)
+        return self.terms.residual_count
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """As ``LampMeasurement.linearize``, for all the lamps at once: all rims, then all markers."""
+        """As ``LampMeasurement.linearize``, for all the parts at once."""
         return linearize(self.terms, rotation, position)
