@@ -1,17 +1,22 @@
-"""Lamps in one frame: blobs, sub-pixel rim, fitted ellipse and marker centroid per lamp."""
+"""Lamps in one frame: blobs, sub-pixel rim, fitted ellipse and marker centroid per lamp.
+
+The steps are plain Python; the loops over a lamp box's pixels and rim points are
+compiled kernels (``vlp_ros.compiled``) in the modules they belong to, and here.
+"""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
+from vlp_ros.compiled import kernel
 from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness, shape_spread
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
                                    row_crossings)
-from vlp_ros.detection.rows import RowLevels, clear_levels, ellipse_chords, row_levels, row_profile, steady_rows
-from vlp_ros.ellipse import conic_from_ellipse, geometric_distances
+from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
+from vlp_ros.ellipse import conic_from_ellipse, conic_of, geometric_distances
 from vlp_ros.observation import LampObservation
 from vlp_ros.small_arrays import median
 
@@ -195,8 +200,7 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     # one on the ceiling, the maximum's ramp bends and its half level lies up to ~0.05 px inside the
     # edge in dim rows, the same way all round the rim: several sigmas of the fitted ellipse's size.
     brightness = roi[..., _brightest_channel(roi)] if colour else roi
-    background = median(np.concatenate([brightness[0], brightness[-1], brightness[:, 0], brightness[:, -1]]))
-    peak = float(brightness.max())
+    background, peak = _box_levels(brightness)
     if peak - background < options.min_contrast:
         return None
     threshold = max(background + options.threshold_fraction * (peak - background),
@@ -224,10 +228,31 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     return replace(box, rim=rim)
 
 
+@kernel
 def _brightest_channel(roi: np.ndarray) -> int:
-    """The channel of the brightest pixel value in a colour box (cv2.reduce: numpy's axis max costs ~10x)."""
-    column_maxima = cv2.reduce(roi.reshape(roi.shape[0], -1), 0, cv2.REDUCE_MAX)
-    return int(np.argmax(column_maxima.reshape(-1, 3).max(axis=0)))
+    """The channel of the brightest pixel value in a colour box (the first of equals)."""
+    maxima = np.zeros(3, np.uint8)
+    for y in range(roi.shape[0]):
+        for x in range(roi.shape[1]):
+            for channel in range(3):
+                maxima[channel] = max(maxima[channel], roi[y, x, channel])
+    return int(np.argmax(maxima))
+
+
+@kernel
+def _box_levels(brightness: np.ndarray) -> tuple[float, float]:
+    """(background, peak): the median of the box's border pixels and its brightest pixel."""
+    height, width = brightness.shape
+    border = np.empty(2 * (width + height), np.uint8)
+    for x in range(width):
+        border[x], border[width + x] = brightness[0, x], brightness[height - 1, x]
+    for y in range(height):
+        border[2 * width + y], border[2 * width + height + y] = brightness[y, 0], brightness[y, width - 1]
+    peak = 0
+    for y in range(height):
+        for x in range(width):
+            peak = max(peak, brightness[y, x])
+    return median(border), float(peak)
 
 
 def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
@@ -237,14 +262,29 @@ def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
     Clipped rows are left out when enough unclipped ones remain.
     """
     points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach)
-    if box.seed is not None:
+    seed = box.seed
+    return _selected(points, plateaus, seed is not None, np.zeros(2) if seed is None else np.asarray(seed.center, float),
+                     0.0 if seed is None else seed.radius + options.blur_margin + 1.0,
+                     float(options.saturation_level), float(options.min_rim_points))
+
+
+@kernel
+def _selected(points: np.ndarray, plateaus: np.ndarray, has_seed: bool, centre: np.ndarray, radius: float,
+              saturation_level: float, min_rim_points: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_rim_points`` of the crossings: those farther than ``radius`` from the marker seed's ``centre``,
+    and the clipped ones only if too few unclipped ones remain."""
+    far = np.ones(points.shape[0], np.bool_)
+    if has_seed:
         # The marker's colour changes the brightness near it: its rim points are not trusted.
-        far = np.linalg.norm(points - box.seed.center, axis=1) > box.seed.radius + options.blur_margin + 1.0
-        points, plateaus = points[far], plateaus[far]
-    clipped = plateaus >= options.saturation_level
-    if np.count_nonzero(~clipped) >= max(options.min_rim_points, _MIN_UNCLIPPED_SHARE * len(points)):
+        for i in range(points.shape[0]):
+            dx, dy = points[i, 0] - centre[0], points[i, 1] - centre[1]
+            far[i] = math.sqrt(dx * dx + dy * dy) > radius
+    points, plateaus = points[far], plateaus[far]
+    clipped = plateaus >= saturation_level
+    unclipped = ~clipped
+    if np.count_nonzero(unclipped) >= max(min_rim_points, _MIN_UNCLIPPED_SHARE * points.shape[0]):
         # Unclipped rows place the edge exactly: clipped ones are not needed.
-        points, plateaus, clipped = points[~clipped], plateaus[~clipped], clipped[~clipped]
+        return points[unclipped], plateaus[unclipped], clipped[unclipped]
     return points, plateaus, clipped
 
 
@@ -331,11 +371,10 @@ def _is_whole_lamp(rim: RimFit, roi_shape: tuple[int, int], origin: tuple[int, i
 
 def _extent(ellipse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Corners (lo, hi) of the ellipse's axis-aligned bounding box."""
-    cx, cy, a, b, theta = (float(v) for v in ellipse)
-    c, s = np.cos(theta), np.sin(theta)
-    half = np.array([np.hypot(a * c, b * s), np.hypot(a * s, b * c)])
-    centre = np.array([cx, cy])
-    return centre - half, centre + half
+    cx, cy, a, b, theta = ellipse.tolist()
+    c, s = math.cos(theta), math.sin(theta)
+    half_x, half_y = math.hypot(a * c, b * s), math.hypot(a * s, b * c)
+    return np.array([cx - half_x, cy - half_y]), np.array([cx + half_x, cy + half_y])
 
 
 def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
@@ -362,7 +401,15 @@ def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
 
 def _inside_mask(ellipse: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
     """Pixels of ``bbox`` whose centres lie inside ``ellipse``."""
-    x0, y0, x1, y1 = bbox
-    left, right, crossed = ellipse_chords(ellipse, np.arange(y0, y1))
-    x = np.arange(x0, x1, dtype=float)
-    return (x >= left[:, None]) & (x <= right[:, None]) & crossed[:, None]
+    return _chord_mask(conic_of(np.asarray(ellipse, dtype=float)), *bbox)
+
+
+@kernel
+def _chord_mask(conic: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    left, right, crossed = chords(conic, np.arange(y0, y1).astype(np.float64))
+    mask = np.zeros((y1 - y0, x1 - x0), np.bool_)
+    for row in range(y1 - y0):
+        if crossed[row]:
+            for col in range(x1 - x0):
+                mask[row, col] = left[row] <= x0 + col <= right[row]
+    return mask
