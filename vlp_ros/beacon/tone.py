@@ -22,6 +22,7 @@ from scipy.special import gammaln, stdtr
 from vlp_ros.beacon.profile import RowProfile
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
                                     no_evidence, reading)
+from vlp_ros.compiled import kernel
 
 # Evidence (nats) by which the square wave must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
@@ -77,12 +78,10 @@ _MIX_LEVELS = np.linspace(0.0, 0.3, 5)
 # (1, w on even rows, w on odd rows), no mixing first.
 _MIXES = np.array([(1.0, even, odd) for even in _MIX_LEVELS for odd in _MIX_LEVELS])
 # |m|^2 of each mix, from the products of its templates (the row's own, mixing on even rows, on odd rows):
-# each pair's coefficient. The envelope's share of a pair's product is the sum of the two templates'
-# envelope coefficients multiplied (_LEFT with _RIGHT, as _rss lays them out).
+# each pair's coefficient (the envelope's share of a pair's product likewise).
 _GRAM_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (2, 2), (1, 2))
+_GRAM_PAIRS_ARRAY = np.array(_GRAM_PAIRS)
 _MIX_SQUARES = np.array([(2.0 - (i == j)) * _MIXES[:, i] * _MIXES[:, j] for i, j in _GRAM_PAIRS])
-_LEFT, _RIGHT = (np.array([4 * pair[side] + k for pair in _GRAM_PAIRS for k in range(3)]) for side in (0, 1))
-_ENVELOPE_SQUARES = np.repeat(_MIX_SQUARES, 3, axis=0)
 _MIXED_WEIGHT = 0.01
 
 
@@ -238,7 +237,7 @@ class _ToneFit:
         # Templates are taken at every row from the one before the first kept to the one after the last, a
         # kept row's own and its neighbours' being views of them (about three per kept row, up to stride 3).
         self.tau_around = (np.arange(-1, kept[-1] + 2) - 0.5 * (self.rows - 1)) / self.rows
-        self.before, self.at, self.after = (slice(shift, shift + stride * len(kept), stride) for shift in range(3))
+        self.stride = stride
         self.sqrt_w = np.sqrt(self.w[kept])
         u = 2.0 * self.tau
         # Orthonormal (weighted) envelope basis (rows): projecting it out leaves what the tone must explain.
@@ -249,14 +248,9 @@ class _ToneFit:
         self.y = y - (basis @ y) @ basis
         self.null_rss = float(self.y @ self.y)
         self.weighted_y = self.y * self.sqrt_w
-        # What _rss multiplies the templates with: the weighted envelope and y (the mixing template's on even
-        # and odd rows apart), and the weights.
-        parity = np.equal.outer([0, 1], kept % 2)
-        products = np.vstack([basis * self.sqrt_w, self.weighted_y])
-        self.row_products = products.T
-        self.mixing_products = (products * parity[:, None]).reshape(8, -1).T
+        # What _rss multiplies the templates with, row by row: the weighted envelope and y, and the weights.
+        self.products = np.ascontiguousarray(np.vstack([basis * self.sqrt_w, self.weighted_y]).T)
         self.weights = self.sqrt_w * self.sqrt_w
-        self.parities = (parity * self.weights).T
         self.dof = len(kept) - _PARAMETERS
 
     def thin(self, cycles: float, exposure_rows: float) -> None:
@@ -291,42 +285,12 @@ class _ToneFit:
         """Residual sum of squares of each (cycles, phase) (arrays of one shape) with the best envelope and
         amplitude, as both cameras together have it: the rows' own light, or mixed with the neighbouring
         rows' (the best of _MIXES), with prior weight _MIXED_WEIGHT; that is the rss whose likelihood
-        (noise level marginalised) is the sum of theirs.
-
-        A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's
-        integral, a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the
-        template, which the amplitude absorbs).
-        """
-        # One row per (cycles, phase): matrix products of 2-d arrays go to BLAS.
-        shape = cycles.shape
-        cycles = cycles.ravel()
-        early = np.multiply.outer(cycles, self.tau_around)
-        early -= phase.reshape(-1, 1)
-        late = early + (cycles * np.broadcast_to(exposure_rows, shape).ravel() / self.rows)[:, None]
-        # |x - rint(x)| is that triangle wave less 0.5; the sign of the difference is the amplitude's.
-        for x in (early, late):
-            x -= np.rint(x)
-            np.abs(x, out=x)
-        early -= late
-        # The row's own template, and what mixing in its neighbours adds per unit of w.
-        row = early[:, self.at]
-        mixing = early[:, self.before] + early[:, self.after]
-        mixing -= 2.0 * row
-        # Products of the weighted templates (the row's own, mixing on even rows, on odd rows) with the
-        # envelope and y (free of the envelope; four columns each), and with each other: the row's own enters
-        # every mix once, and even and odd rows meet only in the envelope.
-        along = np.concatenate([row @ self.row_products, mixing @ self.mixing_products], axis=1)
-        # Every mix tried: explained = (m . y)^2 / |m|^2 for m = row + w_even even + w_odd odd.
-        projection = along[:, 3::4] @ _MIXES.T
-        norm = ((row * mixing) @ self.parities) @ _MIX_SQUARES[1:3]
-        norm += ((mixing * mixing) @ self.parities) @ _MIX_SQUARES[3:5]
-        norm += ((row * row) @ self.weights)[:, None]
-        norm -= (along[:, _LEFT] * along[:, _RIGHT]) @ _ENVELOPE_SQUARES
-        explained = projection * projection / np.maximum(norm, 1e-300)
-        own = np.maximum(self.null_rss - explained[:, 0], 1e-300)
-        mixed = np.maximum(self.null_rss - explained.max(axis=1), 1e-300)
-        power = 0.5 * (self.dof + 1)
-        return (mixed * (_MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)).reshape(shape)
+        (noise level marginalised) is the sum of theirs (``_rss_kernel``)."""
+        cycles, phase, exposure_rows = np.broadcast_arrays(cycles, phase, exposure_rows)
+        rss = _rss_kernel(cycles.ravel(), phase.ravel(), exposure_rows.ravel(), self.rows, self.tau_around,
+                          self.stride, self.products, self.weights, self.null_rss, 0.5 * (self.dof + 1),
+                          _MIXES, _MIX_SQUARES, _GRAM_PAIRS_ARRAY, _MIXED_WEIGHT)
+        return rss.reshape(cycles.shape)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient
@@ -453,6 +417,88 @@ class _ToneFit:
             log_density = np.log(np.maximum(kernel @ density, 1e-300))
         tried, tried_rss = (np.concatenate(arrays) for arrays in zip(*passes))
         return _Likelihood(grid, log_density, float(rss.min()), tried, tried_rss)
+
+
+@kernel
+def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: np.ndarray,
+                stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float, power: float,
+                mixes: np.ndarray, mix_squares: np.ndarray, pairs: np.ndarray, mixed_weight: float) -> np.ndarray:
+    """_ToneFit._rss of each (cycles, phase, exposure rows) (1-d arrays of one length).
+
+    A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's integral,
+    a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the template, which
+    the amplitude absorbs). Kept row i is template position stride i + 1, its neighbours stride i and
+    stride i + 2. Its products with the weighted envelope and y (``products``, four columns) and with each
+    other (``weights``) are summed for the row's own template and, on even and odd rows apart, for what
+    mixing in the neighbours adds per unit of w; every mix m = row + w_even even + w_odd odd then has
+    explained = (m . y)^2 / |m|^2, envelope projected out.
+    """
+    count, kept = len(cycles), len(weights)
+    template = np.empty(len(tau_around))
+    out = np.empty(count)
+    along = np.empty((3, 4))
+    squares = np.empty(5)
+    gram = np.empty(len(pairs))
+    # Every template position up to stride 3, else only the kept rows' and their neighbours'.
+    if stride <= 3:
+        positions = np.arange(len(tau_around))
+    else:
+        positions = (stride * np.arange(kept)[:, None] + np.arange(3)).ravel()
+    for c in range(count):
+        shift = cycles[c] * exposure_rows[c] / rows
+        for p in positions:
+            early = cycles[c] * tau_around[p] - phase[c]
+            late = early + shift
+            template[p] = abs(early - np.rint(early)) - abs(late - np.rint(late))
+        # Scalars (registers), summed in row order.
+        r0 = r1 = r2 = r3 = e0 = e1 = e2 = e3 = o0 = o1 = o2 = o3 = 0.0
+        rr = rm_even = rm_odd = mm_even = mm_odd = 0.0
+        for i in range(kept):
+            row = template[stride * i + 1]
+            mixing = template[stride * i] + template[stride * i + 2]
+            mixing -= 2.0 * row
+            r0 += row * products[i, 0]
+            r1 += row * products[i, 1]
+            r2 += row * products[i, 2]
+            r3 += row * products[i, 3]
+            rr += row * row * weights[i]
+            if (stride * i) & 1:
+                o0 += mixing * products[i, 0]
+                o1 += mixing * products[i, 1]
+                o2 += mixing * products[i, 2]
+                o3 += mixing * products[i, 3]
+                rm_odd += row * mixing * weights[i]
+                mm_odd += mixing * mixing * weights[i]
+            else:
+                e0 += mixing * products[i, 0]
+                e1 += mixing * products[i, 1]
+                e2 += mixing * products[i, 2]
+                e3 += mixing * products[i, 3]
+                rm_even += row * mixing * weights[i]
+                mm_even += mixing * mixing * weights[i]
+        along[0, 0], along[0, 1], along[0, 2], along[0, 3] = r0, r1, r2, r3
+        along[1, 0], along[1, 1], along[1, 2], along[1, 3] = e0, e1, e2, e3
+        along[2, 0], along[2, 1], along[2, 2], along[2, 3] = o0, o1, o2, o3
+        # (row row, row mixing on even rows, on odd rows, mixing mixing on even rows, on odd rows)
+        squares[0], squares[1], squares[2], squares[3], squares[4] = rr, rm_even, rm_odd, mm_even, mm_odd
+        for q in range(len(pairs)):
+            a, b = pairs[q, 0], pairs[q, 1]
+            gram[q] = along[a, 0] * along[b, 0] + along[a, 1] * along[b, 1] + along[a, 2] * along[b, 2]
+        own = 0.0
+        best = -np.inf
+        for j in range(len(mixes)):
+            projection = along[0, 3] * mixes[j, 0] + along[1, 3] * mixes[j, 1] + along[2, 3] * mixes[j, 2]
+            norm = squares[0] + squares[1] * mix_squares[1, j] + squares[2] * mix_squares[2, j] \
+                + squares[3] * mix_squares[3, j] + squares[4] * mix_squares[4, j]
+            for q in range(len(pairs)):
+                norm -= gram[q] * mix_squares[q, j]
+            explained = projection * projection / max(norm, 1e-300)
+            if j == 0:
+                own = max(null_rss - explained, 1e-300)
+            best = max(best, explained)
+        mixed = max(null_rss - best, 1e-300)
+        out[c] = mixed * (mixed_weight + (mixed / own) ** power) ** (-1.0 / power)
+    return out
 
 
 def _sinc(x: float) -> float:
