@@ -1,11 +1,13 @@
 """Compile and cache every numba kernel: python -m vlp_ros.compile_kernels.
 
-Numba compiles a kernel on its first call for the argument types it gets, which
-takes about a second per kernel; a node would pay that on its first frames. This
-runs the per-frame work once on simulated frames of every kind the nodes meet
-(colour and mono8, one and several lamps), so the machine code is cached beside
-the modules (``vlp_ros.compiled``) before any node or test starts. ``make build``
-runs it for the installed package and for the source tree the tests import.
+Numba compiles a kernel on its first call for the argument types it gets (about
+half a second per kernel, a minute for all of them); a node would pay that on
+its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
+every kind the nodes meet (colour and mono8, one and several lamps), so the
+machine code is cached beside the modules (``vlp_ros.compiled``); later
+processes load it in about a second. ``make build`` runs this for the installed
+package and for the source tree the tests import, and the locator warms up the
+same way when it starts, before its first frame.
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
 
 
 def run_scenario(scenario: Scenario, frames: int) -> None:
-    """A few of the scenario's frames through the pipeline, in colour and as mono8."""
+    """The scenario's first frames through the pipeline, in colour and as mono8."""
     pipeline = Pipeline(scenario_settings(scenario))
     rng = np.random.default_rng(0)
     for index in range(frames):
@@ -31,10 +33,15 @@ def run_scenario(scenario: Scenario, frames: int) -> None:
         pipeline.process(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), scenario.camera, stamp)
 
 
-def main() -> None:
-    started = time.perf_counter()
+def warm_up() -> None:
+    """Every kernel the pipeline calls compiled, or loaded from the cache, for the types the nodes give it."""
     run_scenario(paper_scenario('1080p', points=3, postures=1), frames=3)
     run_scenario(robot_scenario(), frames=3)
+
+
+def main() -> None:
+    started = time.perf_counter()
+    warm_up()
     print(f'numba kernels compiled and cached in {time.perf_counter() - started:.1f} s')
 
 
