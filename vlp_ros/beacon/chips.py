@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from vlp_ros.compiled import kernel
 from vlp_ros.small_arrays import median
 
 _COARSE_PHASES = 6
@@ -30,7 +30,6 @@ _MIN_CHIP_ROWS = 0.25
 # the lamp's whole contrast such a neighbourhood must show to be trusted.
 _EXTREMES_HALF_WIDTH = 3
 _MIN_LOCAL_CONTRAST = 0.25
-_EXTREMES_KERNEL = np.ones((1, 2 * _EXTREMES_HALF_WIDTH + 1), dtype=np.uint8)
 # Median of a chi-square variable with one degree of freedom.
 _CHI2_1_MEDIAN = 0.4549
 
@@ -52,24 +51,29 @@ class ChipLevels:
     phase: float
 
 
-class _Cumulative:
-    """Sums of w, w z, w z^2 and of used rows over any row interval, rows split pro rata."""
+@kernel
+def _cumulative(z: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative sums of w, w z, w z^2 and of used rows up to each row boundary (4, n + 1), and each
+    row's own terms (4, n + 1; 0 past the end): a sum to position u (rows split pro rata) is
+    ``_at(sums, rows, field, u)``."""
+    n = len(z)
+    sums = np.zeros((4, n + 1))
+    rows = np.zeros((4, n + 1))
+    for i in range(n):
+        rows[0, i] = w[i]
+        rows[1, i] = w[i] * z[i]
+        rows[2, i] = w[i] * z[i] * z[i]
+        rows[3, i] = 1.0 if w[i] > 0.0 else 0.0
+        for field in range(4):
+            sums[field, i + 1] = sums[field, i] + rows[field, i]
+    return sums, rows
 
-    def __init__(self, z: np.ndarray, w: np.ndarray) -> None:
-        self.size = len(z)
-        # sums[0]: cumulative sums up to each row, sums[1]: each row's own terms (0 past the end).
-        self.sums = np.zeros((2, 4, self.size + 1))
-        self.rows = self.sums[1]
-        self.rows[:, :-1] = w, w * z, w * z * z, w > 0
-        np.cumsum(self.rows[:, :-1], axis=1, out=self.sums[0, :, 1:])
 
-    def at(self, u: np.ndarray, fields: int) -> np.ndarray:
-        """The first ``fields`` cumulative sums up to positions ``u`` (within [0, size]), shape
-        (fields,) + u.shape."""
-        i = u.astype(np.intp)
-        # take: several times faster than fancy indexing for these sizes.
-        totals, rows = self.sums[:, :fields].take(i, axis=2)
-        return totals + (u - i) * rows
+@kernel
+def _at(sums: np.ndarray, rows: np.ndarray, field: int, u: float) -> float:
+    """Cumulative sum ``field`` up to position u (within [0, n])."""
+    i = int(u)
+    return sums[field, i] + (u - i) * rows[field, i]
 
 
 def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
@@ -94,75 +98,123 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
     """
     if not period > 1.0:
         raise ValueError(f'a chip must span more than one row, got {period:.3g} rows')
-    cum = _Cumulative(z, w)
     sigma2 = _noise_variance(z, w)
-    if not np.isfinite(sigma2) or cum.size < 3 * period:
+    if not np.isfinite(sigma2) or len(z) < 3 * period:
         return None
     sigma2 = max(sigma2, 1e-12)
-    period, phase = _search_grid(cum, period, tolerance, sigma2)
+    sums, rows = _cumulative(z, w)
+    period, phase = _search_grid(sums, rows, period, tolerance, sigma2)
     interior = period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
-    return _levels(cum, period, phase, interior, sigma2)
-
-
-def _levels(cum: _Cumulative, period: float, phase: float, margin: float, sigma2: float) -> ChipLevels | None:
-    """Chip averages over each chip's interior, normalised by the local extremes; None if no chip
-    holds enough rows."""
-    first = int(np.floor(-phase / period))
-    count = int(np.ceil((cum.size - phase) / period)) - first
-    edges = phase + period * np.arange(first, first + count) + np.array([[margin], [period - margin]])
-    # Chips the window's ends cut short.
-    whole = (edges[0] >= 0.0) & (edges[1] <= cum.size)
-    sums = cum.at(np.minimum(np.maximum(edges, 0.0), cum.size), 4)
-    weight, total, square, rows = sums[:, 1] - sums[:, 0]
-    # A sliver of a row at the window's ends is mostly rounding (differences of large sums). Counted
-    # in rows, not pixels: the short rows near the lamp's top and bottom carry their own weights.
-    filled = rows > _MIN_CHIP_ROWS
-    used = filled.nonzero()[0]
-    if used.size == 0:
+    index, levels, variances, start = _levels(sums, rows, period, phase, interior, sigma2)
+    if index.size == 0:
         return None
-    span = slice(used[0], used[-1] + 1)
-    weight, total, square, rows, filled, whole = weight[span], total[span], square[span], rows[span], \
-        filled[span], whole[span]
-    mean = total / np.where(filled, weight, 1.0)
+    return ChipLevels(index, levels, variances, period, start)
+
+
+@kernel
+def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float,
+            sigma2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Chip averages over each chip's interior, normalised by the local extremes: the chips that hold
+    enough rows (indices from the first of them), their levels and variances, and where the first
+    begins (no chips if none holds enough rows)."""
+    size = sums.shape[1] - 1
+    first = int(np.floor(-phase / period))
+    count = int(np.ceil((size - phase) / period)) - first
+    weight, total, square, filled_rows = np.empty(count), np.empty(count), np.empty(count), np.empty(count)
+    # Chips the window's ends cut short.
+    whole = np.empty(count, dtype=np.bool_)
+    used_first, used_last = -1, -1
+    for c in range(count):
+        start = phase + period * (first + c)
+        low, high = start + margin, start + (period - margin)
+        whole[c] = low >= 0.0 and high <= size
+        low, high = min(max(low, 0.0), size), min(max(high, 0.0), size)
+        weight[c] = _at(sums, rows, 0, high) - _at(sums, rows, 0, low)
+        total[c] = _at(sums, rows, 1, high) - _at(sums, rows, 1, low)
+        square[c] = _at(sums, rows, 2, high) - _at(sums, rows, 2, low)
+        filled_rows[c] = _at(sums, rows, 3, high) - _at(sums, rows, 3, low)
+        # A sliver of a row at the window's ends is mostly rounding (differences of large sums). Counted
+        # in rows, not pixels: the short rows near the lamp's top and bottom carry their own weights.
+        if filled_rows[c] > _MIN_CHIP_ROWS:
+            used_last = c
+            if used_first < 0:
+                used_first = c
+    if used_first < 0:
+        return np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), 0.0
+    span = used_last + 1 - used_first
+    mean = np.empty(span)
+    solid = np.empty(span, dtype=np.bool_)
+    used, row_sum, scatter = 0, 0.0, 0.0
+    for c in range(span):
+        chip = used_first + c
+        filled = filled_rows[chip] > _MIN_CHIP_ROWS
+        mean[c] = total[chip] / (weight[chip] if filled else 1.0)
+        solid[c] = filled and whole[chip]
+        if filled:
+            used += 1
+            row_sum += filled_rows[chip]
+            scatter += square[chip] - mean[c] * total[chip]
     # Within-chip scatter measures the noise where there is enough of it.
-    dof = rows @ filled - used.size
+    dof = row_sum - used
     if dof >= _MIN_DOF:
-        sigma2 = max(float((square - mean * total) @ filled) / dof, 1e-12)
-    centre, amplitude = _baseline(mean, filled & whole)
-    index = used - used[0]
-    return ChipLevels(index, (mean[index] - centre[index]) / amplitude[index],
-                      sigma2 / (weight[index] * amplitude[index] ** 2), period, float(edges[0, used[0]] - margin))
+        sigma2 = max(scatter / dof, 1e-12)
+    centre, amplitude = _baseline(mean, solid)
+    index = np.empty(used, dtype=np.int64)
+    levels, variances = np.empty(used), np.empty(used)
+    k = 0
+    for c in range(span):
+        chip = used_first + c
+        if filled_rows[chip] > _MIN_CHIP_ROWS:
+            index[k] = c
+            levels[k] = (mean[c] - centre[c]) / amplitude[c]
+            variances[k] = sigma2 / (weight[chip] * amplitude[c] ** 2)
+            k += 1
+    return index, levels, variances, phase + period * (first + used_first)
 
 
-def _search_grid(cum: _Cumulative, period: float, tolerance: float, sigma2: float) -> tuple[float, float]:
+@kernel
+def _search_grid(sums: np.ndarray, rows: np.ndarray, period: float, tolerance: float,
+                 sigma2: float) -> tuple[float, float]:
     """A coarse grid on the window's first chips, then a fine one around its best on the whole
     window (a period error drifts the grid in proportion to the rows it spans)."""
-    end = min(float(cum.size), _FIRST_CHIPS * period)
+    size = float(sums.shape[1] - 1)
+    end = min(size, _FIRST_CHIPS * period)
     step = _COARSE_DRIFT * period / end
     # Less a rounding error: 5 % in steps of 1.25 % is four steps, not five.
     count = math.ceil(tolerance / step - 1e-9)
     phase_step = period / _COARSE_PHASES
-    best = _best_grid(cum, end, period * (1.0 + step * np.arange(-count, count + 1)),
-                      phase_step * np.arange(_COARSE_PHASES), sigma2)
-    return _best_grid(cum, float(cum.size), best[0] * (1.0 + step * _FINE_STEPS),
-                      best[1] + phase_step * _FINE_STEPS, sigma2)
+    best_period, best_phase = _best_grid(sums, rows, end, period * (1.0 + step * np.arange(-count, count + 1)),
+                                         phase_step * np.arange(_COARSE_PHASES), sigma2)
+    return _best_grid(sums, rows, size, best_period * (1.0 + step * _FINE_STEPS), best_phase + phase_step * _FINE_STEPS,
+                      sigma2)
 
 
-def _best_grid(cum: _Cumulative, end: float, periods: np.ndarray, phases: np.ndarray,
+@kernel
+def _best_grid(sums: np.ndarray, rows: np.ndarray, end: float, periods: np.ndarray, phases: np.ndarray,
                sigma2: float) -> tuple[float, float]:
     """The (period, phase) pair whose chip-wise constant fit of rows [0, end) captures most energy
     beyond noise."""
-    offsets = phases % periods[:, None]
-    chips = np.arange(-1.0, math.ceil(end / periods.min()) + 2.0)
-    bounds = np.minimum(np.maximum(offsets[:, :, None] + periods[:, None, None] * chips, 0.0), end)
-    sums = cum.at(bounds, 2)
-    weight, total = sums[..., 1:] - sums[..., :-1]
-    # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
-    energy = (total * total / (weight + 1e-12) - sigma2 * (weight > 1e-9)).sum(axis=-1)
-    k, j = divmod(int(energy.argmax()), energy.shape[1])
-    return float(periods[k]), float(offsets[k, j])
+    chips = math.ceil(end / periods.min()) + 3
+    best, best_period, best_phase = -np.inf, 0.0, 0.0
+    for period in periods:
+        for phase in phases:
+            offset = phase % period
+            energy = 0.0
+            bound = min(max(offset - period, 0.0), end)
+            weight_before, total_before = _at(sums, rows, 0, bound), _at(sums, rows, 1, bound)
+            for chip in range(chips - 1):
+                bound = min(max(offset + period * chip, 0.0), end)
+                weight_after, total_after = _at(sums, rows, 0, bound), _at(sums, rows, 1, bound)
+                weight, total = weight_after - weight_before, total_after - total_before
+                # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
+                energy += total * total / (weight + 1e-12) - (sigma2 if weight > 1e-9 else 0.0)
+                weight_before, total_before = weight_after, total_after
+            if energy > best:
+                best, best_period, best_phase = energy, period, offset
+    return best_period, best_phase
 
 
+@kernel
 def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Midline and half-contrast of every chip from its neighbourhood's brightest and darkest chips.
 
@@ -172,16 +224,23 @@ def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarr
     envelope, a contrast that saturation squeezes along the lamp, and the preamble's
     imbalance. Only ``solid`` chips (whole ones) set the extremes.
     """
+    n = len(mean)
+    centre, contrast = np.zeros(n), np.ones(n)
     if np.count_nonzero(solid) < 2:
-        return np.zeros(len(mean)), np.ones(len(mean))
-    # Running maximum of the bright and (negated) dark extremes; dilation ignores what lies outside.
-    extremes = cv2.dilate(np.where(solid, [mean, -mean], -np.inf), _EXTREMES_KERNEL,
-                          borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
-    upper, lower = extremes[0], -extremes[1]
-    # A neighbourhood without both levels (too few whole chips, or noise only) borrows the lamp's
-    # overall extremes.
+        return centre, contrast
+    # Running extremes of the solid chips within _EXTREMES_HALF_WIDTH on either side.
+    upper, lower = np.full(n, -np.inf), np.full(n, np.inf)
+    for c in range(n):
+        for d in range(max(c - _EXTREMES_HALF_WIDTH, 0), min(c + _EXTREMES_HALF_WIDTH + 1, n)):
+            if solid[d]:
+                upper[c] = max(upper[c], mean[d])
+                lower[c] = min(lower[c], mean[d])
     top, bottom = upper.max(), lower.min()
-    lone = ~(upper - lower > _MIN_LOCAL_CONTRAST * (top - bottom))
-    upper[lone], lower[lone] = top, bottom
-    contrast = np.maximum(0.5 * (upper - lower), 1e-12)
-    return 0.5 * (upper + lower), contrast
+    for c in range(n):
+        # A neighbourhood without both levels (too few whole chips, or noise only) borrows the lamp's
+        # overall extremes.
+        if not upper[c] - lower[c] > _MIN_LOCAL_CONTRAST * (top - bottom):
+            upper[c], lower[c] = top, bottom
+        centre[c] = 0.5 * (upper[c] + lower[c])
+        contrast[c] = max(0.5 * (upper[c] - lower[c]), 1e-12)
+    return centre, contrast
