@@ -96,11 +96,11 @@ class DetectionOptions:
     @property
     def reach(self) -> int:
         """How far (px) inside the first bright pixel a row's half-level crossing may lie."""
-        return int(np.ceil(2.5 * self.max_blur * np.hypot(1.0, self.max_slope))) + 2
+        return math.ceil(2.5 * self.max_blur * math.hypot(1.0, self.max_slope)) + 2
 
     @property
     def blur_margin(self) -> int:
-        return int(np.ceil(3.0 * self.max_blur)) + 1
+        return math.ceil(3.0 * self.max_blur) + 1
 
 
 def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> list[LampObservation]:
@@ -263,9 +263,10 @@ def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
     """
     points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach)
     seed = box.seed
-    return _selected(points, plateaus, seed is not None, np.zeros(2) if seed is None else np.asarray(seed.center, float),
-                     0.0 if seed is None else seed.radius + options.blur_margin + 1.0,
-                     float(options.saturation_level), float(options.min_rim_points))
+    centre = np.zeros(2) if seed is None else np.asarray(seed.center, dtype=float)
+    radius = 0.0 if seed is None else seed.radius + options.blur_margin + 1.0
+    return _selected(points, plateaus, seed is not None, centre, radius, float(options.saturation_level),
+                     float(options.min_rim_points))
 
 
 @kernel

@@ -15,7 +15,7 @@ from scipy.special import ndtr
 
 from vlp_ros.compiled import kernel
 from vlp_ros.ellipse import conic_distance, conic_of
-from vlp_ros.small_arrays import percentile
+from vlp_ros.small_arrays import percentile, ranked
 
 # Plateau samples per row, spread over the middle half of the row's chord.
 _FRACTIONS = np.linspace(0.25, 0.75, 9)
@@ -71,7 +71,7 @@ def _lit_rows(brightness: np.ndarray, threshold: float) -> tuple[np.ndarray, np.
         for k in range(_FRACTIONS.size):
             samples[k] = brightness[row, int(np.rint(start + (end - start) * _FRACTIONS[k]))]
         rows[count], first[count], last[count] = row, start, end
-        plateau[count] = _middle(samples)
+        plateau[count] = ranked(samples, samples.size, samples.size // 2)
         count += 1
     return rows[:count], first[:count], last[:count], plateau[:count]
 
@@ -127,7 +127,7 @@ def _clear_plateaus(brightness: np.ndarray, rows: np.ndarray, ellipse: np.ndarra
             count += 1
         if count >= _MIN_CLEAR_SAMPLES:
             keep[i] = True
-            plateau[i] = np.sort(usable[:count])[count // 2]
+            plateau[i] = ranked(usable, count, count // 2)
     return keep, plateau
 
 
@@ -138,10 +138,19 @@ def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarr
     the two stripes' and matches neither neighbour; such a row's profile is not its own.
     Rows of unknown (NaN) level are never steady.
     """
-    padded = np.pad(profile, 1, constant_values=np.nan)
-    closest = np.fmin(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
-    with np.errstate(invalid='ignore'):
-        return closest <= tolerance * np.abs(profile) + floor
+    return _steady(np.asarray(profile, dtype=float), float(tolerance), float(floor))
+
+
+@kernel
+def _steady(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
+    steady = np.zeros(profile.size, np.bool_)
+    for i in range(profile.size):
+        below = abs(profile[i - 1] - profile[i]) if i > 0 else np.nan
+        above = abs(profile[i + 1] - profile[i]) if i + 1 < profile.size else np.nan
+        # The closer neighbour's difference; a neighbour of unknown level does not count.
+        closest = above if math.isnan(below) else below if math.isnan(above) else min(below, above)
+        steady[i] = closest <= tolerance * abs(profile[i]) + floor
+    return steady
 
 
 def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -197,12 +206,7 @@ def _chord_plateaus(brightness: np.ndarray, ellipse: np.ndarray, background: flo
             continue
         for k in range(_FRACTIONS.size):
             samples[k] = brightness[row, int(np.rint(left[row] + (right[row] - left[row]) * _FRACTIONS[k]))]
-        rows[count], plateau[count], clearance[count] = row, _middle(samples) - background, depth
+        rows[count], clearance[count] = row, depth
+        plateau[count] = ranked(samples, samples.size, samples.size // 2) - background
         count += 1
     return rows[:count], plateau[:count], clearance[:count]
-
-
-@kernel
-def _middle(samples: np.ndarray) -> float:
-    """The middle one of an odd number of samples."""
-    return np.sort(samples)[samples.size // 2]
