@@ -1,4 +1,5 @@
-"""Lamp detection on simulated frames: accuracy against the simulator's ground truth, and robustness."""
+"""Lamp detection on simulated frames: accuracy against the simulator's ground truth, and robustness;
+its compiled kernels against direct formulations."""
 import cv2
 import numpy as np
 import pytest
@@ -7,7 +8,9 @@ from scipy.spatial.transform import Rotation
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import DetectionOptions, detect_lamps
-from vlp_ros.ellipse import geometric_distances
+from vlp_ros.detection.blobs import histogram
+from vlp_ros.detection.rows import steady_rows
+from vlp_ros.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
 from vlp_ros.sim.render import SimLamp, render_frame
@@ -252,3 +255,49 @@ def test_rim_sigma_is_honest_for_the_ellipse():
         lamp = only(detect_lamps(frame.image))
         chi_squares.append(ellipse_chi_square(truth.ellipse, lamp.rim_points, lamp.rim_sigma))
     assert 3.5 < np.mean(chi_squares) < 7.0
+
+
+def test_fit_ellipse_recovers_exact_ellipses_and_rejects_degenerate_points():
+    # The compiled fit (scatter, 3x3 LU solve, constrained eigenvector) against ellipses it must reproduce.
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a = rng.uniform(5.0, 400.0)
+        ellipse = np.array([*rng.uniform(-100.0, 4000.0, 2), a, a * rng.uniform(0.2, 1.0), rng.uniform(-1.5, 1.5)])
+        fitted = fit_ellipse(ellipse_points(ellipse, int(rng.integers(5, 300))))
+        assert fitted[:4] == pytest.approx(ellipse[:4], rel=1e-9, abs=1e-7)
+        if ellipse[3] < 0.99 * ellipse[2]:
+            assert np.sin(fitted[4] - ellipse[4]) == pytest.approx(0.0, abs=1e-8)
+    with pytest.raises(ValueError, match='at least 5'):
+        fit_ellipse(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match='identical'):
+        fit_ellipse(np.ones((8, 2)))
+    with pytest.raises(ValueError, match='collinear'):
+        fit_ellipse(np.column_stack([np.arange(8.0), 2.0 * np.arange(8.0)]))
+
+
+def test_geometric_distances_are_the_sampson_distances():
+    rng = np.random.default_rng(4)
+    ellipse = np.array([320.0, 240.0, 80.0, 50.0, 0.4])
+    points = rng.uniform(100.0, 500.0, (200, 2))
+    h = np.column_stack([points, np.ones(len(points))])
+    conic = conic_from_ellipse(ellipse)
+    gradient = 2.0 * (h @ conic)[:, :2]
+    sampson = np.einsum('ij,jk,ik->i', h, conic, h) / np.linalg.norm(gradient, axis=1)
+    assert geometric_distances(ellipse, points) == pytest.approx(sampson, rel=1e-10, abs=1e-12)
+
+
+def test_search_histogram_counts_every_level():
+    image = np.random.default_rng(5).integers(0, 256, (37, 53), dtype=np.uint8)
+    assert np.array_equal(histogram(image), np.bincount(image.ravel(), minlength=256))
+
+
+def test_steady_rows_match_the_neighbour_rule():
+    rng = np.random.default_rng(6)
+    for _ in range(100):
+        profile = np.round(rng.normal(10.0, 3.0, int(rng.integers(1, 40))), 1)
+        profile[rng.uniform(size=profile.size) < 0.3] = np.nan
+        padded = np.concatenate([[np.nan], profile, [np.nan]])
+        closest = np.fmin(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
+        with np.errstate(invalid='ignore'):
+            expected = closest <= 0.04 * np.abs(profile) + 0.1
+        assert np.array_equal(steady_rows(profile, 0.04, 0.1), expected)

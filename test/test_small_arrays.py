@@ -1,8 +1,8 @@
-"""The small-array median and percentile equal numpy's."""
+"""The small-array median, percentile and ranked value equal numpy's."""
 import numpy as np
 import pytest
 
-from vlp_ros.small_arrays import median, percentile
+from vlp_ros.small_arrays import median, percentile, ranked
 
 
 @pytest.mark.parametrize('size', [1, 2, 3, 10, 61, 300])
@@ -21,3 +21,12 @@ def test_inputs_are_left_unchanged() -> None:
     median(values)
     percentile(values, 90.0)
     assert values.tolist() == [5.0, 1.0, 4.0, 2.0, 3.0]
+
+
+def test_ranked_is_the_sorted_values_entry() -> None:
+    rng = np.random.default_rng(7)
+    for count in (1, 2, 9, 25):
+        values = rng.integers(0, 255, 30).astype(float)
+        expected = np.sort(values[:count])
+        for rank in range(count):
+            assert ranked(values.copy(), count, rank) == expected[rank]
