@@ -21,6 +21,7 @@ from vlp_ros.beacon.encoding import packet_bits, packet_chips, packet_length
 from vlp_ros.beacon.profile import RowProfile, modulation
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
                                     reading)
+from vlp_ros.compiled import kernel
 
 MIN_CHIPS = 6
 # Beyond this many packets more rows add little but time: the central ones are used.
@@ -30,13 +31,12 @@ MISFIT_PROBABILITY = 1e-6
 
 
 @lru_cache(maxsize=4)
-def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
     """Every ID's packet, factored: its chip signs (+1 bright, -1 dark) are ``chip_weights @ design``.
 
     ``design`` (2 + id_bits, 2^id_bits) is a row of ones over the +-1 of each ID's bits and parity;
     ``chip_weights`` (L, 2 + id_bits) say what the constant (the preamble) and each bit put on
-    every packet position (Manchester: +-1 on the bit's two chips). ``fold`` (shift, position) is
-    ``(position - shift) % L``: it folds window chips onto packet positions for every shift.
+    every packet position (Manchester: +-1 on the bit's two chips).
     """
     ids, length = 2 ** id_bits, packet_length(id_bits)
     signs = np.array([packet_chips(i, id_bits) for i in range(ids)], dtype=float) * 2 - 1
@@ -46,9 +46,8 @@ def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     chip_weights = np.linalg.lstsq(design.T, signs, rcond=None)[0]
     if not np.allclose(design.T @ chip_weights, signs):
         raise AssertionError('packet chips are not linear in the bit signs')
-    p = np.arange(length)
     # float32: the hypotheses' sums need ~1e-3 nats, and halve the time of the largest arrays.
-    return design.astype(np.float32), chip_weights.T.copy(), (p[None, :] - p[:, None]) % length
+    return design.astype(np.float32), chip_weights.T.copy()
 
 
 def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bits: int = 8,
@@ -135,45 +134,109 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     hypothesis with beta > 0. The baseline takes up what the ID-blind envelope left:
     a preamble's run of bright chips leans any envelope fitted through the stripes.
     """
-    design, chip_weights, fold = _codebook(id_bits)
-    ids, length = design.shape[1], len(fold)
-    basis = _orthonormal_baseline(k, v)
-    vx = v * x
-    baseline = basis @ vx
-    baseline_rss = float(vx @ x - baseline @ baseline)
-    # Per packet position: sums of v times each baseline column over the chips that land there, and
-    # of v times what the baseline leaves of x (every ID's fit is linear in it). Folded for every
-    # shift and factored by bit, then for every (ID, shift): the sums over its bright minus its dark
-    # chips, (4, L, ids), each hypothesis along the last axis.
-    vbasis = basis * v
-    # The residual's row scaled by sqrt(1/2): its squares then come out as half gains (log-likelihoods).
-    columns = np.concatenate([vbasis, ((vx - baseline @ vbasis) * np.sqrt(0.5))[None]])
-    folded = (columns @ (k[:, None] % length == np.arange(length))).take(fold, axis=1)
-    per_bit = (folded @ chip_weights).reshape(4 * length, len(design)).astype(np.float32)
-    sums = (per_bit @ design).reshape(4, length, ids)
-    # With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it.
-    total = np.float32(v.sum())
-    schur = np.maximum(total - np.square(sums[:3]).sum(axis=0), np.float32(1e-6) * total)
-    target = np.maximum(sums[3], np.float32(0))
-    half_gain = target * target / schur
-    best = half_gain.max(axis=0)
-    spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / length)
+    design, chip_weights = _codebook(id_bits)
+    per_bit, baseline_rss = _per_bit_sums(x, v, k, chip_weights)
+    # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
+    sums = per_bit @ design
+    half_gain, best = _half_gains(sums, np.float32(v.sum()), len(chip_weights))
+    # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
+    spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / len(chip_weights))
     return best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - 2.0 * float(best.max())
 
 
+@kernel
+def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """What each hypothesis's fit needs, factored by bit: (4 L, 2 + id_bits) float32, row f L + shift,
+    and the baseline's weighted squared residual.
+
+    Per packet position: sums of v times each orthonormal baseline column over the chips that land
+    there, and of v times what the baseline leaves of x (every ID's fit is linear in it), the latter
+    scaled by sqrt(1/2) so that its squares come out as half gains (log-likelihoods). Folded for every
+    shift (the window's chip j at packet position (j + shift) % L) and multiplied by what each bit puts
+    on each position (``chip_weights``, (L, 2 + id_bits)).
+    """
+    n, length, bits = len(x), chip_weights.shape[0], chip_weights.shape[1]
+    basis = _orthonormal_baseline(k, v)
+    baseline = np.zeros(3)
+    vx_x = 0.0
+    for j in range(n):
+        vx = v[j] * x[j]
+        vx_x += vx * x[j]
+        for f in range(3):
+            baseline[f] += basis[f, j] * vx
+    baseline_rss = vx_x - (baseline[0] * baseline[0] + baseline[1] * baseline[1] + baseline[2] * baseline[2])
+    # Twice over, so that position - shift + L indexes (position - shift) % L.
+    by_position = np.zeros((4, 2 * length))
+    half = math.sqrt(0.5)
+    for j in range(n):
+        position = k[j] % length
+        explained = 0.0
+        for f in range(3):
+            vbasis = basis[f, j] * v[j]
+            by_position[f, position] += vbasis
+            explained += baseline[f] * vbasis
+        by_position[3, position] += (v[j] * x[j] - explained) * half
+    by_position[:, length:] = by_position[:, :length]
+    per_bit = np.empty((4 * length, bits), dtype=np.float32)
+    totals = np.empty(bits)
+    for f in range(4):
+        for shift in range(length):
+            totals[:] = 0.0
+            for position in range(length):
+                folded = by_position[f, position - shift + length]
+                for b in range(bits):
+                    totals[b] += folded * chip_weights[position, b]
+            per_bit[f * length + shift] = totals
+    return per_bit, baseline_rss
+
+
+@kernel
+def _half_gains(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
+    ID's best (float32 arithmetic, like the sums).
+
+    With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
+    contrast must be positive.
+    """
+    ids = sums.shape[1]
+    floor = np.float32(1e-6) * total
+    gains = np.empty((length, ids), dtype=np.float32)
+    best = np.full(ids, -np.inf, dtype=np.float32)
+    for shift in range(length):
+        for i in range(ids):
+            a, b, c = sums[shift, i], sums[length + shift, i], sums[2 * length + shift, i]
+            schur = max(total - (a * a + b * b + c * c), floor)
+            target = max(sums[3 * length + shift, i], np.float32(0.0))
+            gains[shift, i] = target * target / schur
+            best[i] = max(best[i], gains[shift, i])
+    return gains, best
+
+
+@kernel
 def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
     """1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v`` (Gram-Schmidt,
     written out through the weighted moments of t), (3, n)."""
-    t = (k - 0.5 * (k[0] + k[-1])) / max(0.5 * float(k[-1] - k[0]), 1.0)
-    vt, t2 = v * t, t * t
-    m0, m1, m2, m3, m4 = float(v.sum()), float(vt.sum()), float(vt @ t), float(vt @ t2), float((v * t2) @ t2)
-    linear = t - m1 / m0
+    n = len(k)
+    middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
+    t = np.empty(n)
+    m0 = m1 = m2 = m3 = m4 = 0.0
+    for j in range(n):
+        t[j] = (k[j] - middle) / half
+        vt, t2 = v[j] * t[j], t[j] * t[j]
+        m0 += v[j]
+        m1 += vt
+        m2 += vt * t[j]
+        m3 += vt * t2
+        m4 += v[j] * t2 * t2
     linear_norm2 = m2 - m1 * m1 / m0
     lean = (m3 - m1 * m2 / m0) / linear_norm2
-    quadratic = t2 - m2 / m0 - lean * linear
     quadratic_norm2 = m4 - m2 * m2 / m0 - lean * lean * linear_norm2
-    basis = np.empty((3, len(t)))
-    basis[0] = 1.0 / math.sqrt(m0)
-    np.multiply(linear, 1.0 / math.sqrt(linear_norm2), out=basis[1])
-    np.multiply(quadratic, 1.0 / math.sqrt(max(quadratic_norm2, 1e-300)), out=basis[2])
+    basis = np.empty((3, n))
+    constant, linear_scale = 1.0 / math.sqrt(m0), 1.0 / math.sqrt(linear_norm2)
+    quadratic_scale = 1.0 / math.sqrt(max(quadratic_norm2, 1e-300))
+    for j in range(n):
+        linear = t[j] - m1 / m0
+        basis[0, j] = constant
+        basis[1, j] = linear * linear_scale
+        basis[2, j] = (t[j] * t[j] - m2 / m0 - lean * linear) * quadratic_scale
     return basis
