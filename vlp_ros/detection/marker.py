@@ -18,13 +18,20 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
-from scipy.special import ndtr
 
-from vlp_ros.ellipse import ellipse_from_conic, geometric_distances
+from vlp_ros.compiled import kernel
+from vlp_ros.ellipse import ellipse_from_conic
 
-_SQRT_2PI = np.sqrt(2.0 * np.pi)
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+_SQRT1_2 = 0.70710678118654752440
+_DBL_EPSILON = float(np.finfo(np.float64).eps)
+# OpenCV's LU solve gives up (and returns zero) on a pivot below this.
+_LU_EPSILON = 100.0 * _DBL_EPSILON
+# Beyond this many blurs from its edge, a blurred disc is 1 (to rounding) or its tail's asymptotic series.
+_TAIL = 8.3
+# Pixels scanned at a time for the first occurrence of the peak redness.
+_SEARCH_BLOCK = 256
 _MAX_ITERATIONS = 12
 # Stop when the centre moves less than this (px).
 _CONVERGED = 3e-3
@@ -36,6 +43,8 @@ _ROW_LEVEL_SPREAD = 0.05
 # The marker's shape differs from its lamp's by up to this factor times the perspective estimate, plus the floor.
 _SHAPE_MARGIN = 1.5
 _SHAPE_FLOOR = 0.005
+# The marker's and the lamp's amplitudes, eliminated from the fit.
+_LINEAR_COUNT = 2
 
 
 @dataclass(frozen=True)
@@ -73,26 +82,15 @@ class MarkerFit:
 
 def redness(bgr: np.ndarray) -> np.ndarray:
     """2 R - G - B (int16): large on the marker, near zero on a white lamp; linear in the light."""
-    red = 2 * bgr[..., 2].astype(np.int16)
-    red -= bgr[..., 1]
-    red -= bgr[..., 0]
-    return red
+    return _redness(bgr)
 
 
 def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> MarkerSeed | None:
     """The reddest spot and the extent of the red pixels around it, or None if nothing is red enough."""
-    peak_index = int(np.argmax(red))
-    y, x = divmod(peak_index, red.shape[1])
-    peak = float(red[y, x])
-    if peak < min_redness:
+    found, cx, cy, radius = _seed(red, float(search_radius), float(min_redness))
+    if not found:
         return None
-    r = int(np.ceil(search_radius))
-    y0, x0 = max(y - r, 0), max(x - r, 0)
-    window = red[y0:y + r + 1, x0:x + r + 1]
-    ys, xs = np.nonzero(window > 0.4 * peak)
-    centre = np.array([x0 + 0.5 * (xs.min() + xs.max()), y0 + 0.5 * (ys.min() + ys.max())])
-    radius = 0.5 * max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
-    return MarkerSeed(centre, float(radius))
+    return MarkerSeed(np.array([cx, cy]), radius)
 
 
 def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
@@ -102,19 +100,8 @@ def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
     distance Z by about (radius / Z) sin t; radius / Z is the semi-major axis over
     the focal length (px) and cos t the axis ratio.
     """
-    _, _, a, b, _ = (float(v) for v in lamp_ellipse)
-    return _SHAPE_FLOOR + _SHAPE_MARGIN * (a / focal_length) * np.sqrt(max(1.0 - (b / a) ** 2, 0.0))
-
-
-def shape_root(ellipse: np.ndarray) -> np.ndarray:
-    """Symmetric square root of the 2x2 matrix A with det 1 whose ellipse p^T A p = s^2 has the
-    shape of ``ellipse``, mean radius s: A = R diag(b/a, a/b) R^T, so its root takes the square
-    roots of the two axis ratios."""
-    _, _, a, b, theta = (float(v) for v in ellipse)
-    c, s = math.cos(theta), math.sin(theta)
-    along, across = math.sqrt(b / a), math.sqrt(a / b)
-    off = c * s * (along - across)
-    return np.array([[c * c * along + s * s * across, off], [off, s * s * along + c * c * across]])
+    a, b = float(lamp_ellipse[2]), float(lamp_ellipse[3])
+    return _SHAPE_FLOOR + _SHAPE_MARGIN * (a / focal_length) * math.sqrt(max(1.0 - (b / a) ** 2, 0.0))
 
 
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
@@ -129,142 +116,568 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     clipped), ``rows_used`` whether the row takes part. ``shape_spread`` is the expected
     relative difference (stretch) between the marker's image shape and its lamp's.
     """
-    half = seed.radius + margin
-    x0 = max(int(np.floor(seed.center[0] - half)), 0)
-    y0 = max(int(np.floor(seed.center[1] - half)), 0)
-    x1 = min(int(np.ceil(seed.center[0] + half)) + 1, red.shape[1])
-    y1 = min(int(np.ceil(seed.center[1] + half)) + 1, red.shape[0])
-    rows = np.arange(y0, y1)
-    rows = rows[rows_used[y0:y1]]
-    if rows.size < _MIN_MARKER_ROWS or x1 - x0 < 5:
+    found, cx, cy, radius, blur, sigma, s00, s01, s10, s11 = _fit(
+        red, float(seed.center[0]), float(seed.center[1]), float(seed.radius),
+        np.asarray(lamp_ellipse, dtype=np.float64), float(blur_guess), float(margin),
+        np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_), float(shape_spread))
+    if not found:
         return None
-    data = red[rows, x0:x1].astype(float)
-    pixels = np.empty((len(rows), x1 - x0, 2))
-    pixels[..., 0] = np.arange(x0, x1, dtype=float)
-    pixels[..., 1] = rows[:, None]
-    lamp_disc = ndtr(-geometric_distances(lamp_ellipse, pixels.reshape(-1, 2)).reshape(data.shape) / blur_guess)
-    root = shape_root(lamp_ellipse)
-    model = _MarkerModel(data, pixels, lamp_disc, root, row_level[rows])
-    params = np.array([seed.center[0], seed.center[1], seed.radius, blur_guess])
-    cost, residual, jac = model.evaluate(params)
-    damping = 1e-3
-    for _ in range(_MAX_ITERATIONS):
-        JtJ = jac.T @ jac
-        damped = JtJ.copy()
-        damped.flat[::5] += damping * (np.diagonal(JtJ) + 1e-12)
-        # OpenCV's 4x4 solve: numpy's costs several times more in call overhead.
-        _, step = cv2.solve(damped, (jac.T @ residual)[:, None], flags=cv2.DECOMP_LU)
-        step = step.ravel()
-        trial = _bounded(params + step)
-        trial_cost, trial_residual, trial_jac = model.evaluate(trial)
-        moved = np.linalg.norm(trial[:2] - params[:2])
-        if trial_cost < cost:
-            params, cost, residual, jac = trial, trial_cost, trial_residual, trial_jac
-            damping = max(damping * 0.3, 1e-6)
-        else:
-            damping *= 10.0
-        if moved < _CONVERGED or damping > 1e6:
+    return MarkerFit(np.array([cx, cy]), sigma, radius, blur, np.array([[s00, s01], [s10, s11]]))
+
+
+# The compiled kernels (vlp_ros.compiled). The fit is one call: window, model, Levenberg-Marquardt
+# and covariance with no return to Python, whose per-iteration numpy calls cost several times the
+# arithmetic on a marker's few hundred pixels. Sums over pixels run in order, one pass for all of
+# them; against the numpy formulation this replaced (test/test_marker.py keeps it as the
+# reference) results differ by rounding only: 1e-13 px on the accuracy benchmark's frames.
+
+
+@kernel
+def _redness(bgr: np.ndarray) -> np.ndarray:
+    height, width = bgr.shape[0], bgr.shape[1]
+    red = np.empty((height, width), dtype=np.int16)
+    for y in range(height):
+        for x in range(width):
+            red[y, x] = np.int16(2 * np.int32(bgr[y, x, 2]) - np.int32(bgr[y, x, 1]) - np.int32(bgr[y, x, 0]))
+    return red
+
+
+@kernel
+def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> tuple:
+    """(found, x, y, radius): the first maximum of ``red`` (as np.argmax), and the box of the
+    pixels above 0.4 of it within ``search_radius`` (a square) around it."""
+    height, width = red.shape
+    flat = red.ravel()
+    # The maximum (a reduction the compiler vectorizes), then where it first occurs, by blocks.
+    peak_value = flat[0]
+    for i in range(flat.size):
+        peak_value = max(peak_value, flat[i])
+    first = 0
+    for start in range(0, flat.size, _SEARCH_BLOCK):
+        # A slice: loop indices from zero let the compiler vectorize the block's maximum.
+        block = flat[start:start + _SEARCH_BLOCK]
+        block_peak = block[0]
+        for i in range(block.size):
+            block_peak = max(block_peak, block[i])
+        if block_peak == peak_value:
+            while block[first] != peak_value:
+                first += 1
+            first += start
             break
-    centre, radius, blur = params[:2], params[2], params[3]
-    # A marker must lie in its window, fit inside it, and be blurred by a plausible amount.
-    if (not (x0 <= centre[0] < x1 and y0 <= centre[1] < y1) or radius > half
-            or not _BLUR_BOUNDS[0] < blur < _BLUR_BOUNDS[1]):
-        return None
-    # Rows crossing the marker carry its position; one or two leave it ambiguous.
-    if np.count_nonzero(np.abs(rows - centre[1]) < radius) < _MIN_MARKER_ROWS:
-        return None
-    dof = data.size - params.size - model.linear_count
-    if dof <= 0:
-        return None
-    _, _, jac, row_terms = model.evaluate(params, with_consider=True)
-    sigma = _centre_sigma(jac, row_terms, cost / dof, shape_spread)
-    return MarkerFit(centre, sigma, float(radius), float(blur), root @ root)
+    y, x = first // width, first % width
+    peak = float(peak_value)
+    if peak < min_redness:
+        return False, 0.0, 0.0, 0.0
+    r = int(np.ceil(search_radius))
+    y0, x0 = max(y - r, 0), max(x - r, 0)
+    y1, x1 = min(y + r + 1, height), min(x + r + 1, width)
+    threshold = 0.4 * peak
+    low_x, high_x, low_y, high_y = x1, -1, y1, -1
+    for i in range(y0, y1):
+        for j in range(x0, x1):
+            if red[i, j] > threshold:
+                low_x, high_x = min(low_x, j), max(high_x, j)
+                low_y, high_y = min(low_y, i), max(high_y, i)
+    if high_x < 0:
+        return False, 0.0, 0.0, 0.0
+    low_x, high_x, low_y, high_y = low_x - x0, high_x - x0, low_y - y0, high_y - y0
+    return (True, x0 + 0.5 * (low_x + high_x), y0 + 0.5 * (low_y + high_y),
+            0.5 * max(high_x - low_x + 1, high_y - low_y + 1))
 
 
-def _centre_sigma(jac: np.ndarray, row_terms: np.ndarray, noise_variance: float, shape_spread: float) -> float:
+@kernel
+def _ndtr(a: float) -> float:
+    """scipy.special.ndtr to 2e-16: cephes' branches, on the C library's erf and erfc."""
+    x = a * _SQRT1_2
+    z = abs(x)
+    if z < 1.0:
+        return 0.5 + 0.5 * math.erf(x)
+    y = 0.5 * math.erfc(z)
+    return 1.0 - y if x > 0.0 else y
+
+
+@kernel
+def _blurred_step(z: float, gaussian: float) -> float:
+    """ndtr(z), given ``gaussian`` = exp(-z^2 / 2). Beyond ``_TAIL`` it is 1 once rounded; before
+    -``_TAIL`` (below 6e-17) the tail's asymptotic series gives it to 1e-6 of itself."""
+    if z > _TAIL:
+        return 1.0
+    if z < -_TAIL:
+        q = 1.0 / (z * z)
+        return gaussian / (_SQRT_2PI * -z) * (1.0 - q * (1.0 - 3.0 * q * (1.0 - 5.0 * q * (1.0 - 7.0 * q))))
+    return _ndtr(z)
+
+
+@kernel
+def _lower_bound(value: float, bound: float) -> float:
+    """Python's max(value, bound), NaN kept."""
+    return bound if bound > value else value
+
+
+@kernel
+def _upper_bound(value: float, bound: float) -> float:
+    """Python's min(value, bound), NaN kept."""
+    return bound if bound < value else value
+
+
+@kernel
+def _marker_terms(cx: float, cy: float, s: float, blur: float, rounded: np.ndarray, root: np.ndarray,
+                  level: np.ndarray, data: np.ndarray, disc_term: np.ndarray, marker: np.ndarray,
+                  jac: np.ndarray) -> tuple:
+    """The marker's basis term and its derivatives, before the amplitude is known.
+
+    Fills ``marker`` (N): level times the blurred disc, and ``jac`` (N, 4): the derivatives
+    of the marker term over centre, radius and blur, short of the factor amplitude /
+    (sqrt(2 pi) blur). Returns the sums the amplitudes and the projection need: marker .
+    marker, marker . disc, marker . data, then each column of ``jac`` against marker and
+    against disc (8).
+    """
+    # Pixels in the frame where the lamp is round: u = (p - centre) R is a shift away.
+    shift_u = cx * root[0, 0] + cy * root[1, 0]
+    shift_v = cx * root[0, 1] + cy * root[1, 1]
+    inverse_blur = 1.0 / blur
+    gram_00 = gram_01 = project_0 = 0.0
+    a00 = a01 = a10 = a11 = a20 = a21 = a30 = a31 = 0.0
+    for i in range(data.size):
+        u = rounded[i, 0] - shift_u
+        v = rounded[i, 1] - shift_v
+        gradient_x = u * root[0, 0] + v * root[0, 1]
+        gradient_y = u * root[1, 0] + v * root[1, 1]
+        inverse_norm = 1.0 / max(math.sqrt(gradient_x * gradient_x + gradient_y * gradient_y), 1e-9)
+        rho = math.sqrt(u * u + v * v)
+        # Distance to the marker's edge, positive inside (first order in the offset from the edge).
+        gain = rho * inverse_norm
+        z = (s - rho) * gain * inverse_blur
+        gaussian = math.exp(-0.5 * z * z)
+        b0 = level[i] * _blurred_step(z, gaussian)
+        b1 = disc_term[i]
+        marker[i] = b0
+        gram_00 += b0 * b0
+        gram_01 += b0 * b1
+        project_0 += b0 * data[i]
+        density = level[i] * gaussian
+        j0 = density * gradient_x * inverse_norm
+        j1 = density * gradient_y * inverse_norm
+        j2 = density * gain
+        j3 = -density * z
+        jac[i, 0], jac[i, 1], jac[i, 2], jac[i, 3] = j0, j1, j2, j3
+        a00 += j0 * b0
+        a01 += j0 * b1
+        a10 += j1 * b0
+        a11 += j1 * b1
+        a20 += j2 * b0
+        a21 += j2 * b1
+        a30 += j3 * b0
+        a31 += j3 * b1
+    return gram_00, gram_01, project_0, a00, a01, a10, a11, a20, a21, a30, a31
+
+
+@kernel
+def _amplitudes(gram_00: float, gram_01: float, disc_norm2: float, project_0: float,
+                project_1: float) -> tuple:
+    """The two amplitudes and the inverse of the 2x2 Gram matrix (closed form): (coef, inverse (3))."""
+    a = gram_00 + 1e-9
+    b = gram_01
+    d = disc_norm2 + 1e-9
+    det = a * d - b * b
+    inverse_00, inverse_01, inverse_11 = d / det, -b / det, a / det
+    coef_0 = inverse_00 * project_0 + inverse_01 * project_1
+    coef_1 = inverse_01 * project_0 + inverse_11 * project_1
+    return coef_0, coef_1, inverse_00, inverse_01, inverse_11
+
+
+@kernel
+def _evaluate(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray, data: np.ndarray,
+              disc_term: np.ndarray, disc_norm2: float, project_1: float, marker: np.ndarray, jac: np.ndarray,
+              jtj: np.ndarray, jtr: np.ndarray) -> float:
+    """The marker model's cost at ``params`` (centre, radius, blur) with the amplitudes
+    eliminated; fills the normal equations ``jtj`` (4x4) and ``jtr`` (4) of its
+    variable-projection Jacobian (Kaufman's approximation). ``marker``, ``jac``: scratch.
+
+    A pixel's redness is its row's lamp level times (k1 marker + k2 lamp disc), both
+    blurred; k1, k2 are eliminated.
+    """
+    blur = params[3]
+    gram_00, gram_01, project_0, a00, a01, a10, a11, a20, a21, a30, a31 = _marker_terms(
+        params[0], params[1], params[2], blur, rounded, root, level, data, disc_term, marker, jac)
+    coef_0, coef_1, inverse_00, inverse_01, inverse_11 = _amplitudes(gram_00, gram_01, disc_norm2, project_0,
+                                                                     project_1)
+    scale = coef_0 / (_SQRT_2PI * blur)
+    # The marker term's derivatives, minus their part in the basis.
+    w00 = scale * (a00 * inverse_00 + a01 * inverse_01)
+    w01 = scale * (a00 * inverse_01 + a01 * inverse_11)
+    w10 = scale * (a10 * inverse_00 + a11 * inverse_01)
+    w11 = scale * (a10 * inverse_01 + a11 * inverse_11)
+    w20 = scale * (a20 * inverse_00 + a21 * inverse_01)
+    w21 = scale * (a20 * inverse_01 + a21 * inverse_11)
+    w30 = scale * (a30 * inverse_00 + a31 * inverse_01)
+    w31 = scale * (a30 * inverse_01 + a31 * inverse_11)
+    cost = 0.0
+    h00 = h01 = h02 = h03 = h11 = h12 = h13 = h22 = h23 = h33 = 0.0
+    g0 = g1 = g2 = g3 = 0.0
+    for i in range(data.size):
+        b0 = marker[i]
+        b1 = disc_term[i]
+        r = data[i] - (coef_0 * b0 + coef_1 * b1)
+        cost += r * r
+        j0 = scale * jac[i, 0] - (w00 * b0 + w01 * b1)
+        j1 = scale * jac[i, 1] - (w10 * b0 + w11 * b1)
+        j2 = scale * jac[i, 2] - (w20 * b0 + w21 * b1)
+        j3 = scale * jac[i, 3] - (w30 * b0 + w31 * b1)
+        h00 += j0 * j0
+        h01 += j0 * j1
+        h02 += j0 * j2
+        h03 += j0 * j3
+        h11 += j1 * j1
+        h12 += j1 * j2
+        h13 += j1 * j3
+        h22 += j2 * j2
+        h23 += j2 * j3
+        h33 += j3 * j3
+        g0 += j0 * r
+        g1 += j1 * r
+        g2 += j2 * r
+        g3 += j3 * r
+    jtj[0, 0], jtj[1, 1], jtj[2, 2], jtj[3, 3] = h00, h11, h22, h33
+    jtj[0, 1] = jtj[1, 0] = h01
+    jtj[0, 2] = jtj[2, 0] = h02
+    jtj[0, 3] = jtj[3, 0] = h03
+    jtj[1, 2] = jtj[2, 1] = h12
+    jtj[1, 3] = jtj[3, 1] = h13
+    jtj[2, 3] = jtj[3, 2] = h23
+    jtr[0], jtr[1], jtr[2], jtr[3] = g0, g1, g2, g3
+    return cost
+
+
+@kernel
+def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray,
+                    data: np.ndarray, disc_term: np.ndarray, disc_norm2: float, project_1: float, width: int,
+                    marker: np.ndarray, jac: np.ndarray) -> tuple:
+    """What the centre's covariance needs at ``params``: the Gram matrix of the Jacobian
+    (4x4), its columns against the two shape stretches' (4x2: along the axes and the
+    diagonals, in the frame where the lamp is round), and each row's marker term against
+    the first four columns (rows, 4; the columns are orthogonal to the basis, so a row's
+    term needs no projection). Rows are ``width`` pixels each."""
+    cx, cy, s, blur = params[0], params[1], params[2], params[3]
+    gram_00, gram_01, project_0, a00, a01, a10, a11, a20, a21, a30, a31 = _marker_terms(
+        cx, cy, s, blur, rounded, root, level, data, disc_term, marker, jac)
+    n = data.size
+    # The stretches' columns, like the others short of the factor amplitude / (sqrt(2 pi) blur).
+    shift_u = cx * root[0, 0] + cy * root[1, 0]
+    shift_v = cx * root[0, 1] + cy * root[1, 1]
+    inverse_blur = 1.0 / blur
+    stretches = np.empty((n, 2))
+    along = np.zeros((6, 2))
+    for i in range(n):
+        u = rounded[i, 0] - shift_u
+        v = rounded[i, 1] - shift_v
+        gradient_x = u * root[0, 0] + v * root[0, 1]
+        gradient_y = u * root[1, 0] + v * root[1, 1]
+        inverse_norm = 1.0 / max(math.sqrt(gradient_x * gradient_x + gradient_y * gradient_y), 1e-9)
+        rho = math.sqrt(u * u + v * v)
+        gain = rho * inverse_norm
+        z = (s - rho) * gain * inverse_blur
+        stretch = level[i] * math.exp(-0.5 * z * z) * gain / max(rho, 1e-9)
+        stretches[i, 0] = -0.5 * stretch * (u * u - v * v)
+        stretches[i, 1] = -stretch * u * v
+        for k in range(2):
+            along[4 + k, 0] += stretches[i, k] * marker[i]
+            along[4 + k, 1] += stretches[i, k] * disc_term[i]
+    along[0, 0], along[0, 1], along[1, 0], along[1, 1] = a00, a01, a10, a11
+    along[2, 0], along[2, 1], along[3, 0], along[3, 1] = a20, a21, a30, a31
+    coef_0, _, inverse_00, inverse_01, inverse_11 = _amplitudes(gram_00, gram_01, disc_norm2, project_0, project_1)
+    scale = coef_0 / (_SQRT_2PI * blur)
+    weights = np.empty((6, 2))
+    for k in range(6):
+        weights[k, 0] = scale * (along[k, 0] * inverse_00 + along[k, 1] * inverse_01)
+        weights[k, 1] = scale * (along[k, 0] * inverse_01 + along[k, 1] * inverse_11)
+    w00, w01, w10, w11 = weights[0, 0], weights[0, 1], weights[1, 0], weights[1, 1]
+    w20, w21, w30, w31 = weights[2, 0], weights[2, 1], weights[3, 0], weights[3, 1]
+    w40, w41, w50, w51 = weights[4, 0], weights[4, 1], weights[5, 0], weights[5, 1]
+    h00 = h01 = h02 = h03 = h11 = h12 = h13 = h22 = h23 = h33 = 0.0
+    x04 = x05 = x14 = x15 = x24 = x25 = x34 = x35 = 0.0
+    rows = n // width
+    row_terms = np.empty((rows, 4))
+    for row in range(rows):
+        t0 = t1 = t2 = t3 = 0.0
+        for i in range(row * width, (row + 1) * width):
+            b0 = marker[i]
+            b1 = disc_term[i]
+            j0 = scale * jac[i, 0] - (w00 * b0 + w01 * b1)
+            j1 = scale * jac[i, 1] - (w10 * b0 + w11 * b1)
+            j2 = scale * jac[i, 2] - (w20 * b0 + w21 * b1)
+            j3 = scale * jac[i, 3] - (w30 * b0 + w31 * b1)
+            j4 = scale * stretches[i, 0] - (w40 * b0 + w41 * b1)
+            j5 = scale * stretches[i, 1] - (w50 * b0 + w51 * b1)
+            h00 += j0 * j0
+            h01 += j0 * j1
+            h02 += j0 * j2
+            h03 += j0 * j3
+            h11 += j1 * j1
+            h12 += j1 * j2
+            h13 += j1 * j3
+            h22 += j2 * j2
+            h23 += j2 * j3
+            h33 += j3 * j3
+            x04 += j0 * j4
+            x05 += j0 * j5
+            x14 += j1 * j4
+            x15 += j1 * j5
+            x24 += j2 * j4
+            x25 += j2 * j5
+            x34 += j3 * j4
+            x35 += j3 * j5
+            term = coef_0 * b0
+            t0 += j0 * term
+            t1 += j1 * term
+            t2 += j2 * term
+            t3 += j3 * term
+        row_terms[row, 0], row_terms[row, 1], row_terms[row, 2], row_terms[row, 3] = t0, t1, t2, t3
+    gram = np.empty((4, 4))
+    gram[0, 0], gram[1, 1], gram[2, 2], gram[3, 3] = h00, h11, h22, h33
+    gram[0, 1] = gram[1, 0] = h01
+    gram[0, 2] = gram[2, 0] = h02
+    gram[0, 3] = gram[3, 0] = h03
+    gram[1, 2] = gram[2, 1] = h12
+    gram[1, 3] = gram[3, 1] = h13
+    gram[2, 3] = gram[3, 2] = h23
+    cross = np.empty((4, 2))
+    cross[0, 0], cross[0, 1], cross[1, 0], cross[1, 1] = x04, x05, x14, x15
+    cross[2, 0], cross[2, 1], cross[3, 0], cross[3, 1] = x24, x25, x34, x35
+    return gram, cross, row_terms
+
+
+@kernel
+def _solve4(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """OpenCV's DECOMP_LU solve (partial pivoting; zero if a pivot is below 100 eps)."""
+    a = matrix.copy()
+    b = rhs.copy()
+    m = b.size
+    for i in range(m):
+        k = i
+        for j in range(i + 1, m):
+            if abs(a[j, i]) > abs(a[k, i]):
+                k = j
+        if abs(a[k, i]) < _LU_EPSILON:
+            return np.zeros(m)
+        if k != i:
+            for j in range(m):
+                a[i, j], a[k, j] = a[k, j], a[i, j]
+            b[i], b[k] = b[k], b[i]
+        d = -1.0 / a[i, i]
+        for j in range(i + 1, m):
+            alpha = a[j, i] * d
+            for c in range(i + 1, m):
+                a[j, c] += alpha * a[i, c]
+            b[j] += alpha * b[i]
+    for i in range(m - 1, -1, -1):
+        total = b[i]
+        for c in range(i + 1, m):
+            total -= a[i, c] * b[c]
+        b[i] = total / a[i, i]
+    return b
+
+
+@kernel
+def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of a symmetric matrix as OpenCV's DECOMP_SVD gives it: singular values
+    at most 2 eps times their sum are dropped. Eigenvalues by cyclic Jacobi rotations."""
+    m = matrix.shape[0]
+    a = matrix.copy()
+    vectors = np.eye(m)
+    for _ in range(50):
+        off = 0.0
+        for p in range(m):
+            for q in range(p + 1, m):
+                off += a[p, q] * a[p, q]
+        if off == 0.0:
+            break
+        for p in range(m):
+            for q in range(p + 1, m):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                # Negligible beside both diagonal entries: rotating would not change them.
+                if abs(a[p, p]) + 1e3 * abs(apq) == abs(a[p, p]) and abs(a[q, q]) + 1e3 * abs(apq) == abs(a[q, q]):
+                    a[p, q] = a[q, p] = 0.0
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(m):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(m):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                a[p, q] = a[q, p] = 0.0
+                for k in range(m):
+                    vkp, vkq = vectors[k, p], vectors[k, q]
+                    vectors[k, p] = c * vkp - s * vkq
+                    vectors[k, q] = s * vkp + c * vkq
+    threshold = 0.0
+    for i in range(m):
+        threshold += abs(a[i, i])
+    threshold *= 2.0 * _DBL_EPSILON
+    inverse = np.zeros((m, m))
+    for i in range(m):
+        if abs(a[i, i]) <= threshold:
+            continue
+        weight = 1.0 / a[i, i]
+        for r in range(m):
+            for c in range(m):
+                inverse[r, c] += vectors[r, i] * weight * vectors[c, i]
+    return inverse
+
+
+@kernel
+def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
+                  shape_spread: float) -> float:
     """Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
 
     The shape is held at the lamp's, and each row's marker brightness at the ratio
     times the row's measured level. Their true deviations (``shape_spread``, and
     ``_ROW_LEVEL_SPREAD`` of a row's level) move the centre by the fit's sensitivity
     to them: a consider covariance. Both matter most when only part of the marker is lit.
-    ``jac`` (N, 6): centre, radius, blur, then the two shape stretches; ``row_terms``
-    (rows, 4): each row's marker term against the first four columns.
+    ``gram`` (4x4): the Jacobian's (centre, radius, blur); ``cross`` (4x2): its columns against
+    the two shape stretches'; ``row_terms`` (rows, 4): each row's marker term against them.
     """
-    fitted, shape = jac[:, :4], jac[:, 4:]
-    # OpenCV's SVD pseudo-inverse: np.linalg.pinv costs ~100 us of overhead on a 4x4.
-    _, inverse = cv2.invert(fitted.T @ fitted, flags=cv2.DECOMP_SVD)
-    shape_effect = inverse @ fitted.T @ shape
-    level_effect = inverse @ row_terms.T
-    covariance = (noise_variance * inverse + shape_spread ** 2 * shape_effect @ shape_effect.T
-                  + _ROW_LEVEL_SPREAD ** 2 * level_effect @ level_effect.T)
-    return float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
+    inverse = _pseudo_inverse(gram)
+    variance = 0.0
+    for axis in range(2):
+        shape = 0.0
+        for c in range(2):
+            effect = 0.0
+            for k in range(4):
+                effect += inverse[axis, k] * cross[k, c]
+            shape += effect * effect
+        level = 0.0
+        for r in range(row_terms.shape[0]):
+            effect = 0.0
+            for k in range(4):
+                effect += inverse[axis, k] * row_terms[r, k]
+            level += effect * effect
+        variance += (noise_variance * inverse[axis, axis] + shape_spread ** 2 * shape
+                     + _ROW_LEVEL_SPREAD ** 2 * level)
+    return math.sqrt(0.5 * variance)
 
 
-def _bounded(params: np.ndarray) -> np.ndarray:
-    cx, cy, radius, blur = (float(v) for v in params)
-    return np.array([cx, cy, max(radius, 0.5), min(max(blur, _BLUR_BOUNDS[0]), _BLUR_BOUNDS[1])])
-
-
-def _inverse_gram(a: float, b: float, d: float) -> np.ndarray:
-    """Inverse of the 2x2 Gram matrix [[a, b], [b, d]] in closed form (np.linalg.inv's overhead is ~10 us)."""
-    return np.array([[d, -b], [-b, a]]) / (a * d - b * b)
-
-
-class _MarkerModel:
-    """Residuals and the variable-projection Jacobian of the marker model.
-
-    A pixel's redness is its row's lamp level times (k1 marker + k2 lamp disc), both
-    blurred; k1, k2 are eliminated. Parameters: centre (2), mean radius and blur
-    sigma; the Jacobian has two more columns, for stretching the shape away from the
-    lamp's (along the axes and the diagonals, in the frame where the lamp is round).
-    """
-
-    linear_count = 2
-
-    def __init__(self, data: np.ndarray, pixels: np.ndarray, lamp_disc: np.ndarray, root: np.ndarray,
-                 row_level: np.ndarray) -> None:
-        self.data = data.ravel()
-        self.rows = pixels.shape[0]
-        self.root = root
-        # Pixels in the frame where the lamp is round: u = (p - centre) R is then a shift away.
-        self.rounded = pixels.reshape(-1, 2) @ root
-        self.level = np.broadcast_to(row_level[:, None], data.shape).ravel()
-        self.disc_term = (row_level[:, None] * lamp_disc).ravel()
-        self.disc_norm2 = float(self.disc_term @ self.disc_term)
-
-    def evaluate(self, params: np.ndarray, with_consider: bool = False) -> tuple:
-        """(cost, residual (N,), Jacobian of the model (N, 4)) with the amplitudes eliminated.
-
-        ``with_consider`` widens the Jacobian by the two shape stretches (N, 6) and adds
-        each row's marker term projected on the first four columns (rows, 4).
-        """
-        cx, cy, s, blur = params
-        u = self.rounded - np.array([cx, cy]) @ self.root
-        gradient = u @ self.root
-        norm = np.maximum(np.sqrt(gradient[:, 0] ** 2 + gradient[:, 1] ** 2), 1e-9)
-        rho = np.sqrt(u[:, 0] ** 2 + u[:, 1] ** 2)
-        # Distance to the marker's edge, positive inside (first order in the offset from the edge).
-        gain = rho / norm
-        z = (s - rho) * gain / blur
-        basis = np.empty((2, z.size))
-        basis[0] = self.level * ndtr(z)
-        basis[1] = self.disc_term
-        gram_inverse = _inverse_gram(float(basis[0] @ basis[0]) + 1e-9, float(basis[0] @ basis[1]),
-                                     self.disc_norm2 + 1e-9)
-        coef = gram_inverse @ (basis @ self.data)
-        residual = self.data - coef @ basis
-        # Kaufman's approximation: the marker term's derivatives, minus their part in the basis.
-        density = coef[0] * self.level * np.exp(-0.5 * z * z) / (_SQRT_2PI * blur)
-        columns = [density * gradient[:, 0] / norm, density * gradient[:, 1] / norm, density * gain, -density * z]
-        if with_consider:
-            stretch = density * gain / np.maximum(rho, 1e-9)
-            columns += [-0.5 * stretch * (u[:, 0] ** 2 - u[:, 1] ** 2), -stretch * u[:, 0] * u[:, 1]]
-        jac = np.array(columns)
-        jac -= (jac @ basis.T) @ gram_inverse @ basis
-        cost = float(residual @ residual)
-        if not with_consider:
-            return cost, residual, jac.T
-        # The columns are orthogonal to the basis, so a row's term needs no projection here.
-        row_terms = (jac[:4] * (coef[0] * basis[0])).reshape(4, self.rows, -1).sum(axis=2).T
-        return cost, residual, jac.T, row_terms
+@kernel
+def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, ellipse: np.ndarray,
+         blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray,
+         spread: float) -> tuple:
+    """fit_marker's work: (found, cx, cy, radius, blur, sigma, shape (4, row-major))."""
+    failed = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    half = seed_radius + margin
+    x0 = max(int(np.floor(seed_x - half)), 0)
+    y0 = max(int(np.floor(seed_y - half)), 0)
+    x1 = min(int(np.ceil(seed_x + half)) + 1, red.shape[1])
+    y1 = min(int(np.ceil(seed_y + half)) + 1, red.shape[0])
+    last = min(y1, rows_used.size)
+    rows = np.empty(max(last - y0, 0), dtype=np.int64)
+    count = 0
+    for y in range(y0, last):
+        if rows_used[y]:
+            rows[count] = y
+            count += 1
+    rows = rows[:count]
+    if count < _MIN_MARKER_ROWS or x1 - x0 < 5:
+        return failed
+    width = x1 - x0
+    n = count * width
+    # The lamp's disc (blurred by the guess) by its Sampson distance, as ellipse.geometric_distances.
+    cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
+    c, s = math.cos(theta), math.sin(theta)
+    ia, ib = 1.0 / (a * a), 1.0 / (b * b)
+    xx, yy, xy = c * c * ia + s * s * ib, s * s * ia + c * c * ib, c * s * (ia - ib)
+    xw, yw = -(xx * cx + xy * cy), -(xy * cx + yy * cy)
+    ww = xx * cx * cx + 2.0 * xy * cx * cy + yy * cy * cy - 1.0
+    # The symmetric root of the lamp's shape (det 1): R diag(sqrt(b/a), sqrt(a/b)) R^T.
+    along, across = math.sqrt(b / a), math.sqrt(a / b)
+    off = c * s * (along - across)
+    root = np.empty((2, 2))
+    root[0, 0] = c * c * along + s * s * across
+    root[0, 1] = root[1, 0] = off
+    root[1, 1] = s * s * along + c * c * across
+    data = np.empty(n)
+    level = np.empty(n)
+    disc_term = np.empty(n)
+    rounded = np.empty((n, 2))
+    disc_norm2 = 0.0
+    project_1 = 0.0
+    i = 0
+    for row in rows:
+        py = float(row)
+        for column in range(x0, x1):
+            px = float(column)
+            data[i] = float(red[row, column])
+            level[i] = row_level[row]
+            gx = xx * px + xy * py + xw
+            gy = xy * px + yy * py + yw
+            value = gx * px + gy * py + (xw * px + yw * py + ww)
+            distance = 0.5 * value / math.sqrt(gx * gx + gy * gy)
+            disc_term[i] = row_level[row] * _ndtr(-distance / blur_guess)
+            disc_norm2 += disc_term[i] * disc_term[i]
+            project_1 += disc_term[i] * data[i]
+            rounded[i, 0] = px * root[0, 0] + py * root[1, 0]
+            rounded[i, 1] = px * root[0, 1] + py * root[1, 1]
+            i += 1
+    marker = np.empty(n)
+    jac = np.empty((n, 4))
+    params = np.array([seed_x, seed_y, seed_radius, blur_guess])
+    trial = np.empty(4)
+    jtj, trial_jtj = np.empty((4, 4)), np.empty((4, 4))
+    jtr, trial_jtr = np.empty(4), np.empty(4)
+    cost = _evaluate(params, rounded, root, level, data, disc_term, disc_norm2, project_1, marker, jac, jtj, jtr)
+    damping = 1e-3
+    for _ in range(_MAX_ITERATIONS):
+        damped = jtj.copy()
+        for k in range(4):
+            damped[k, k] += damping * (jtj[k, k] + 1e-12)
+        step = _solve4(damped, jtr)
+        trial[0] = params[0] + step[0]
+        trial[1] = params[1] + step[1]
+        trial[2] = _lower_bound(params[2] + step[2], 0.5)
+        trial[3] = _upper_bound(_lower_bound(params[3] + step[3], _BLUR_BOUNDS[0]), _BLUR_BOUNDS[1])
+        trial_cost = _evaluate(trial, rounded, root, level, data, disc_term, disc_norm2, project_1, marker, jac,
+                               trial_jtj, trial_jtr)
+        dx, dy = trial[0] - params[0], trial[1] - params[1]
+        moved = math.sqrt(dx * dx + dy * dy)
+        if trial_cost < cost:
+            params, trial = trial, params
+            jtj, trial_jtj = trial_jtj, jtj
+            jtr, trial_jtr = trial_jtr, jtr
+            cost = trial_cost
+            damping = max(damping * 0.3, 1e-6)
+        else:
+            damping *= 10.0
+        if moved < _CONVERGED or damping > 1e6:
+            break
+    mx, my, radius, blur = params[0], params[1], params[2], params[3]
+    # A marker must lie in its window, fit inside it, and be blurred by a plausible amount.
+    if (not (x0 <= mx < x1 and y0 <= my < y1) or radius > half
+            or not _BLUR_BOUNDS[0] < blur < _BLUR_BOUNDS[1]):
+        return failed
+    # Rows crossing the marker carry its position; one or two leave it ambiguous.
+    crossing = 0
+    for row in rows:
+        if abs(row - my) < radius:
+            crossing += 1
+    if crossing < _MIN_MARKER_ROWS:
+        return failed
+    dof = n - 4 - _LINEAR_COUNT
+    if dof <= 0:
+        return failed
+    gram, cross, row_terms = _consider_terms(params, rounded, root, level, data, disc_term, disc_norm2, project_1,
+                                             width, marker, jac)
+    sigma = _centre_sigma(gram, cross, row_terms, cost / dof, spread)
+    shape_00 = root[0, 0] * root[0, 0] + root[0, 1] * root[1, 0]
+    shape_01 = root[0, 0] * root[0, 1] + root[0, 1] * root[1, 1]
+    shape_10 = root[1, 0] * root[0, 0] + root[1, 1] * root[1, 0]
+    shape_11 = root[1, 0] * root[0, 1] + root[1, 1] * root[1, 1]
+    return True, mx, my, radius, blur, sigma, shape_00, shape_01, shape_10, shape_11
