@@ -13,6 +13,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from vlp_ros.compiled import kernel
 from vlp_ros.observation import LampObservation
 
 @dataclass(frozen=True)
@@ -42,7 +43,8 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
     """Per-row mean of the lamp's pixels in a mono or BGR ``image`` (the full frame).
 
     Pixels within ``edge_margin`` px of the disc's edge and within ``marker_margin``
-    px of the marker are dropped. Saturated pixels are kept at the ceiling: rows
+    px of the marker are dropped. The disc mask must be convex along rows (one run of
+    pixels per row, as a detected ellipse's is). Saturated pixels are kept at the ceiling: rows
     whose dark level stays below it still differ from the bright rows, which is
     all decoding needs. ``ceiling`` defaults to the integer dtype's maximum (none
     for float images).
@@ -54,23 +56,25 @@ def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: in
     if not (0 <= x0 < x1 <= image.shape[1] and 0 <= y0 < y1 <= image.shape[0]):
         raise ValueError(f'lamp bbox {observation.bbox} does not lie inside the '
                          f'{image.shape[1]}x{image.shape[0]} image')
-    mask = _usable_pixels(observation, (y1 - y0, x1 - x0), edge_margin, marker_margin)
+    shape = (y1 - y0, x1 - x0)
+    disc = _mask(observation.disc_mask, shape, 'disc_mask')
+    marker = None if observation.marker_mask is None else _mask(observation.marker_mask, shape, 'marker_mask')
     roi = image[y0:y1, x0:x1]
     if ceiling is None and image.dtype.kind in 'ui':
         ceiling = _integer_ceiling(image.dtype)
     if roi.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         roi = roi.astype(np.float32)
     luma = cv2.cvtColor(roi, cv2.COLOR_BGR2GRAY) if roi.ndim == 3 else roi
-    counts = _row_sums(mask)
-    valid = np.maximum(counts, 1.0)
-    sums = _row_sums(cv2.bitwise_and(luma, luma, mask=mask))
-    # The channels side by side: one pass finds the brightest value (numpy's max is slower).
+    # The channels side by side: one pass finds the brightest value (numpy's max is slower). Each pixel's
+    # brightest channel only where something reaches the ceiling.
     if ceiling is not None and cv2.minMaxLoc(roi.reshape(len(roi), -1))[1] >= ceiling:
         peak = np.maximum(np.maximum(roi[..., 0], roi[..., 1]), roi[..., 2]) if roi.ndim == 3 else roi
-        saturated = _row_sums(((peak >= ceiling) & (mask > 0)).view(np.uint8)) / valid
     else:
-        saturated = np.zeros(len(counts))
-    return RowProfile(sums / valid, counts, saturated, y0)
+        peak = roi[:0, :0] if roi.ndim == 2 else roi[:0, :0, 0]
+    marker_box = (0, 0, 0, 0) if marker is None else cv2.boundingRect(marker)
+    values, counts, saturated = _row_means(luma, peak, disc, marker, marker_box, edge_margin, marker_margin,
+                                           0.0 if ceiling is None else float(ceiling))
+    return RowProfile(values, counts, saturated, y0)
 
 
 @lru_cache(maxsize=8)
@@ -78,45 +82,99 @@ def _integer_ceiling(dtype: np.dtype) -> float:
     return float(np.iinfo(dtype).max)
 
 
-def _row_sums(plane: np.ndarray) -> np.ndarray:
-    # Integer sums are exact and many times faster than float64 ones in OpenCV.
-    depth = cv2.CV_32S if plane.dtype in (np.uint8, np.uint16) else cv2.CV_32F
-    return cv2.reduce(plane, 1, cv2.REDUCE_SUM, dtype=depth).ravel().astype(float)
+def _mask(mask: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:
+    """A bbox mask as uint8 0/1 (a view of a boolean one)."""
+    mask = np.asarray(mask)
+    if mask.shape != shape:
+        raise ValueError(f'{name} shape {mask.shape} does not match the bbox size {shape}')
+    return mask.view(np.uint8) if mask.dtype == bool else (mask != 0).astype(np.uint8)
 
 
-def _usable_pixels(observation: LampObservation, shape: tuple[int, int], edge_margin: int,
-                   marker_margin: int) -> np.ndarray:
-    """uint8 0/1 mask over the bbox: the disc shrunk away from its edge, minus the grown marker."""
-    disc = np.asarray(observation.disc_mask)
-    if disc.shape != shape:
-        raise ValueError(f'disc_mask shape {disc.shape} does not match the bbox size {shape}')
-    mask = disc.view(np.uint8) if disc.dtype == bool else (disc != 0).astype(np.uint8)
-    if edge_margin > 0:
-        mask = cv2.erode(mask, _disc_kernel(edge_margin), borderType=cv2.BORDER_CONSTANT, borderValue=0)
-    else:
-        mask = mask.copy()
-    if observation.marker_mask is not None:
-        marker = np.asarray(observation.marker_mask)
-        if marker.shape != shape:
-            raise ValueError(f'marker_mask shape {marker.shape} does not match the bbox size {shape}')
-        marker = marker.view(np.uint8) if marker.dtype == bool else (marker != 0).astype(np.uint8)
-        # Only the marker's own box (grown by the margin) can change.
-        x, y, w, h = cv2.boundingRect(marker)
-        if w > 0:
-            x0, y0 = max(x - marker_margin, 0), max(y - marker_margin, 0)
-            x1, y1 = min(x + w + marker_margin, shape[1]), min(y + h + marker_margin, shape[0])
-            grown = marker[y0:y1, x0:x1]
-            if marker_margin > 0:
-                grown = cv2.dilate(grown, _disc_kernel(marker_margin), borderType=cv2.BORDER_CONSTANT,
-                                   borderValue=0)
-            box = mask[y0:y1, x0:x1]
-            cv2.subtract(box, grown, dst=box)
-    return mask
+@kernel
+def _row_means(luma: np.ndarray, peak: np.ndarray, disc: np.ndarray, marker: np.ndarray | None,
+               marker_box: tuple[int, int, int, int], edge_margin: int, marker_margin: int,
+               ceiling: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of the bbox: mean ``luma`` of the usable pixels, their count, and the share of them whose
+    brightest channel (``peak``; empty: none saturates) is at ``ceiling``.
+
+    Usable: the disc shrunk by ``edge_margin`` (a square: pixels whose (2 m + 1)^2 neighbourhood lies in
+    the disc and the bbox), minus the ``marker`` (x, y, width, height of its box) grown by
+    ``marker_margin`` (a square).
+    """
+    height = disc.shape[0]
+    usable = _usable(disc, edge_margin)
+    counts, totals, clipped = np.zeros(height), np.zeros(height), np.zeros(height)
+    # Loops over row slices (no index wraparound to check): these vectorise.
+    for y in range(height):
+        total, high = 0, 0
+        for value in luma[y, usable[y, 0]:usable[y, 1]]:
+            total += value
+        if peak.size:
+            for value in peak[y, usable[y, 0]:usable[y, 1]]:
+                high += value >= ceiling
+        counts[y], totals[y], clipped[y] = usable[y, 1] - usable[y, 0], total, high
+    if marker is not None:
+        # Only the marker's own box, grown by the margin, can lose pixels.
+        left, top, width, tall = marker_box
+        for y in range(max(top - marker_margin, 0), min(top + tall + marker_margin, height)):
+            for x in range(max(left - marker_margin, usable[y, 0]), min(left + width + marker_margin, usable[y, 1])):
+                if _near(marker, y, x, marker_margin):
+                    counts[y] -= 1
+                    totals[y] -= luma[y, x]
+                    if peak.size:
+                        clipped[y] -= peak[y, x] >= ceiling
+    values, saturated = np.empty(height), np.empty(height)
+    for y in range(height):
+        valid = max(counts[y], 1.0)
+        values[y], saturated[y] = totals[y] / valid, clipped[y] / valid
+    return values, counts, saturated
 
 
-def _disc_kernel(radius: int) -> np.ndarray:
-    # A square: separable, so several times faster than a disc, and a pixel more cautious on diagonals.
-    return cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1))
+@kernel
+def _usable(disc: np.ndarray, margin: int) -> np.ndarray:
+    """Each row's span [start, end) of the disc shrunk by ``margin`` (pixels whose (2 margin + 1)^2 square
+    lies wholly in the disc and the bbox), (height, 2).
+
+    The disc is convex: one run of pixels per row (a row whose pixels are not one run raises).
+    Shrunk along the row, each run loses ``margin`` pixels at either end; across rows, a pixel must
+    lie in the shrunk runs of the ``margin`` rows on either side too.
+    """
+    height, width = disc.shape
+    across = np.zeros((height, 2), dtype=np.int64)
+    for y in range(height):
+        start, end = 0, width
+        while start < width and not disc[y, start]:
+            start += 1
+        if start == width:
+            continue
+        while not disc[y, end - 1]:
+            end -= 1
+        count = 0
+        for value in disc[y, start:end]:
+            count += value
+        if count != end - start:
+            raise ValueError('the disc mask holds a row of several runs')
+        if count > 2 * margin:
+            across[y, 0], across[y, 1] = start + margin, end - margin
+    spans = np.zeros((height, 2), dtype=np.int64)
+    for y in range(margin, height - margin):
+        start, end = 0, width
+        for v in range(y - margin, y + margin + 1):
+            start, end = max(start, across[v, 0]), min(end, across[v, 1])
+        if end > start:
+            spans[y, 0], spans[y, 1] = start, end
+    return spans
+
+
+@kernel
+def _near(mask: np.ndarray, y: int, x: int, radius: int) -> bool:
+    """Whether a nonzero pixel of ``mask`` lies within the (2 radius + 1)^2 square around (y, x)."""
+    height, width = mask.shape
+    for v in range(max(y - radius, 0), min(y + radius + 1, height)):
+        for u in range(max(x - radius, 0), min(x + radius + 1, width)):
+            if mask[v, u]:
+                return True
+    return False
 
 
 def modulation(profile: RowProfile, period: float | None = None, degree: int = 2) -> np.ndarray:
