@@ -232,26 +232,15 @@ class _ToneFit:
         self._use(1)
 
     def _use(self, stride: int) -> None:
-        kept = np.arange(0, self.rows, stride)
-        self.tau = (kept - 0.5 * (self.rows - 1)) / self.rows
         # Templates are taken at every row from the one before the first kept to the one after the last, a
-        # kept row's own and its neighbours' being views of them (about three per kept row, up to stride 3).
-        self.tau_around = (np.arange(-1, kept[-1] + 2) - 0.5 * (self.rows - 1)) / self.rows
-        self.stride = stride
-        self.sqrt_w = np.sqrt(self.w[kept])
-        u = 2.0 * self.tau
-        # Orthonormal (weighted) envelope basis (rows): projecting it out leaves what the tone must explain.
-        basis = np.stack([self.sqrt_w, u * self.sqrt_w, u * u * self.sqrt_w])
-        basis = _whitening(basis @ basis.T) @ basis
-        self.envelope = basis
-        y = self.z[kept] * self.sqrt_w
-        self.y = y - (basis @ y) @ basis
-        self.null_rss = float(self.y @ self.y)
-        self.weighted_y = self.y * self.sqrt_w
-        # What _rss multiplies the templates with, row by row: the weighted envelope and y, and the weights.
-        self.products = np.ascontiguousarray(np.vstack([basis * self.sqrt_w, self.weighted_y]).T)
-        self.weights = self.sqrt_w * self.sqrt_w
-        self.dof = len(kept) - _PARAMETERS
+        # kept row's own and its neighbours' (tau_around); the envelope is orthonormal (weighted) over the
+        # kept rows, and y what it leaves of the profile.
+        (self.tau, self.tau_around, self.sqrt_w, self.envelope, self.y, self.null_rss, self.weighted_y,
+         self.products, self.weights) = _envelope_fit(self.z, self.w, stride)
+        self.dof = len(self.tau) - _PARAMETERS
+        # All that _rss_kernel needs of the fit.
+        self.model = (self.rows, self.tau_around, stride, self.products, self.weights, self.null_rss,
+                      0.5 * (self.dof + 1))
 
     def thin(self, cycles: float, exposure_rows: float) -> None:
         """Keep every k-th row of a long window, while the rows' exposures still cover the time axis (a
@@ -287,10 +276,7 @@ class _ToneFit:
         rows' (the best of _MIXES), with prior weight _MIXED_WEIGHT; that is the rss whose likelihood
         (noise level marginalised) is the sum of theirs (``_rss_kernel``)."""
         cycles, phase, exposure_rows = np.broadcast_arrays(cycles, phase, exposure_rows)
-        rss = _rss_kernel(cycles.ravel(), phase.ravel(), exposure_rows.ravel(), self.rows, self.tau_around,
-                          self.stride, self.products, self.weights, self.null_rss, 0.5 * (self.dof + 1),
-                          _MIXES, _MIX_SQUARES, _GRAM_PAIRS_ARRAY, _MIXED_WEIGHT)
-        return rss.reshape(cycles.shape)
+        return _rss_kernel(cycles.ravel(), phase.ravel(), exposure_rows.ravel(), *self.model).reshape(cycles.shape)
 
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient
@@ -298,27 +284,8 @@ class _ToneFit:
         (Kaufman's variable projection Jacobian J), all from products of the template and its
         derivatives."""
         cycles, phase, exposure = params
-        kappa = cycles * exposure / self.rows
-        theta = cycles * self.tau - phase
-        early = theta - np.floor(theta)
-        late = theta + kappa
-        late -= np.floor(late)
-        mean = (np.minimum(late, 1.0 - late) - np.minimum(early, 1.0 - early)) / kappa
-        square = np.sign(0.5 - late)
-        slope = (square - np.sign(0.5 - early)) / kappa
-        by_kappa = (square - mean) / kappa
-        rows = [mean, slope * self.tau + by_kappa * (exposure / self.rows), -slope]
-        if free_exposure:
-            rows.append(by_kappa * (cycles / self.rows))
-        columns = np.stack(rows) * self.sqrt_w
-        along = columns @ self.envelope.T
-        # Products of the envelope-free template (0) and derivatives (1...).
-        gram = columns @ columns.T - along @ along.T
-        with_y = columns @ self.y
-        norm = max(gram[0, 0], 1e-300)
-        amplitude = with_y[0] / norm
-        normal = amplitude * amplitude * (gram[1:, 1:] - np.outer(gram[0, 1:], gram[0, 1:]) / norm)
-        return float(self.null_rss - amplitude * with_y[0]), normal, amplitude * (with_y[1:] - amplitude * gram[0, 1:])
+        return _linearised_kernel(cycles, phase, exposure, free_exposure, self.rows, self.tau, self.sqrt_w,
+                                  self.envelope, self.y, self.null_rss)
 
     def start(self, cycles: float, exposure_rows: float | None) -> _Start:
         """The best square wave among a scan of frequencies around ``cycles`` (the FFT's peak, which the
@@ -365,15 +332,6 @@ class _ToneFit:
         return _Peak(float(params[0]), float(params[1]), float(params[2]), float(np.sqrt(covariance[0, 0])),
                      float(slope), max(float(np.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0))), 0.5 * gap))
 
-    def _phase_profile(self, cycles: np.ndarray, phase: np.ndarray, spread: float,
-                       exposure_rows: float) -> tuple[np.ndarray, np.ndarray]:
-        """Residual sum of squares at each of ``cycles`` with the phase at its best among ``phase`` and
-        ``spread`` either side, and where the best is an outer one (it may lie further out)."""
-        tried = phase[:, None] + spread * _PHASE_STEPS
-        rss = self._rss(np.broadcast_to(cycles[:, None], tried.shape), tried, exposure_rows)
-        best = np.argmin(rss, axis=1)
-        return rss[np.arange(len(cycles)), best], (best == 0) | (best == len(_PHASE_STEPS) - 1)
-
     def likelihood(self, peak: _Peak, quantum: float) -> _Likelihood | None:
         """Cycles per window on a grid around the ``peak``, the log likelihood of each (phase, envelope
         and amplitude at their best, the noise level marginalised; blurred by ``quantum`` cycles) and the
@@ -385,17 +343,11 @@ class _ToneFit:
             if grid[0] <= 0.0:
                 return None
             # Each frequency's best phase lies near the regression line through the peak.
-            rss, cornered = self._phase_profile(grid, peak.phase + peak.slope * (grid - peak.cycles), spread,
-                                                peak.exposure_rows)
+            rss, log_density, density, mean, sigma, best, cornered = _grid_pass(
+                grid, peak.phase + peak.slope * (grid - peak.cycles), spread, peak.exposure_rows, quantum,
+                *self.model)
             passes.append((grid, rss))
-            log_density = -0.5 * (self.dof + 1) * np.log(np.maximum(rss, 1e-300))
-            log_density -= log_density.max()
-            density = np.exp(log_density)
-            mean = float(density @ grid / density.sum())
-            # The spread after the blur by the edge quantum.
-            sigma = float(np.hypot(np.sqrt(density @ (grid - mean) ** 2 / density.sum()), quantum))
-            best = int(np.argmax(log_density))
-            if np.any(cornered & (log_density > -_GRID_DROP)):
+            if cornered:
                 # The best phase lies beyond the ones tried where the likelihood matters: try wider.
                 spread *= 3.0
             elif not len(grid) // 4 <= best < len(grid) - len(grid) // 4:
@@ -421,9 +373,9 @@ class _ToneFit:
 
 @kernel
 def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: np.ndarray,
-                stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float, power: float,
-                mixes: np.ndarray, mix_squares: np.ndarray, pairs: np.ndarray, mixed_weight: float) -> np.ndarray:
-    """_ToneFit._rss of each (cycles, phase, exposure rows) (1-d arrays of one length).
+                stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> np.ndarray:
+    """_ToneFit._rss of each (cycles, phase, exposure rows) (1-d arrays of one length), ``power`` being
+    (dof + 1) / 2.
 
     A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's integral,
     a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the template, which
@@ -438,6 +390,7 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
     out = np.empty(count)
     along = np.empty((3, 4))
     squares = np.empty(5)
+    mixes, mix_squares, pairs = _MIXES, _MIX_SQUARES, _GRAM_PAIRS_ARRAY
     gram = np.empty(len(pairs))
     # Every template position up to stride 3, else only the kept rows' and their neighbours'.
     if stride <= 3:
@@ -497,26 +450,145 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
                 own = max(null_rss - explained, 1e-300)
             best = max(best, explained)
         mixed = max(null_rss - best, 1e-300)
-        out[c] = mixed * (mixed_weight + (mixed / own) ** power) ** (-1.0 / power)
+        out[c] = mixed * (_MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
     return out
+
+
+@kernel
+def _linearised_kernel(cycles: float, phase: float, exposure: float, free_exposure: bool, rows: int, tau: np.ndarray,
+                       sqrt_w: np.ndarray, envelope: np.ndarray, y: np.ndarray,
+                       null_rss: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """_ToneFit._linearised: the template (0) and its derivatives by cycles, phase (and exposure), weighted,
+    their products with each other, the envelope and y, and from those the Gauss-Newton terms."""
+    m = 4 if free_exposure else 3
+    kappa = cycles * exposure / rows
+    column = np.empty(m)
+    products, along, with_y = np.zeros((m, m)), np.zeros((m, 3)), np.zeros(m)
+    for i in range(len(tau)):
+        theta = cycles * tau[i] - phase
+        early = theta - np.floor(theta)
+        late = theta + kappa
+        late -= np.floor(late)
+        mean = (min(late, 1.0 - late) - min(early, 1.0 - early)) / kappa
+        square = np.sign(0.5 - late)
+        slope = (square - np.sign(0.5 - early)) / kappa
+        by_kappa = (square - mean) / kappa
+        column[0] = mean * sqrt_w[i]
+        column[1] = (slope * tau[i] + by_kappa * (exposure / rows)) * sqrt_w[i]
+        column[2] = -slope * sqrt_w[i]
+        if free_exposure:
+            column[3] = by_kappa * (cycles / rows) * sqrt_w[i]
+        for a in range(m):
+            with_y[a] += column[a] * y[i]
+            for k in range(3):
+                along[a, k] += column[a] * envelope[k, i]
+            for b in range(m):
+                products[a, b] += column[a] * column[b]
+    # Products of the envelope-free template (0) and derivatives (1...).
+    gram = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            gram[a, b] = products[a, b] - (along[a, 0] * along[b, 0] + along[a, 1] * along[b, 1]
+                                           + along[a, 2] * along[b, 2])
+    norm = max(gram[0, 0], 1e-300)
+    amplitude = with_y[0] / norm
+    normal, gradient = np.empty((m - 1, m - 1)), np.empty(m - 1)
+    for a in range(1, m):
+        gradient[a - 1] = amplitude * (with_y[a] - amplitude * gram[0, a])
+        for b in range(1, m):
+            normal[a - 1, b - 1] = amplitude * amplitude * (gram[a, b] - gram[0, a] * gram[0, b] / norm)
+    return null_rss - amplitude * with_y[0], normal, gradient
+
+
+@kernel
+def _grid_pass(grid: np.ndarray, phase: np.ndarray, spread: float, exposure_rows: float, quantum: float, rows: int,
+               tau_around: np.ndarray, stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float,
+               power: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, int, bool]:
+    """One pass of the likelihood grid: at each cycles of ``grid``, the residual sum of squares with the
+    phase at its best among ``phase`` and ``spread`` x _PHASE_STEPS either side; the log likelihood
+    (noise level marginalised, relative to the best) and likelihood; their mean and spread (blurred by
+    ``quantum``), the best grid point, and whether a best phase was an outer one (it may lie further
+    out) where the likelihood matters."""
+    n, steps = len(grid), len(_PHASE_STEPS)
+    cycles, tried = np.empty(n * steps), np.empty(n * steps)
+    for i in range(n):
+        for j in range(steps):
+            cycles[i * steps + j] = grid[i]
+            tried[i * steps + j] = phase[i] + spread * _PHASE_STEPS[j]
+    all_rss = _rss_kernel(cycles, tried, np.full(n * steps, exposure_rows), rows, tau_around, stride, products,
+                          weights, null_rss, power)
+    rss, log_density = np.empty(n), np.empty(n)
+    outer = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        best = 0
+        for j in range(1, steps):
+            if all_rss[i * steps + j] < all_rss[i * steps + best]:
+                best = j
+        rss[i], outer[i] = all_rss[i * steps + best], best == 0 or best == steps - 1
+        log_density[i] = -power * np.log(max(rss[i], 1e-300))
+    log_density -= log_density.max()
+    density = np.exp(log_density)
+    total = density.sum()
+    mean = (density * grid).sum() / total
+    # The spread after the blur by the edge quantum.
+    sigma = math.hypot(math.sqrt((density * (grid - mean) ** 2).sum() / total), quantum)
+    cornered = False
+    for i in range(n):
+        cornered |= outer[i] and log_density[i] > -_GRID_DROP
+    return rss, log_density, density, mean, sigma, int(np.argmax(log_density)), cornered
 
 
 def _sinc(x: float) -> float:
     return math.sin(math.pi * x) / (math.pi * x) if x != 0.0 else 1.0
 
 
+@kernel
+def _envelope_fit(z: np.ndarray, w: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                                     np.ndarray, float, np.ndarray, np.ndarray,
+                                                                     np.ndarray]:
+    """Every ``stride``-th row of profile ``z`` (weights ``w``): its time tau (window units from the centre), tau
+    at every row from the one before the first kept to the one after the last, sqrt(w), the orthonormal
+    (weighted) envelope basis 1, u, u^2 (3, kept), the weighted profile with the envelope projected out
+    (y) and its square sum, y sqrt(w), the rows' products with the templates (kept, 4: envelope times
+    sqrt(w), y sqrt(w)) and the weights."""
+    rows = len(z)
+    kept = (rows - 1) // stride + 1
+    tau, sqrt_w = np.empty(kept), np.empty(kept)
+    tau_around = (np.arange(-1, stride * (kept - 1) + 2) - 0.5 * (rows - 1)) / rows
+    basis = np.empty((3, kept))
+    for i in range(kept):
+        tau[i] = (stride * i - 0.5 * (rows - 1)) / rows
+        sqrt_w[i] = math.sqrt(w[stride * i])
+        u = 2.0 * tau[i]
+        basis[0, i], basis[1, i], basis[2, i] = sqrt_w[i], u * sqrt_w[i], u * u * sqrt_w[i]
+    envelope = _whitening(basis @ basis.T) @ basis
+    y = np.empty(kept)
+    for i in range(kept):
+        y[i] = z[stride * i] * sqrt_w[i]
+    y -= (envelope @ y) @ envelope
+    weighted_y = y * sqrt_w
+    products = np.empty((kept, 4))
+    for i in range(kept):
+        for k in range(3):
+            products[i, k] = envelope[k, i] * sqrt_w[i]
+        products[i, 3] = weighted_y[i]
+    return tau, tau_around, sqrt_w, envelope, y, float(y @ y), weighted_y, products, sqrt_w * sqrt_w
+
+
+@kernel
 def _whitening(gram: np.ndarray) -> np.ndarray:
-    """The inverse of the Cholesky factor of a 3x3 Gram matrix, in closed form (numpy's factorisations
-    cost more than the whole envelope)."""
-    (a, b, c), (_, d, e), (_, _, f) = gram.tolist()
+    """The inverse of the Cholesky factor of a 3x3 Gram matrix, in closed form."""
+    a, b, c, d, e, f = gram[0, 0], gram[0, 1], gram[0, 2], gram[1, 1], gram[1, 2], gram[2, 2]
     l00 = math.sqrt(a)
     l10, l20 = b / l00, c / l00
     l11 = math.sqrt(d - l10 * l10)
     l21 = (e - l20 * l10) / l11
     l22 = math.sqrt(f - l20 * l20 - l21 * l21)
     m10 = -l10 / (l00 * l11)
-    return np.array([[1.0 / l00, 0.0, 0.0], [m10, 1.0 / l11, 0.0],
-                     [-(l20 / l00 + l21 * m10) / l22, -l21 / (l11 * l22), 1.0 / l22]])
+    out = np.zeros((3, 3))
+    out[0, 0], out[1, 0], out[1, 1] = 1.0 / l00, m10, 1.0 / l11
+    out[2, 0], out[2, 1], out[2, 2] = -(l20 / l00 + l21 * m10) / l22, -l21 / (l11 * l22), 1.0 / l22
+    return out
 
 
 def _inverse(m: np.ndarray) -> np.ndarray | None:
