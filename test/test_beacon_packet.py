@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from beacon_scenes import flat_profile, lamp_image
 
+from vlp_ros.beacon import packet
 from vlp_ros.beacon.chips import chip_levels
 from vlp_ros.beacon.decoding import decode_packet, row_profile
 from vlp_ros.beacon.encoding import Waveform, packet_chips, packet_waveform
@@ -134,3 +135,33 @@ def test_other_id_widths_decode(id_bits, lamp_id):
     profile = flat_profile(wave, rows, ROW_TIME, 3e-5, noise=0.5, rng=np.random.default_rng(2))
     reading = decode_packet(profile, CHIP_RATE, ROW_TIME, id_bits, None)
     assert reading.lamp_id == lamp_id and np.argmax(reading.log_likelihoods) == lamp_id
+
+
+def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift():
+    # Each (ID, shift) fitted directly: a weighted quadratic baseline in the chip index plus a positive
+    # contrast times the chip signs; its half gain over the baseline alone, marginalised over shifts.
+    rng = np.random.default_rng(5)
+    id_bits, length = 4, 16
+    k = np.sort(rng.choice(40, 30, replace=False))
+    x = (packet_chips(9, id_bits)[(k + 5) % length] * 2.0 - 1.0) * 0.8 + rng.normal(0.0, 0.5, len(k))
+    v = rng.uniform(0.5, 3.0, len(k))
+    log_likelihoods, misfit = packet._id_log_likelihoods(x, v, k, id_bits)
+    sqrt_v = np.sqrt(v)
+    baseline = np.column_stack([np.ones(len(k)), k, k * k]) * sqrt_v[:, None]
+
+    def rss(design):
+        coef = np.linalg.lstsq(design, x * sqrt_v, rcond=None)[0]
+        residual = x * sqrt_v - design @ coef
+        return residual @ residual, coef[-1]
+
+    rss0 = rss(baseline)[0]
+    gains = np.zeros((2 ** id_bits, length))
+    for lamp_id in range(2 ** id_bits):
+        for shift in range(length):
+            signs = packet_chips(lamp_id, id_bits)[(k + shift) % length] * 2.0 - 1.0
+            rss1, contrast = rss(np.column_stack([baseline, signs * sqrt_v]))
+            gains[lamp_id, shift] = 0.5 * (rss0 - rss1) if contrast > 0.0 else 0.0
+    expected = np.log(np.exp(gains).mean(axis=1)) - 0.5 * rss0
+    np.testing.assert_allclose(log_likelihoods, expected, rtol=1e-4, atol=1e-4)
+    assert misfit == pytest.approx(rss0 - 2.0 * gains.max(), rel=1e-4)
+    assert np.argmax(log_likelihoods) == 9

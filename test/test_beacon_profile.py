@@ -1,6 +1,7 @@
 """Row profiles: which pixels a lamp's brightness per row is read from, and its envelope."""
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 from beacon_scenes import lamp_image
@@ -59,6 +60,44 @@ def test_saturated_pixels_are_counted_and_kept_at_the_ceiling():
     assert np.all(profile.saturated[bright] > 0.9) and np.all(profile.saturated[dark] == 0.0)
     assert np.all(profile.values[bright] == 255.0)
     assert np.all(profile.values[dark] < 230.0)
+
+
+def opencv_profile(image, observation, margin, ceiling):
+    """The profile written with OpenCV's morphology on whole masks: eroded disc, minus dilated marker."""
+    x0, y0, x1, y1 = observation.bbox
+    square = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    mask = cv2.erode(observation.disc_mask.astype(np.uint8), square, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    if observation.marker_mask is not None:
+        mask &= 1 - cv2.dilate(observation.marker_mask.astype(np.uint8), square)
+    roi = image[y0:y1, x0:x1].astype(np.int64)
+    luma = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image[y0:y1, x0:x1]
+    peak = roi.max(axis=2) if roi.ndim == 3 else roi
+    counts = mask.sum(axis=1).astype(float)
+    valid = np.maximum(counts, 1.0)
+    return (luma * mask).sum(axis=1) / valid, counts, ((peak >= ceiling) & (mask > 0)).sum(axis=1) / valid
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_profile_equals_whole_mask_morphology(seed):
+    rng = np.random.default_rng(seed)
+    wave = packet_waveform(77, chip_rate=1.0 / (5 * ROW_TIME), depth=0.6)
+    image, observation = lamp_image(wave, ROW_TIME, EXPOSURE, tuple(rng.uniform(8.0, 60.0, 2)),
+                                    angle=rng.uniform(0.0, np.pi), peak=rng.uniform(150.0, 400.0),
+                                    bgr=bool(seed % 2), marker=seed != 4, rng=rng)
+    for margin in (0, 1, 2):
+        profile = row_profile(image, observation, edge_margin=margin, marker_margin=margin)
+        values, counts, saturated = opencv_profile(image, observation, margin, 255)
+        np.testing.assert_array_equal(profile.weights, counts)
+        np.testing.assert_allclose(profile.values, values, rtol=1e-12)
+        np.testing.assert_array_equal(profile.saturated, saturated)
+
+
+def test_disc_of_several_runs_per_row_is_rejected():
+    _, (image, observation) = striped_lamp()
+    ring = observation.disc_mask.copy()
+    ring[len(ring) // 2, ring.shape[1] // 2] = False
+    with pytest.raises(ValueError, match='several runs'):
+        row_profile(image, dataclasses.replace(observation, disc_mask=ring))
 
 
 def test_modulation_removes_the_envelope():
