@@ -238,7 +238,7 @@ class _ToneFit:
         (self.tau, self.tau_around, self.sqrt_w, self.envelope, self.y, self.null_rss, self.weighted_y,
          self.products, self.weights) = _envelope_fit(self.z, self.w, stride)
         self.dof = len(self.tau) - _PARAMETERS
-        # All that _rss_kernel needs of the fit.
+        # All that _rss_kernel needs of the fit (after the cycles, phases and exposures).
         self.model = (self.rows, self.tau_around, stride, self.products, self.weights, self.null_rss,
                       0.5 * (self.dof + 1))
 
@@ -270,14 +270,6 @@ class _ToneFit:
                 cycles += n / size * min(max(0.5 * (left - right) / curvature, -0.5), 0.5)
         return cycles
 
-    def _rss(self, cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray | float) -> np.ndarray:
-        """Residual sum of squares of each (cycles, phase) (arrays of one shape) with the best envelope and
-        amplitude, as both cameras together have it: the rows' own light, or mixed with the neighbouring
-        rows' (the best of _MIXES), with prior weight _MIXED_WEIGHT; that is the rss whose likelihood
-        (noise level marginalised) is the sum of theirs (``_rss_kernel``)."""
-        cycles, phase, exposure_rows = np.broadcast_arrays(cycles, phase, exposure_rows)
-        return _rss_kernel(cycles.ravel(), phase.ravel(), exposure_rows.ravel(), *self.model).reshape(cycles.shape)
-
     def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient
         (J^T J, J^T r) over cycles, phase (and exposure) with envelope and amplitude at their best
@@ -297,8 +289,7 @@ class _ToneFit:
         step = max(0.5 * cycles / self.rows, _START_REACH / _START_STEPS)
         tried = cycles + step * np.arange(-_START_STEPS, _START_STEPS + 1)
         shape = (len(tried), len(exposures), _PHASES)
-        rss = self._rss(np.broadcast_to(tried[:, None, None], shape), np.broadcast_to(_PHASE_SCAN, shape),
-                        exposures[:, None])
+        rss = _scan(tried, exposures, *self.model)
         at, row, best = np.unravel_index(int(np.argmin(rss)), shape)
         left, centre, right = rss[at, row, [best - 1, best, (best + 1) % _PHASES]].tolist()
         # The parabola through the best and its neighbours (the best is the least of the three).
@@ -374,8 +365,11 @@ class _ToneFit:
 @kernel
 def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: np.ndarray,
                 stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> np.ndarray:
-    """_ToneFit._rss of each (cycles, phase, exposure rows) (1-d arrays of one length), ``power`` being
-    (dof + 1) / 2.
+    """Residual sum of squares of each (cycles, phase, exposure rows) (1-d arrays of one length) with the
+    best envelope and amplitude, as both cameras together have it: the rows' own light, or mixed with the
+    neighbouring rows' (the best of _MIXES), with prior weight _MIXED_WEIGHT; that is the rss whose
+    likelihood (noise level marginalised) is the sum of theirs, ``power`` being (dof + 1) / 2. The fit's
+    arguments are its ``model``.
 
     A row sees the +-1 square wave's mean over its exposure, exactly: a difference of the wave's integral,
     a triangle wave 0.5 - |frac(x) - 0.5|, over the exposure (its length only scales the template, which
@@ -498,6 +492,22 @@ def _linearised_kernel(cycles: float, phase: float, exposure: float, free_exposu
         for b in range(1, m):
             normal[a - 1, b - 1] = amplitude * amplitude * (gram[a, b] - gram[0, a] * gram[0, b] / norm)
     return null_rss - amplitude * with_y[0], normal, gradient
+
+
+@kernel
+def _scan(cycles: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: np.ndarray, stride: int,
+          products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> np.ndarray:
+    """_rss_kernel at every cycles x exposure rows x phase of _PHASE_SCAN, that shape."""
+    n, m, phases = len(cycles), len(exposure_rows), len(_PHASE_SCAN)
+    size = n * m * phases
+    flat_cycles, flat_phase, flat_exposure = np.empty(size), np.empty(size), np.empty(size)
+    for i in range(n):
+        for j in range(m):
+            for k in range(phases):
+                at = (i * m + j) * phases + k
+                flat_cycles[at], flat_phase[at], flat_exposure[at] = cycles[i], _PHASE_SCAN[k], exposure_rows[j]
+    return _rss_kernel(flat_cycles, flat_phase, flat_exposure, rows, tau_around, stride, products, weights, null_rss,
+                       power).reshape((n, m, phases))
 
 
 @kernel
