@@ -1,4 +1,6 @@
 """Tone-mode decoding: the lamp whose frequency band holds the stripes' frequency, or None."""
+import itertools
+
 import cv2
 import numpy as np
 import pytest
@@ -182,7 +184,7 @@ def test_each_mix_is_fitted_exactly(stride):
         mean = np.abs(start - np.rint(start)) - np.abs(start + cycles[index] * exposure_rows / rows
                                                         - np.rint(start + cycles[index] * exposure_rows / rows))
         residuals = []
-        for _, even, odd in tone._MIXES:
+        for even, odd in itertools.product(tone._MIX_LEVELS, repeat=2):
             mix = np.where(np.arange(rows) % 2 == 0, even, odd)
             seen = (1.0 - 2.0 * mix) * mean[1:-1] + mix * (mean[:-2] + mean[2:])
             design = np.column_stack([envelope, seen[kept]]) * sqrt_w[:, None]

@@ -72,16 +72,9 @@ _MIN_TRANSMISSION = 0.1
 # Colour sensors read through a Bayer mosaic mix each row with its neighbours when demosaicing (bilinear
 # luma: about [w, 1 - 2 w, w] with w 0.13 on one row, 0.22 on the next). Unmodelled, the mix moves the
 # edges' apparent places by up to a row, and short exposures the frequency by a band. Either camera is
-# a hypothesis: a row's own light, or mixed (w at its best of _MIXES on even and odd rows) with a small
-# prior weight, so that mixing counts where it fits clearly better and leaves unmixed frames as they were.
+# a hypothesis: a row's own light, or mixed (w at its best of _MIX_LEVELS on even and odd rows apart) with a
+# small prior weight, so that mixing counts where it fits clearly better and leaves unmixed frames as they were.
 _MIX_LEVELS = np.linspace(0.0, 0.3, 5)
-# (1, w on even rows, w on odd rows), no mixing first.
-_MIXES = np.array([(1.0, even, odd) for even in _MIX_LEVELS for odd in _MIX_LEVELS])
-# |m|^2 of each mix, from the products of its templates (the row's own, mixing on even rows, on odd rows):
-# each pair's coefficient (the envelope's share of a pair's product likewise).
-_GRAM_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (2, 2), (1, 2))
-_GRAM_PAIRS_ARRAY = np.array(_GRAM_PAIRS)
-_MIX_SQUARES = np.array([(2.0 - (i == j)) * _MIXES[:, i] * _MIXES[:, j] for i, j in _GRAM_PAIRS])
 _MIXED_WEIGHT = 0.01
 
 
@@ -367,7 +360,8 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
                 stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> np.ndarray:
     """Residual sum of squares of each (cycles, phase, exposure rows) (1-d arrays of one length) with the
     best envelope and amplitude, as both cameras together have it: the rows' own light, or mixed with the
-    neighbouring rows' (the best of _MIXES), with prior weight _MIXED_WEIGHT; that is the rss whose
+    neighbouring rows' (the best of _MIX_LEVELS on even and odd rows), with prior weight _MIXED_WEIGHT;
+    that is the rss whose
     likelihood (noise level marginalised) is the sum of theirs, ``power`` being (dof + 1) / 2. The fit's
     arguments are its ``model``.
 
@@ -377,15 +371,11 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
     stride i + 2. Its products with the weighted envelope and y (``products``, four columns) and with each
     other (``weights``) are summed for the row's own template and, on even and odd rows apart, for what
     mixing in the neighbours adds per unit of w; every mix m = row + w_even even + w_odd odd then has
-    explained = (m . y)^2 / |m|^2, envelope projected out.
+    explained = (m . y)^2 / |m|^2, envelope projected out, |m|^2 a quadratic in w_even and w_odd.
     """
     count, kept = len(cycles), len(weights)
     template = np.empty(len(tau_around))
     out = np.empty(count)
-    along = np.empty((3, 4))
-    squares = np.empty(5)
-    mixes, mix_squares, pairs = _MIXES, _MIX_SQUARES, _GRAM_PAIRS_ARRAY
-    gram = np.empty(len(pairs))
     # Every template position up to stride 3, else only the kept rows' and their neighbours'.
     if stride <= 3:
         positions = np.arange(len(tau_around))
@@ -423,26 +413,23 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
                 e3 += mixing * products[i, 3]
                 rm_even += row * mixing * weights[i]
                 mm_even += mixing * mixing * weights[i]
-        along[0, 0], along[0, 1], along[0, 2], along[0, 3] = r0, r1, r2, r3
-        along[1, 0], along[1, 1], along[1, 2], along[1, 3] = e0, e1, e2, e3
-        along[2, 0], along[2, 1], along[2, 2], along[2, 3] = o0, o1, o2, o3
-        # (row row, row mixing on even rows, on odd rows, mixing mixing on even rows, on odd rows)
-        squares[0], squares[1], squares[2], squares[3], squares[4] = rr, rm_even, rm_odd, mm_even, mm_odd
-        for q in range(len(pairs)):
-            a, b = pairs[q, 0], pairs[q, 1]
-            gram[q] = along[a, 0] * along[b, 0] + along[a, 1] * along[b, 1] + along[a, 2] * along[b, 2]
-        own = 0.0
+        # |m|^2 = norm_0 + norm_even w_even + norm_odd w_odd + norm_even2 w_even^2 + norm_odd2 w_odd^2
+        # + norm_cross w_even w_odd, the envelope's share of each product (its three columns) taken off.
+        norm_0 = rr - (r0 * r0 + r1 * r1 + r2 * r2)
+        norm_even = 2.0 * (rm_even - (r0 * e0 + r1 * e1 + r2 * e2))
+        norm_odd = 2.0 * (rm_odd - (r0 * o0 + r1 * o1 + r2 * o2))
+        norm_even2 = mm_even - (e0 * e0 + e1 * e1 + e2 * e2)
+        norm_odd2 = mm_odd - (o0 * o0 + o1 * o1 + o2 * o2)
+        norm_cross = -2.0 * (e0 * o0 + e1 * o1 + e2 * o2)
+        own = max(null_rss - r3 * r3 / max(norm_0, 1e-300), 1e-300)
         best = -np.inf
-        for j in range(len(mixes)):
-            projection = along[0, 3] * mixes[j, 0] + along[1, 3] * mixes[j, 1] + along[2, 3] * mixes[j, 2]
-            norm = squares[0] + squares[1] * mix_squares[1, j] + squares[2] * mix_squares[2, j] \
-                + squares[3] * mix_squares[3, j] + squares[4] * mix_squares[4, j]
-            for q in range(len(pairs)):
-                norm -= gram[q] * mix_squares[q, j]
-            explained = projection * projection / max(norm, 1e-300)
-            if j == 0:
-                own = max(null_rss - explained, 1e-300)
-            best = max(best, explained)
+        for even in _MIX_LEVELS:
+            projection_even = r3 + e3 * even
+            norm_even_part = norm_0 + (norm_even + norm_even2 * even) * even
+            for odd in _MIX_LEVELS:
+                projection = projection_even + o3 * odd
+                norm = norm_even_part + (norm_odd + norm_odd2 * odd + norm_cross * even) * odd
+                best = max(best, projection * projection / max(norm, 1e-300))
         mixed = max(null_rss - best, 1e-300)
         out[c] = mixed * (_MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
     return out
