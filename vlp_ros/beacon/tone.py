@@ -349,8 +349,7 @@ class _ToneFit:
         else:
             return None
         if quantum > 0.0:
-            kernel = np.exp(-0.5 * (np.subtract.outer(grid, grid) / quantum) ** 2)
-            log_density = np.log(np.maximum(kernel @ density, 1e-300))
+            log_density = _blurred(grid, density, quantum)
         tried, tried_rss = (np.concatenate(arrays) for arrays in zip(*passes))
         return _Likelihood(grid, log_density, float(rss.min()), tried, tried_rss)
 
@@ -613,15 +612,8 @@ def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, l
     coarse grid), continued beyond it by the Student's t (``dof`` degrees of freedom, centred on the
     grid's peak) whose density meets the grid's ends, all cut to the ``search`` range: a frequency
     outside it would have shown as another peak."""
-    # Below _FLOOR there is nothing to count (and the exponentials stay finite).
-    log_density = np.maximum(log_density - log_density.max(), _FLOOR)
-    step = frequency[1] - frequency[0]
-    cumulative = np.zeros(len(frequency))
-    np.cumsum(_exponential_mass(log_density[:-1], np.diff(log_density), step), out=cumulative[1:])
     edges = np.clip(np.concatenate([low, high, search]), search[0], search[1])
-    # Within a grid step the cumulative is taken as linear: where a band's edge falls in a tail, that
-    # gives the band around the peak a little less and "none" a little more than the exponential would.
-    cdf = np.interp(edges, frequency, cumulative)
+    log_density, cdf = _grid_cdf(frequency, log_density, edges)
     for end, beyond in ((0, edges < frequency[0]), (-1, edges > frequency[-1])):
         if log_density[end] < _NEGLIGIBLE or not beyond.any():
             continue
@@ -632,11 +624,49 @@ def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, l
         peak = np.exp(gammaln(0.5 * (dof + 1)) - gammaln(0.5 * dof)) / np.sqrt(dof * np.pi)
         tail = stdtr(dof, (edges[beyond] - centre) / scale) - stdtr(dof, (frequency[end] - centre) / scale)
         cdf[beyond] += tail * scale / peak
-    band = np.maximum(cdf[len(low):-2] - cdf[:len(low)], 1e-300) / max(cdf[-1] - cdf[-2], 1e-300)
-    return np.log(np.append(band, max(1.0 - float(band.sum()), 1e-300)))
+    return _band_log_masses(cdf, len(low))
 
 
-def _exponential_mass(log_start: np.ndarray, rise: np.ndarray, length: float) -> np.ndarray:
-    """Integral over [0, length] of exp(log_start + rise x / length)."""
-    steep = np.abs(rise) > 1e-6
-    return np.exp(log_start) * length * np.where(steep, np.expm1(rise) / np.where(steep, rise, 1.0), 1.0 + 0.5 * rise)
+@kernel
+def _blurred(grid: np.ndarray, density: np.ndarray, quantum: float) -> np.ndarray:
+    """log of ``density`` on ``grid`` blurred by a Gaussian of spread ``quantum`` (at least 1e-300)."""
+    out = np.empty(len(grid))
+    for i in range(len(grid)):
+        total = 0.0
+        for j in range(len(grid)):
+            total += np.exp(-0.5 * ((grid[i] - grid[j]) / quantum) ** 2) * density[j]
+        out[i] = np.log(max(total, 1e-300))
+    return out
+
+
+@kernel
+def _grid_cdf(frequency: np.ndarray, log_density: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The log density relative to its peak (at least _FLOOR), and its integral from the grid's start to each
+    of ``edges`` (exponential between grid points; 0 before the grid, the whole beyond it)."""
+    # Below _FLOOR there is nothing to count (and the exponentials stay finite).
+    log_density = np.maximum(log_density - log_density.max(), _FLOOR)
+    step = frequency[1] - frequency[0]
+    cumulative = np.zeros(len(frequency))
+    for i in range(len(frequency) - 1):
+        # The integral over [0, step] of exp(log_density[i] + rise x / step).
+        rise = log_density[i + 1] - log_density[i]
+        shape = np.expm1(rise) / rise if abs(rise) > 1e-6 else 1.0 + 0.5 * rise
+        cumulative[i + 1] = cumulative[i] + np.exp(log_density[i]) * step * shape
+    # Within a grid step the cumulative is taken as linear: where a band's edge falls in a tail, that
+    # gives the band around the peak a little less and "none" a little more than the exponential would.
+    return log_density, np.interp(edges, frequency, cumulative)
+
+
+@kernel
+def _band_log_masses(cdf: np.ndarray, bands: int) -> np.ndarray:
+    """log of each band's share of the search range (``cdf`` at the bands' low edges, high edges and the
+    range's ends) and, last, of the rest's."""
+    whole = max(cdf[-1] - cdf[-2], 1e-300)
+    out = np.empty(bands + 1)
+    total = 0.0
+    for b in range(bands):
+        band = max(cdf[bands + b] - cdf[b], 1e-300) / whole
+        total += band
+        out[b] = np.log(band)
+    out[bands] = np.log(max(1.0 - total, 1e-300))
+    return out
