@@ -6,10 +6,12 @@ import pytest
 from solver_scenes import camera_wide, grid_lamps, looking_up, measured_up, observe
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
-from vlp_ros.solvers.fit_kernels import project_point
+from vlp_ros.camera import CameraModel
+from vlp_ros.solvers.circle_pose import circle_poses
+from vlp_ros.solvers.fit_kernels import forecast, inverse_form, project_point
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.refinement import linearize
-from vlp_ros.solvers.up_measurement import UpMeasurement, _pseudo_inverse_form
+from vlp_ros.solvers.up_measurement import UpMeasurement, _pseudo_inverse_form, _tangent_axes
 
 WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
 AWAY = looking_up((0.7, 0.2, 0.5), (0.2, 0.1, 0.0))
@@ -118,3 +120,70 @@ def test_rotation_curvature_is_the_direct_formula() -> None:
     expected = covariance.copy()
     expected[:3, :3] += 0.5 * np.einsum('ijk,lkj->il', b_p, b_p) + np.outer(mean, mean)
     np.testing.assert_allclose(with_rotation_curvature(covariance, lever), expected, rtol=1e-12, atol=1e-15)
+
+
+def test_pinhole_normalization_is_k_inverted() -> None:
+    rng = np.random.default_rng(8)
+    camera = CameraModel(1920, 1080, np.array([[900.0, 2.5, 955.5], [0.0, 905.0, 539.5], [0.0, 0.0, 1.0]]))
+    pixels = rng.uniform(-100.0, 2000.0, (50, 2))
+    expected = np.linalg.solve(camera.K, np.column_stack([pixels, np.ones(len(pixels))]).T).T[:, :2]
+    np.testing.assert_allclose(camera.normalize(pixels), expected, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(camera.normalize(pixels[0]), expected[:1], rtol=1e-13, atol=1e-15)
+
+
+def test_rim_terms_without_distortion_are_k_inverted() -> None:
+    camera = CameraModel(1920, 1080, np.array([[900.0, 2.5, 955.5], [0.0, 905.0, 539.5], [0.0, 0.0, 1.0]]))
+    lamp = grid_lamps(1)[0]
+    measurement = LampMeasurement.from_observation(observe(lamp, WIDE_TRUTH, camera), lamp, camera)
+    np.testing.assert_array_equal(measurement.rim_rays[:, 2], 1.0)
+    np.testing.assert_allclose(measurement.rim_pixel_jacobian,
+                               np.broadcast_to(np.linalg.inv(camera.K[:2, :2]), measurement.rim_pixel_jacobian.shape),
+                               rtol=1e-15, atol=0.0)
+
+
+def test_circle_poses_of_the_negated_conic_are_the_same() -> None:
+    rng = np.random.default_rng(9)
+    for _ in range(20):
+        # A cone about a line of sight near the optical axis: its image is an ellipse.
+        axes, _ = cv2.Rodrigues(rng.normal(scale=0.2, size=3))
+        conic = axes @ np.diag([rng.uniform(1.0, 2.0), rng.uniform(0.5, 1.0), -rng.uniform(0.1, 1.0)]) @ axes.T
+        for kept, negated in zip(circle_poses(conic, 0.05), circle_poses(-conic, 0.05), strict=True):
+            np.testing.assert_allclose(negated.normal, kept.normal, rtol=0.0, atol=1e-12)
+            np.testing.assert_allclose(negated.center, kept.center, rtol=0.0, atol=1e-12)
+
+
+def test_inverse_form_and_forecast_are_numpys() -> None:
+    rng = np.random.default_rng(10)
+    for _ in range(20):
+        jacobian, residuals = rng.normal(size=(30, 6)) * rng.uniform(0.01, 100.0, 6), rng.normal(size=30)
+        information, vector = jacobian.T @ jacobian, rng.normal(size=6)
+        assert inverse_form(information, vector) == pytest.approx(vector @ np.linalg.solve(information, vector),
+                                                                  rel=1e-10)
+        gradient = jacobian.T @ residuals
+        expected = residuals @ residuals - gradient @ np.linalg.solve(information, gradient)
+        assert forecast(residuals, jacobian) == pytest.approx(expected, rel=1e-10, abs=1e-10)
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse_form(np.zeros((6, 6)), np.ones(6))
+    assert forecast(np.ones(30), np.zeros((30, 6))) == 0.0
+
+
+def test_up_innovation_is_the_direct_formula() -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        root = rng.normal(size=(6, 6)) * 0.05
+        pose = Pose(perturbed(WIDE_TRUTH, rng.normal(scale=0.1, size=6))[0], WIDE_TRUTH.position, root @ root.T)
+        measurement = UpMeasurement(rng.normal(size=3), 0.02)
+        residual, jacobian = measurement.linearize(pose.rotation, pose.position)
+        left = np.eye(2) - jacobian @ pose.covariance @ jacobian.T
+        expected = residual @ np.linalg.pinv(left, rcond=1e-9, hermitian=True) @ residual
+        assert measurement.innovation(pose) == pytest.approx(expected, rel=1e-9)
+
+
+def test_up_tangent_axes_are_the_crosses_with_the_least_aligned_axis() -> None:
+    rng = np.random.default_rng(12)
+    for direction in [*rng.normal(size=(20, 3)), np.array([0.0, 0.0, 1.0]), np.array([0.6, 0.0, -0.8])]:
+        direction = direction / np.linalg.norm(direction)
+        first = np.cross(direction, np.eye(3)[np.argmin(np.abs(direction))])
+        first /= np.linalg.norm(first)
+        expected = np.array([[first, np.cross(direction, first)]])
+        np.testing.assert_allclose(_tangent_axes(direction), expected, rtol=0.0, atol=1e-15)

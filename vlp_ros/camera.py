@@ -7,6 +7,8 @@ from functools import cached_property
 import cv2
 import numpy as np
 
+from vlp_ros.compiled import kernel
+
 
 @dataclass(frozen=True)
 class CameraModel:
@@ -52,6 +54,12 @@ class CameraModel:
     def is_distorted(self) -> bool:
         return bool(np.any(self.D != 0.0))
 
+    # d(normalised)/d(pixel) without distortion, per lamp otherwise: cached like is_distorted.
+    @cached_property
+    def pinhole_pixel_inverse(self) -> np.ndarray:
+        """d(normalised)/d(pixel) (2, 2) of the pinhole part: K's upper-left block inverted."""
+        return np.linalg.inv(self.K[:2, :2])
+
     def project(self, points_camera: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of points (N, 3) given in the camera optical frame."""
         p = np.asarray(points_camera, dtype=float).reshape(-1, 3)
@@ -60,12 +68,9 @@ class CameraModel:
 
     def normalize(self, pixels: np.ndarray) -> np.ndarray:
         """Undistorted normalised image coordinates (N, 2) (z = 1 plane) of pixels (N, 2)."""
-        px = np.asarray(pixels, dtype=float).reshape(-1, 1, 2)
         if not self.is_distorted:
-            k = self.K
-            x = (px[:, 0, 0] - k[0, 2] - k[0, 1] * (px[:, 0, 1] - k[1, 2]) / k[1, 1]) / k[0, 0]
-            y = (px[:, 0, 1] - k[1, 2]) / k[1, 1]
-            return np.stack([x, y], axis=1)
+            return _pinhole_normalized(np.ascontiguousarray(pixels, dtype=float).reshape(-1, 2), self.K)
+        px = np.asarray(pixels, dtype=float).reshape(-1, 1, 2)
         return cv2.undistortPoints(
             px, self.K, self.D, None, None, None,
             (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12)).reshape(-1, 2)
@@ -74,3 +79,13 @@ class CameraModel:
         """Pixel coordinates (N, 2) that an ideal pinhole camera with the same K would see."""
         n = self.normalize(pixels)
         return n @ self.K[:2, :2].T + self.K[:2, 2]
+
+
+@kernel
+def _pinhole_normalized(pixels, k):
+    """``CameraModel.normalize`` without distortion: K inverted on each pixel (N, 2)."""
+    normalized = np.empty((pixels.shape[0], 2))
+    for n in range(pixels.shape[0]):
+        normalized[n, 0] = (pixels[n, 0] - k[0, 2] - k[0, 1] * (pixels[n, 1] - k[1, 2]) / k[1, 1]) / k[0, 0]
+        normalized[n, 1] = (pixels[n, 1] - k[1, 2]) / k[1, 1]
+    return normalized

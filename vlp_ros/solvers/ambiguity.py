@@ -20,6 +20,7 @@ larger than its stated sigma does not fake a gap.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -136,4 +137,4 @@ def _hint_tests(hints: DisambiguationHints) -> list[tuple[Reason, str, Callable[
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.arccos(np.clip(a @ b, -1.0, 1.0)))
+    return math.acos(min(max(float(a @ b), -1.0), 1.0))

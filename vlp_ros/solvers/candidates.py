@@ -8,6 +8,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from vlp_ros.pose import Pose
+from vlp_ros.solvers.fit_kernels import inverse_form
 
 
 @dataclass
@@ -65,7 +66,7 @@ def coincide(better: PoseCandidate, other: PoseCandidate) -> bool:
     error = other.pose.error_vector(better.pose)
     if better.pose.covariance is None or other.pose.covariance is None:
         return bool(np.all(np.abs(error) < 1e-12))
-    return float(error @ np.linalg.solve(better.pose.covariance, error)) <= COINCIDENT_MAHALANOBIS2
+    return inverse_form(better.pose.covariance, error) <= COINCIDENT_MAHALANOBIS2
 
 
 def distinct(candidates: list[PoseCandidate]) -> list[PoseCandidate]:

@@ -12,8 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
+from vlp_ros.compiled import kernel
 from vlp_ros.ellipse import conic_from_ellipse, ellipse_from_conic, fit_ellipse
 
 # Below this (~ the tilt from the line of sight, rad) the two circles are one:
@@ -42,27 +45,48 @@ def circle_poses(conic: np.ndarray, radius: float) -> list[CirclePose]:
     C = 0.5 * (np.asarray(conic, dtype=float) + np.asarray(conic, dtype=float).T)
     ellipse_from_conic(C)  # ValueError unless the image is a real ellipse
     evals, evecs = np.linalg.eigh(C)
-    if np.count_nonzero(evals > 0.0) < 2:
-        evals, evecs = -evals[::-1], evecs[:, ::-1]
-    l3, l2, l1 = evals
-    if not (l3 < 0.0 < l2):
+    normals, centers = np.empty((2, 3)), np.empty((2, 3))
+    count = _circles(evals, evecs, float(radius), _COINCIDENT_TILT, normals, centers)
+    if count == 0:
         raise ValueError('conic is not the image of a circle (eigenvalue signs)')
-    e1, e3 = evecs[:, 2], evecs[:, 0]
+    return [CirclePose(normal=normals[k], center=centers[k]) for k in range(count)]
+
+
+@kernel
+def _circles(evals, evecs, radius, coincident_tilt, normals, centers):
+    """``circle_poses`` from C's ascending eigenvalues and eigenvectors (columns): the number
+    of circles (0 if C is not the image of a circle), their normals and centres into the rows."""
+    flip = 1.0
+    if (evals[0] > 0.0) + (evals[1] > 0.0) + (evals[2] > 0.0) < 2:
+        # -C: its eigenvalues are -evals reversed, the vectors reversed with them.
+        flip = -1.0
+    l3, l2, l1 = evals[0], evals[1], evals[2]
+    first, last = 2, 0
+    if flip < 0.0:
+        l3, l2, l1 = -evals[2], -evals[1], -evals[0]
+        first, last = 0, 2
+    if not (l3 < 0.0 < l2):
+        return 0
     span = l1 - l3
     # Clipped: l1 - l2 is a tiny negative number for a circular image.
-    alpha = np.sqrt(max(l1 - l2, 0.0) / span)
-    beta = np.sqrt((l2 - l3) / span)
-    distance = radius * l2 / np.sqrt(-l1 * l3)
-    signs = (1.0,) if alpha < _COINCIDENT_TILT else (1.0, -1.0)
-    poses = []
-    for sign in signs:
-        normal = alpha * e1 + sign * beta * e3
-        other = alpha * e1 - sign * beta * e3
-        # Centre of the sphere l2 |X|^2 + (a.X)(b.X) = 0 on the plane, projected onto it.
-        sphere_center = -distance * span / (2.0 * l2) * other
-        center = sphere_center + (distance - normal @ sphere_center) * normal
-        if center[2] < 0.0:
+    alpha = math.sqrt(max(l1 - l2, 0.0) / span)
+    beta = math.sqrt((l2 - l3) / span)
+    distance = radius * l2 / math.sqrt(-l1 * l3)
+    count = 1 if alpha < coincident_tilt else 2
+    scale = -distance * span / (2.0 * l2)
+    for k in range(count):
+        signed_beta = (1.0 if k == 0 else -1.0) * beta
+        along = 0.0
+        for i in range(3):
+            normals[k, i] = alpha * evecs[i, first] + signed_beta * evecs[i, last]
+            # Centre of the sphere l2 |X|^2 + (a.X)(b.X) = 0 on the plane (b the other plane's
+            # normal), projected onto it.
+            centers[k, i] = scale * (alpha * evecs[i, first] - signed_beta * evecs[i, last])
+            along += normals[k, i] * centers[k, i]
+        for i in range(3):
+            centers[k, i] += (distance - along) * normals[k, i]
+        if centers[k, 2] < 0.0:
             # The cone is symmetric through the camera centre: take the nappe in front.
-            normal, center = -normal, -center
-        poses.append(CirclePose(normal=normal, center=center))
-    return poses
+            for i in range(3):
+                normals[k, i], centers[k, i] = -normals[k, i], -centers[k, i]
+    return count

@@ -133,14 +133,21 @@ def project_point(point, intrinsics, distortion, jacobian):
 
 
 @kernel
-def normalized_per_pixel(normalized, intrinsics, distortion):
-    """d(normalised)/d(pixel) (N, 2, 2) at undistorted normalised points (N, 2): the inverse of
-    ``project_point``'s Jacobian, whose x and y columns at z = 1 are d pixel / d normalised."""
+def rim_terms(normalized, intrinsics, distortion, distorted, pinhole_inverse):
+    """Rim rays (N, 3): undistorted normalised points (N, 2) made homogeneous; and
+    d(normalised)/d(pixel) (N, 2, 2) at each: ``pinhole_inverse`` (K's upper-left block
+    inverted) unless ``distorted``, else the inverse of ``project_point``'s Jacobian, whose x
+    and y columns at z = 1 are d pixel / d normalised."""
     count = normalized.shape[0]
+    rays = np.empty((count, 3))
     inverses = np.empty((count, 2, 2))
     point = np.ones(3)
     forward = np.empty((2, 3))
     for n in range(count):
+        rays[n, 0], rays[n, 1], rays[n, 2] = normalized[n, 0], normalized[n, 1], 1.0
+        if not distorted:
+            inverses[n, :, :] = pinhole_inverse
+            continue
         point[0], point[1] = normalized[n, 0], normalized[n, 1]
         project_point(point, intrinsics, distortion, forward)
         inverse_det = 1.0 / (forward[0, 0] * forward[1, 1] - forward[0, 1] * forward[1, 0])
@@ -148,7 +155,7 @@ def normalized_per_pixel(normalized, intrinsics, distortion):
         inverses[n, 0, 1] = -forward[0, 1] * inverse_det
         inverses[n, 1, 0] = -forward[1, 0] * inverse_det
         inverses[n, 1, 1] = forward[0, 0] * inverse_det
-    return inverses
+    return rays, inverses
 
 
 @kernel
@@ -373,6 +380,30 @@ def _solve6(matrix, rhs, out):
             total -= a[r, j] * out[j]
         out[r] = total / a[r, r]
     return True
+
+
+def inverse_form(matrix: np.ndarray, vector: np.ndarray) -> float:
+    """v^T M^-1 v for a 6x6 ``matrix`` M; LinAlgError if M is singular (as ``np.linalg.solve``)."""
+    solution = np.empty(6)
+    if not _solve6(np.ascontiguousarray(matrix, dtype=float), np.ascontiguousarray(vector, dtype=float), solution):
+        raise np.linalg.LinAlgError('singular matrix')
+    return float(vector @ solution)
+
+
+@kernel
+def forecast(residuals, jacobian):
+    """The chi-square that the Gauss-Newton model of (residuals, jacobian) forecasts at its
+    minimum, r^T r - g^T (J^T J)^-1 g with g = J^T r; 0 if J^T J is singular."""
+    information, gradient, step = np.empty((6, 6)), np.empty(6), np.empty(6)
+    _normal_equations(residuals, jacobian, information, gradient)
+    if not _solve6(information, gradient, step):
+        return 0.0
+    cost = 0.0
+    for n in range(residuals.shape[0]):
+        cost += residuals[n] * residuals[n]
+    for i in range(6):
+        cost -= gradient[i] * step[i]
+    return cost
 
 
 @kernel

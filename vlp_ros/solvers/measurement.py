@@ -22,7 +22,7 @@ import numpy as np
 from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
-from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, normalized_per_pixel
+from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, rim_terms
 
 if TYPE_CHECKING:
     from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -53,23 +53,22 @@ class LampMeasurement:
         rim = np.asarray(observation.rim_points, dtype=float).reshape(-1, 2)
         if len(rim) < 5:
             raise ValueError(f'lamp {lamp.name!r}: need at least 5 rim points, got {len(rim)}')
-        if not np.all(np.isfinite(rim)):
+        if not np.isfinite(rim).all():
             raise ValueError(f'lamp {lamp.name!r}: rim points are not all finite')
         if not observation.rim_sigma > 0.0:
             raise ValueError(f'lamp {lamp.name!r}: rim_sigma must be positive, got {observation.rim_sigma}')
-        marker = None
+        marker = marker_ray = None
         if observation.marker is not None:
             marker = np.asarray(observation.marker, dtype=float).reshape(2)
-            if not np.all(np.isfinite(marker)):
+            if not np.isfinite(marker).all():
                 raise ValueError(f'lamp {lamp.name!r}: marker pixel is not finite')
             if not observation.marker_sigma > 0.0:
                 raise ValueError(f'lamp {lamp.name!r}: marker_sigma must be positive, '
                                  f'got {observation.marker_sigma}')
-        normalized = camera.normalize(rim)
-        marker_ray = None if marker is None else np.append(camera.normalize(marker)[0], 1.0)
-        return cls(lamp=lamp, camera=camera,
-                   rim_rays=np.column_stack([normalized, np.ones(len(normalized))]),
-                   rim_pixel_jacobian=_normalized_per_pixel(camera, normalized),
+            marker_ray = np.append(camera.normalize(marker)[0], 1.0)
+        rays, lens = rim_terms(camera.normalize(rim), camera.K, camera.D, camera.is_distorted,
+                               camera.pinhole_pixel_inverse)
+        return cls(lamp=lamp, camera=camera, rim_rays=rays, rim_pixel_jacobian=lens,
                    rim_sigma=float(observation.rim_sigma), marker_pixel=marker,
                    marker_sigma=float(observation.marker_sigma), marker_ray=marker_ray)
 
@@ -84,16 +83,17 @@ class LampMeasurement:
 
     def __post_init__(self) -> None:
         lamp, count = self.lamp, len(self.rim_rays)
+        markers = {}
+        if self.marker_pixel is not None:
+            markers = dict(marker_maps=lamp.marker_position().reshape(1, 3),
+                           marker_pixels=np.array(self.marker_pixel, dtype=float).reshape(1, 2),
+                           marker_sigma=np.array([self.marker_sigma]))
         terms = Terms(rays=np.ascontiguousarray(self.rim_rays, dtype=float),
                       lens=np.ascontiguousarray(self.rim_pixel_jacobian, dtype=float).reshape(count, 4),
                       rim_sigma=np.full(count, self.rim_sigma), lamp_of_point=np.zeros(count, dtype=np.int64),
                       centres=np.array(lamp.position, dtype=float).reshape(1, 3),
                       radii_squared=np.array([lamp.radius ** 2]),
-                      intrinsics=self.camera.K, distortion=self.camera.D)
-        if self.marker_pixel is not None:
-            terms = terms._replace(marker_maps=np.array(lamp.marker_position(), dtype=float).reshape(1, 3),
-                                   marker_pixels=np.array(self.marker_pixel, dtype=float).reshape(1, 2),
-                                   marker_sigma=np.array([self.marker_sigma]))
+                      intrinsics=self.camera.K, distortion=self.camera.D, **markers)
         object.__setattr__(self, 'terms', terms)
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,14 +104,6 @@ class LampMeasurement:
 
     def lamp_center_in_camera(self, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
         return (self.lamp.position - position) @ rotation
-
-
-def _normalized_per_pixel(camera: CameraModel, normalized: np.ndarray) -> np.ndarray:
-    """d(normalised)/d(pixel) (N, 2, 2) at normalised points (N, 2)."""
-    if not camera.is_distorted:
-        # A pinhole maps pixel to normalised coordinates linearly: K's upper-left block inverted.
-        return np.broadcast_to(np.linalg.inv(camera.K[:2, :2]), (len(normalized), 2, 2))
-    return normalized_per_pixel(np.ascontiguousarray(normalized, dtype=float), camera.K, camera.D)
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ from vlp_ros.solvers.ambiguity import COST_GAP
 from vlp_ros.solvers.candidates import PoseCandidate, distinct
 from vlp_ros.solvers.circle_pose import CirclePose, circle_poses, normalized_conic
 from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
+from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, forecast_minimum, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
@@ -221,7 +222,7 @@ def _turning_about(candidate: PoseCandidate, lamp: Lamp) -> PoseCandidate:
 
 def _straddle_frontal(better: PoseCandidate, other: PoseCandidate) -> bool:
     separation = other.pose.error_vector(better.pose)
-    return float(separation @ np.linalg.solve(better.pose.covariance, separation)) < FRONTAL_SEPARATION_M2
+    return inverse_form(better.pose.covariance, separation) < FRONTAL_SEPARATION_M2
 
 
 def _midpoint(a: PoseCandidate, b: PoseCandidate, measurement: LampMeasurement) -> PoseCandidate:

@@ -18,7 +18,7 @@ import numpy as np
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import covariance_from_jacobian
-from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, iterate, joined, linearize_into
+from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, forecast, iterate, joined, linearize_into
 from vlp_ros.solvers.fit_kernels import linearize as linearize_terms
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -81,12 +81,7 @@ def forecast_minimum(initial: Pose, measurements: Sequence[Measurement]) -> floa
 
 def forecast_from(residuals: np.ndarray, jacobian: np.ndarray) -> float:
     """``forecast_minimum`` from a linearisation already at hand."""
-    gradient = jacobian.T @ residuals
-    try:
-        decrease = gradient @ np.linalg.solve(jacobian.T @ jacobian, gradient)
-    except np.linalg.LinAlgError:
-        return 0.0
-    return float(residuals @ residuals - decrease)
+    return float(forecast(np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float)))
 
 
 def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: int,

@@ -31,8 +31,9 @@ _PSEUDO_INVERSE_RCOND = 1e-9
 def unit_direction(vector: np.ndarray) -> np.ndarray:
     """``vector`` (3,) scaled to unit length; ValueError unless finite and non-zero."""
     vector = np.asarray(vector, dtype=float).reshape(3)
-    norm = np.linalg.norm(vector)
-    if not (np.isfinite(norm) and norm > 0.0):
+    # As np.linalg.norm (sqrt of the same BLAS dot), without its ~3 us of argument handling.
+    norm = math.sqrt(vector @ vector)
+    if not (math.isfinite(norm) and norm > 0.0):
         raise ValueError(f'up direction {vector} is not a finite non-zero vector')
     return vector / norm
 
@@ -50,16 +51,13 @@ class UpMeasurement:
     residual_count = 2
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.sigma) and self.sigma > 0.0):
+        if not (math.isfinite(self.sigma) and self.sigma > 0.0):
             raise ValueError(f'up sigma must be positive and finite, got {self.sigma}')
         direction = unit_direction(self.direction)
-        # Tangent axes: g x e for the axis e least aligned with g, then g x that.
-        first = _cross(direction, np.eye(3)[np.argmin(np.abs(direction))])
-        first /= np.linalg.norm(first)
         object.__setattr__(self, 'direction', direction)
         object.__setattr__(self, 'sigma', float(self.sigma))
         object.__setattr__(self, 'terms', Terms(up_directions=direction.reshape(1, 3),
-                                                up_tangents=np.array([[first, _cross(direction, first)]]),
+                                                up_tangents=_tangent_axes(direction),
                                                 up_sigma=np.array([self.sigma])))
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -76,8 +74,23 @@ class UpMeasurement:
         if pose.covariance is None:
             raise ValueError('the pose has no covariance')
         residual, jacobian = self.linearize(pose.rotation, pose.position)
-        left = np.eye(2) - jacobian @ pose.covariance @ jacobian.T
-        return _pseudo_inverse_form(left, residual, _PSEUDO_INVERSE_RCOND)
+        return _innovation(jacobian, np.ascontiguousarray(pose.covariance, dtype=float), residual, _PSEUDO_INVERSE_RCOND)
+
+
+@kernel
+def _innovation(jacobian, covariance, residual, rcond):
+    """``UpMeasurement.innovation`` from the measurement's Jacobian (2, 6) and residual (2,)."""
+    left = np.empty((2, 2))
+    for a in range(2):
+        for b in range(2):
+            total = 0.0
+            for i in range(6):
+                row = 0.0
+                for j in range(6):
+                    row += covariance[i, j] * jacobian[b, j]
+                total += jacobian[a, i] * row
+            left[a, b] = (1.0 if a == b else 0.0) - total
+    return _pseudo_inverse_form(left, residual, rcond)
 
 
 @kernel
@@ -106,9 +119,31 @@ def _pseudo_inverse_form(matrix, vector, rcond):
     return total
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross costs ~10 us on 3-vectors (axis bookkeeping), and hints are made every frame.
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+@kernel
+def _tangent_axes(direction):
+    """Tangent axes (1, 2, 3) of a unit ``direction`` g: g x e for the axis e least aligned
+    with g, normalised, then g x that."""
+    least = 0
+    for i in range(1, 3):
+        if abs(direction[i]) < abs(direction[least]):
+            least = i
+    axis = np.zeros(3)
+    axis[least] = 1.0
+    tangents = np.empty((1, 2, 3))
+    first, second = tangents[0, 0], tangents[0, 1]
+    _cross(direction, axis, first)
+    norm = math.sqrt(first[0] * first[0] + first[1] * first[1] + first[2] * first[2])
+    for i in range(3):
+        first[i] /= norm
+    _cross(direction, first, second)
+    return tangents
+
+
+@kernel
+def _cross(a, b, out):
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
 
 
 def with_agreeing_up(solve: Callable[[Sequence[UpMeasurement]], list[PoseCandidate]],
