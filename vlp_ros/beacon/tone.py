@@ -263,15 +263,6 @@ class _ToneFit:
                 cycles += n / size * min(max(0.5 * (left - right) / curvature, -0.5), 0.5)
         return cycles
 
-    def _linearised(self, params: np.ndarray, free_exposure: bool) -> tuple[float, np.ndarray, np.ndarray]:
-        """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient
-        (J^T J, J^T r) over cycles, phase (and exposure) with envelope and amplitude at their best
-        (Kaufman's variable projection Jacobian J), all from products of the template and its
-        derivatives."""
-        cycles, phase, exposure = params
-        return _linearised_kernel(cycles, phase, exposure, free_exposure, self.rows, self.tau, self.sqrt_w,
-                                  self.envelope, self.y, self.null_rss)
-
     def start(self, cycles: float, exposure_rows: float | None) -> _Start:
         """The best square wave among a scan of frequencies around ``cycles`` (the FFT's peak, which the
         harmonics that few rows per period alias can pull aside), of phases over half a period (the other
@@ -281,40 +272,15 @@ class _ToneFit:
         # Steps that move the window's ends by half a row, over at least +-_START_REACH cycles.
         step = max(0.5 * cycles / self.rows, _START_REACH / _START_STEPS)
         tried = cycles + step * np.arange(-_START_STEPS, _START_STEPS + 1)
-        shape = (len(tried), len(exposures), _PHASES)
-        rss = _scan(tried, exposures, *self.model)
-        at, row, best = np.unravel_index(int(np.argmin(rss)), shape)
-        left, centre, right = rss[at, row, [best - 1, best, (best + 1) % _PHASES]].tolist()
-        # The parabola through the best and its neighbours (the best is the least of the three).
-        curvature = max(left + right - 2.0 * centre, 1e-300)
-        place = 0.5 * (left - right) / curvature
-        least = max(centre - 0.5 * curvature * place * place, 0.0)
-        sigma2 = max(least / self.dof, 1e-15 * self.null_rss, 1e-300)
-        return _Start(float(tried[at]), float(_PHASE_SCAN[best] + place / (2.0 * _PHASES)), float(exposures[row]),
-                      float(self.null_rss - least) / (2.0 * sigma2), tried, rss.min(axis=(1, 2)))
+        at, row, phase, evidence, rss = _scan(tried, exposures, self.dof, *self.model)
+        return _Start(float(tried[at]), phase, float(exposures[row]), evidence, tried, rss)
 
     def peak(self, start: _Start, free: bool) -> _Peak | None:
         """The best square wave near the ``start`` (the exposure ``free`` or not): one Gauss-Newton step
         (the likelihood grid around it finds the rest), with the spreads of its frequency and phase."""
-        cycles, phase, exposure_rows = start.cycles, start.phase, start.exposure_rows
-        params = np.array([cycles, phase, exposure_rows])
-        rss, normal, gradient = self._linearised(params, free)
-        inverse = _inverse(normal)
-        # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods).
-        gap = max(1.0 - exposure_rows, 0.0) * cycles / self.rows
-        if inverse is None or not (inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
-            # No edge inside an exposure: all there is to go on is the gaps (the period moves by about a
-            # gap over the window).
-            return _Peak(cycles, phase, exposure_rows, gap, 0.0, gap) if gap > 0.0 else None
-        step = inverse @ gradient
-        params[:len(step)] += step
-        if free:
-            params[2] = np.clip(params[2], _MIN_EXPOSURE_ROWS, 0.5 * self.rows / params[0])
-        # The noise from the residual the step leaves (as the linearised fit predicts it).
-        covariance = inverse * (max(rss - float(step @ gradient), 1e-3 * rss) / self.dof)
-        slope = covariance[0, 1] / covariance[0, 0]
-        return _Peak(float(params[0]), float(params[1]), float(params[2]), float(np.sqrt(covariance[0, 0])),
-                     float(slope), max(float(np.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0))), 0.5 * gap))
+        found, *fields = _gauss_newton(start.cycles, start.phase, start.exposure_rows, free, self.rows, self.tau,
+                                       self.sqrt_w, self.envelope, self.y, self.null_rss, self.dof)
+        return _Peak(*fields) if found else None
 
     def likelihood(self, peak: _Peak, quantum: float) -> _Likelihood | None:
         """Cycles per window on a grid around the ``peak``, the log likelihood of each (phase, envelope
@@ -375,17 +341,21 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
     count, kept = len(cycles), len(weights)
     template = np.empty(len(tau_around))
     out = np.empty(count)
-    # Every template position up to stride 3, else only the kept rows' and their neighbours'.
-    if stride <= 3:
-        positions = np.arange(len(tau_around))
-    else:
-        positions = (stride * np.arange(kept)[:, None] + np.arange(3)).ravel()
     for c in range(count):
         shift = cycles[c] * exposure_rows[c] / rows
-        for p in positions:
-            early = cycles[c] * tau_around[p] - phase[c]
-            late = early + shift
-            template[p] = abs(early - np.rint(early)) - abs(late - np.rint(late))
+        # Every template position up to stride 3 (a plain loop: it vectorises), else only the kept rows' and
+        # their neighbours'.
+        if stride <= 3:
+            for p in range(len(tau_around)):
+                early = cycles[c] * tau_around[p] - phase[c]
+                late = early + shift
+                template[p] = abs(early - np.rint(early)) - abs(late - np.rint(late))
+        else:
+            for i in range(kept):
+                for p in range(stride * i, stride * i + 3):
+                    early = cycles[c] * tau_around[p] - phase[c]
+                    late = early + shift
+                    template[p] = abs(early - np.rint(early)) - abs(late - np.rint(late))
         # Scalars (registers), summed in row order.
         r0 = r1 = r2 = r3 = e0 = e1 = e2 = e3 = o0 = o1 = o2 = o3 = 0.0
         rr = rm_even = rm_odd = mm_even = mm_odd = 0.0
@@ -435,6 +405,32 @@ def _rss_kernel(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray
 
 
 @kernel
+def _gauss_newton(cycles: float, phase: float, exposure_rows: float, free: bool, rows: int, tau: np.ndarray,
+                  sqrt_w: np.ndarray, envelope: np.ndarray, y: np.ndarray, null_rss: float,
+                  dof: int) -> tuple[bool, float, float, float, float, float, float]:
+    """_ToneFit.peak: whether there is one, and its cycles, phase, exposure rows, the spread of its cycles, how
+    its best phase moves with them and the phase's spread at fixed cycles."""
+    rss, normal, gradient = _linearised_kernel(cycles, phase, exposure_rows, free, rows, tau, sqrt_w, envelope, y,
+                                               null_rss)
+    invertible, inverse = _inverse(normal)
+    # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods).
+    gap = max(1.0 - exposure_rows, 0.0) * cycles / rows
+    if not (invertible and inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
+        # No edge inside an exposure: all there is to go on is the gaps (the period moves by about a
+        # gap over the window).
+        return gap > 0.0, cycles, phase, exposure_rows, gap, 0.0, gap
+    step = inverse @ gradient
+    cycles, phase = cycles + step[0], phase + step[1]
+    if free:
+        exposure_rows = min(max(exposure_rows + step[2], _MIN_EXPOSURE_ROWS), 0.5 * rows / cycles)
+    # The noise from the residual the step leaves (as the linearised fit predicts it).
+    covariance = inverse * (max(rss - step @ gradient, 1e-3 * rss) / dof)
+    slope = covariance[0, 1] / covariance[0, 0]
+    return (True, cycles, phase, exposure_rows, math.sqrt(covariance[0, 0]), slope,
+            max(math.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0)), 0.5 * gap))
+
+
+@kernel
 def _linearised_kernel(cycles: float, phase: float, exposure: float, free_exposure: bool, rows: int, tau: np.ndarray,
                        sqrt_w: np.ndarray, envelope: np.ndarray, y: np.ndarray,
                        null_rss: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -481,9 +477,12 @@ def _linearised_kernel(cycles: float, phase: float, exposure: float, free_exposu
 
 
 @kernel
-def _scan(cycles: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: np.ndarray, stride: int,
-          products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> np.ndarray:
-    """_rss_kernel at every cycles x exposure rows x phase of _PHASE_SCAN, that shape."""
+def _scan(cycles: np.ndarray, exposure_rows: np.ndarray, dof: int, rows: int, tau_around: np.ndarray, stride: int,
+          products: np.ndarray, weights: np.ndarray, null_rss: float,
+          power: float) -> tuple[int, int, float, float, np.ndarray]:
+    """_ToneFit.start's scan: _rss_kernel at every cycles x exposure rows x phase of _PHASE_SCAN; the best's
+    cycles and exposure (indices), its phase refined by a parabola through it and its neighbours, the
+    evidence (nats) by which it beats the envelope alone, and the least rss at each cycles."""
     n, m, phases = len(cycles), len(exposure_rows), len(_PHASE_SCAN)
     size = n * m * phases
     flat_cycles, flat_phase, flat_exposure = np.empty(size), np.empty(size), np.empty(size)
@@ -492,8 +491,21 @@ def _scan(cycles: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: 
             for k in range(phases):
                 at = (i * m + j) * phases + k
                 flat_cycles[at], flat_phase[at], flat_exposure[at] = cycles[i], _PHASE_SCAN[k], exposure_rows[j]
-    return _rss_kernel(flat_cycles, flat_phase, flat_exposure, rows, tau_around, stride, products, weights, null_rss,
-                       power).reshape((n, m, phases))
+    rss = _rss_kernel(flat_cycles, flat_phase, flat_exposure, rows, tau_around, stride, products, weights, null_rss,
+                      power)
+    best = np.argmin(rss)
+    row, k = best // phases, best % phases
+    left, centre, right = rss[row * phases + (k - 1) % phases], rss[best], rss[row * phases + (k + 1) % phases]
+    # The parabola through the best and its neighbours (the best is the least of the three).
+    curvature = max(left + right - 2.0 * centre, 1e-300)
+    place = 0.5 * (left - right) / curvature
+    least = max(centre - 0.5 * curvature * place * place, 0.0)
+    sigma2 = max(least / dof, 1e-15 * null_rss, 1e-300)
+    least_by_cycles = np.empty(n)
+    for i in range(n):
+        least_by_cycles[i] = rss[i * m * phases:(i + 1) * m * phases].min()
+    return (row // m, row % m, _PHASE_SCAN[k] + place / (2.0 * phases), (null_rss - least) / (2.0 * sigma2),
+            least_by_cycles)
 
 
 @kernel
@@ -587,22 +599,23 @@ def _whitening(gram: np.ndarray) -> np.ndarray:
     return out
 
 
-def _inverse(m: np.ndarray) -> np.ndarray | None:
-    """Inverse of a 2x2 or 3x3 matrix by cofactors (numpy's general solvers cost more than the fit);
-    None if it is singular."""
-    if m.shape == (2, 2):
-        (a, b), (c, d) = m.tolist()
-        cofactors, det = [[d, -b], [-c, a]], a * d - b * c
+@kernel
+def _inverse(m: np.ndarray) -> tuple[bool, np.ndarray]:
+    """Whether a 2x2 or 3x3 matrix is invertible, and its inverse by cofactors."""
+    n = len(m)
+    cofactors = np.empty((n, n))
+    if n == 2:
+        cofactors[0, 0], cofactors[0, 1], cofactors[1, 0], cofactors[1, 1] = m[1, 1], -m[0, 1], -m[1, 0], m[0, 0]
+        det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
     else:
-        (a, b, c), (d, e, f), (g, h, i) = m.tolist()
-        cofactors = [[e * i - f * h, c * h - b * i, b * f - c * e],
-                     [f * g - d * i, a * i - c * g, c * d - a * f],
-                     [d * h - e * g, b * g - a * h, a * e - b * d]]
-        det = a * cofactors[0][0] + b * cofactors[1][0] + c * cofactors[2][0]
-    scale = float(np.abs(m).max()) ** len(m)
-    if not (np.isfinite(det) and abs(det) > 1e-12 * scale):
-        return None
-    return np.array(cofactors) / det
+        for r in range(3):
+            for c in range(3):
+                # The cofactor of m[c, r]: rows and columns other than c and r, in cyclic order.
+                r1, r2, c1, c2 = (c + 1) % 3, (c + 2) % 3, (r + 1) % 3, (r + 2) % 3
+                cofactors[r, c] = m[r1, c1] * m[r2, c2] - m[r1, c2] * m[r2, c1]
+        det = m[0, 0] * cofactors[0, 0] + m[0, 1] * cofactors[1, 0] + m[0, 2] * cofactors[2, 0]
+    scale = np.abs(m).max() ** n
+    return np.isfinite(det) and abs(det) > 1e-12 * scale, cofactors / det
 
 
 def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, low: np.ndarray, high: np.ndarray,
