@@ -9,6 +9,7 @@ from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
 from vlp_ros.camera import CameraModel
 from vlp_ros.solvers.circle_pose import circle_poses
 from vlp_ros.solvers.fit_kernels import forecast, inverse_form, project_point
+from vlp_ros.solvers.perspective import _kalman_update
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.refinement import linearize
 from vlp_ros.solvers.up_measurement import UpMeasurement, _pseudo_inverse_form, _tangent_axes
@@ -187,3 +188,18 @@ def test_up_tangent_axes_are_the_crosses_with_the_least_aligned_axis() -> None:
         first /= np.linalg.norm(first)
         expected = np.array([[first, np.cross(direction, first)]])
         np.testing.assert_allclose(_tangent_axes(direction), expected, rtol=0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize('count', [2, 4])
+def test_kalman_update_is_the_direct_formula(count: int) -> None:
+    rng = np.random.default_rng(13)
+    for _ in range(10):
+        root = rng.normal(size=(6, 6)) * 0.05
+        covariance, jacobian, residuals = root @ root.T, rng.normal(size=(count, 6)) * 20.0, rng.normal(size=count)
+        innovation = jacobian @ covariance @ jacobian.T + np.eye(count)
+        gain = np.linalg.solve(innovation, jacobian @ covariance).T
+        step, after = np.empty(6), np.empty((6, 6))
+        chi_square = _kalman_update(residuals, jacobian, covariance, step, after)
+        np.testing.assert_allclose(step, -gain @ residuals, rtol=1e-9, atol=1e-14)
+        np.testing.assert_allclose(after, covariance - gain @ jacobian @ covariance, rtol=1e-9, atol=1e-14)
+        assert chi_square == pytest.approx(residuals @ np.linalg.solve(innovation, residuals), rel=1e-10)

@@ -123,7 +123,8 @@ def closed_form_poses(measurement: LampMeasurement) -> list[Pose]:
     if not lamp.marker_distance > 0.0:
         raise ValueError(f'lamp {lamp.name!r}: marker at the centre cannot fix the yaw')
     circles = circle_poses(normalized_conic(measurement.rim_rays[:, :2]), lamp.radius)
-    poses = (pose_from_circle(circle, lamp, measurement.marker_ray, lamp.marker_position()) for circle in circles)
+    marker = lamp.marker_position()
+    poses = (pose_from_circle(circle, lamp, measurement.marker_ray, marker) for circle in circles)
     return [pose for pose in poses if pose is not None]
 
 
@@ -202,11 +203,46 @@ def _up_update(pose: Pose, up: Sequence[UpMeasurement]) -> tuple[np.ndarray, np.
     """The linear (Kalman) update of ``pose`` and its covariance by the up measurements:
     (pose step, covariance after, innovation chi-square)."""
     residuals, jacobian = linearize(up, pose)
-    covariance = pose.covariance
-    innovation = jacobian @ covariance @ jacobian.T + np.eye(len(residuals))
-    gain = np.linalg.solve(innovation, jacobian @ covariance).T
-    return (-gain @ residuals, covariance - gain @ jacobian @ covariance,
-            float(residuals @ np.linalg.solve(innovation, residuals)))
+    step, covariance = np.empty(6), np.empty((6, 6))
+    chi_square = _kalman_update(residuals, jacobian, np.ascontiguousarray(pose.covariance, dtype=float),
+                                step, covariance)
+    return step, covariance, chi_square
+
+
+@kernel
+def _kalman_update(residuals, jacobian, covariance, step, covariance_after):
+    """``_up_update`` into ``step`` and ``covariance_after``, returning the innovation
+    chi-square: S = J P J^T + I, gain K = P J^T S^-1, step -K r, P - K J P, r^T S^-1 r."""
+    count = residuals.shape[0]
+    projected = np.zeros((count, 6))
+    for a in range(count):
+        for i in range(6):
+            for j in range(6):
+                projected[a, i] += jacobian[a, j] * covariance[j, i]
+    innovation = np.eye(count)
+    for a in range(count):
+        for b in range(count):
+            for i in range(6):
+                innovation[a, b] += projected[a, i] * jacobian[b, i]
+    # S^-1 [J P, r], as one solve.
+    right = np.empty((count, 7))
+    right[:, :6] = projected
+    right[:, 6] = residuals
+    solved = np.linalg.solve(innovation, right)
+    chi_square = 0.0
+    for a in range(count):
+        chi_square += residuals[a] * solved[a, 6]
+    for i in range(6):
+        total = 0.0
+        for a in range(count):
+            total += solved[a, i] * residuals[a]
+        step[i] = -total
+        for j in range(6):
+            total = 0.0
+            for a in range(count):
+                total += solved[a, i] * projected[a, j]
+            covariance_after[i, j] = covariance[i, j] - total
+    return chi_square
 
 
 def _chi_square(measurements: Sequence[Measurement], pose: Pose) -> float:
