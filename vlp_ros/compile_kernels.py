@@ -4,10 +4,10 @@ Numba compiles a kernel on its first call for the argument types it gets (about
 half a second per kernel, a minute for all of them); a node would pay that on
 its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
 every kind the nodes meet (colour and mono8, one and several lamps), so the
-machine code is cached beside the modules (``vlp_ros.compiled``); later
-processes load it in about a second. ``make build`` runs this for the installed
-package and for the source tree the tests import, and the locator warms up the
-same way when it starts, before its first frame.
+machine code is cached beside the modules (``vlp_ros.compiled``); a later
+process loads what it needs on its first frame, in a few tenths of a second
+(rendering frames here would cost a starting node more). ``make build`` runs this
+for the installed package and for the source tree the tests import.
 """
 from __future__ import annotations
 

@@ -2,8 +2,7 @@
 
 Callbacks only keep the newest frame; one worker thread decodes it, hands it to
 the ROS-free pipeline (vlp_ros.pipeline) and publishes. Frames that arrive while
-the worker is busy replace the waiting one, so latency never grows. Before its
-first frame the worker loads the pipeline's compiled kernels (vlp_ros.compile_kernels).
+the worker is busy replace the waiting one, so latency never grows.
 """
 from __future__ import annotations
 
@@ -26,7 +25,6 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 
 from vlp_ros.camera import CameraModel
-from vlp_ros.compile_kernels import warm_up
 from vlp_ros.frame_stats import FrameStats
 from vlp_ros.gravity import GravityBuffer
 from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
@@ -124,7 +122,6 @@ class Locator(Node):
         return self._gravity.up_at(stamp_ns)
 
     def _work(self) -> None:
-        self._warm_up()
         while True:
             with self._wake:
                 while self._pending is None and self._running:
@@ -139,16 +136,6 @@ class Locator(Node):
                 self.stats.frame_dropped('internal_error')
                 self.get_logger().error(f'frame dropped after an internal error: {err!r}',
                                         throttle_duration_sec=THROTTLE_S)
-
-    def _warm_up(self) -> None:
-        """Load the compiled kernels before the first frame, which would otherwise wait for them."""
-        started = time.monotonic()
-        try:
-            warm_up()
-        except Exception as err:  # frames still get processed; the first ones only take longer
-            self.get_logger().warning(f'warming up the compiled kernels failed: {err!r}')
-            return
-        self.get_logger().info(f'compiled kernels ready in {time.monotonic() - started:.1f} s')
 
     def _process(self, raw: bytes, received: float) -> None:
         try:
