@@ -160,8 +160,8 @@ def _clearly_apart(starts: list[Pose], measurement: LampMeasurement) -> bool:
     if len(starts) != 2:
         return False
     _, jacobian = linearize([measurement], starts[0])
-    separation = starts[1].error_vector(starts[0])
-    return float(np.sum((jacobian @ separation) ** 2)) > 2.0 * FRONTAL_SEPARATION_M2
+    change = jacobian @ starts[1].error_vector(starts[0])
+    return float(change @ change) > 2.0 * FRONTAL_SEPARATION_M2
 
 
 def _one_of_pair(pair: list[PoseCandidate], up: Sequence[UpMeasurement]) -> bool:
