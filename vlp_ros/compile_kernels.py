@@ -18,18 +18,20 @@ import numpy as np
 
 from vlp_ros.benchmarks.accuracy import scenario_settings
 from vlp_ros.pipeline import Pipeline
+from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
 
 
 def run_scenario(scenario: Scenario, frames: int) -> None:
-    """The scenario's first frames through the pipeline, in colour and as mono8."""
+    """The scenario's first frames through the pipeline: in colour with gravity, and as mono8 without."""
     pipeline = Pipeline(scenario_settings(scenario))
     rng = np.random.default_rng(0)
     for index in range(frames):
-        stamp = index / scenario.frame_rate
-        image = render_frame(scenario.camera, scenario.poses[index], scenario.lamps, scenario.sensor, stamp, rng).image
-        pipeline.process(image, scenario.camera, stamp)
+        stamp, truth = index / scenario.frame_rate, scenario.poses[index]
+        image = render_frame(scenario.camera, truth, scenario.lamps, scenario.sensor, stamp, rng).image
+        gravity = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
+        pipeline.process(image, scenario.camera, stamp, gravity / np.linalg.norm(gravity))
         pipeline.process(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), scenario.camera, stamp)
 
 
