@@ -3,20 +3,23 @@
 Numba compiles a kernel on its first call for the argument types it gets (about
 half a second per kernel, a minute for all of them); a node would pay that on
 its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
-every kind the nodes meet (colour and mono8, one and several lamps), so the
-machine code is cached beside the modules (``vlp_ros.compiled``); a later
-process loads what it needs on its first frame, in a few tenths of a second
-(rendering frames here would cost a starting node more). ``make build`` runs this
-for the installed package and for the source tree the tests import.
+every kind the nodes meet (colour and mono8, one and several lamps, packet and
+tone beacons), so the machine code is cached beside the modules
+(``vlp_ros.compiled``); a later process loads what it needs on its first frame,
+in a few tenths of a second (rendering frames here would cost a starting node
+more). ``make build`` runs this for the installed package and for the source
+tree the tests import.
 """
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
 
 from vlp_ros.benchmarks.accuracy import scenario_settings
+from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
 from vlp_ros.pipeline import Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
@@ -35,10 +38,19 @@ def run_scenario(scenario: Scenario, frames: int) -> None:
         pipeline.process(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), scenario.camera, stamp)
 
 
+def read_tone_lamps(trials: int) -> None:
+    """Tone-mode lamps (which the scenarios' packet lamps do not reach) read with and without the exposure."""
+    rng = np.random.default_rng(0)
+    for condition in (TONE_BASE, replace(TONE_BASE, exposure_given=False)):
+        for _ in range(trials):
+            tone_trial(rng, condition, Tally(), Timer())
+
+
 def warm_up() -> None:
     """Every kernel the pipeline calls compiled, or loaded from the cache, for the types the nodes give it."""
     run_scenario(paper_scenario('1080p', points=3, postures=1), frames=3)
     run_scenario(robot_scenario(), frames=3)
+    read_tone_lamps(trials=4)
 
 
 def main() -> None:
