@@ -219,11 +219,14 @@ def fit_points(p: np.ndarray) -> tuple[int, np.ndarray]:
     for i in range(3):
         for j in range(3):
             rest[i] += T[i, j] * a1[j]
-    normalized = np.array([[a1[0], a1[1] / 2, rest[0] / 2],
-                           [a1[1] / 2, a1[2], rest[1] / 2],
-                           [rest[0] / 2, rest[1] / 2, rest[2]]])
+    # (Filled element by element: numba builds a nested-list np.array through lists, at ~1 us each.)
+    normalized = np.empty((3, 3))
+    normalized[0, 0], normalized[0, 1], normalized[0, 2] = a1[0], a1[1] / 2, rest[0] / 2
+    normalized[1, 0], normalized[1, 1], normalized[1, 2] = a1[1] / 2, a1[2], rest[1] / 2
+    normalized[2, 0], normalized[2, 1], normalized[2, 2] = rest[0] / 2, rest[1] / 2, rest[2]
     # Undo the normalisation x_norm = S x, S = [[1/s, 0, -mx/s], [0, 1/s, -my/s], [0, 0, 1]]: S^T N S.
-    S = np.array([[1 / scale, 0.0, -mx / scale], [0.0, 1 / scale, -my / scale], [0.0, 0.0, 1.0]])
+    S = np.zeros((3, 3))
+    S[0, 0], S[0, 2], S[1, 1], S[1, 2], S[2, 2] = 1 / scale, -mx / scale, 1 / scale, -my / scale, 1.0
     conic = np.zeros((3, 3))
     for i in range(3):
         for k in range(3):

@@ -6,7 +6,7 @@ compiled kernels (``vlp_ros.compiled``) in the modules they belong to, and here.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -16,7 +16,7 @@ from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marke
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
                                    row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
-from vlp_ros.ellipse import conic_from_ellipse, conic_of, geometric_distances
+from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
 from vlp_ros.small_arrays import median
 
@@ -169,22 +169,23 @@ def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampOb
     smaller blob: its box grows to hold the fitted ellipse, once, and is measured again.
     """
     bbox = blob.bbox
+    margin = options.blur_margin + 1
     for _ in range(2):
         box = _measure(image, bbox, blob.noise, options)
         if box is None:
             return None
-        lo, hi = _extent(box.rim.ellipse)
-        lo, hi = lo + box.origin, hi + box.origin
-        margin = options.blur_margin + 1
-        needed = (min(bbox[0], max(int(np.floor(lo[0])) - margin, 0)),
-                  min(bbox[1], max(int(np.floor(lo[1])) - margin, 0)),
-                  max(bbox[2], min(int(np.ceil(hi[0])) + margin + 1, image.shape[1])),
-                  max(bbox[3], min(int(np.ceil(hi[1])) + margin + 1, image.shape[0])))
+        extent = _extent(box.rim.ellipse)
+        lo_x, lo_y = extent[0] + box.origin[0], extent[1] + box.origin[1]
+        hi_x, hi_y = extent[2] + box.origin[0], extent[3] + box.origin[1]
+        needed = (min(bbox[0], max(math.floor(lo_x) - margin, 0)),
+                  min(bbox[1], max(math.floor(lo_y) - margin, 0)),
+                  max(bbox[2], min(math.ceil(hi_x) + margin + 1, image.shape[1])),
+                  max(bbox[3], min(math.ceil(hi_y) + margin + 1, image.shape[0])))
         if needed == bbox:
             break
         bbox = needed
     roi_shape = (bbox[3] - bbox[1], bbox[2] - bbox[0])
-    if not _is_whole_lamp(box.rim, roi_shape, box.origin, image.shape[:2], options):
+    if not _is_whole_lamp(box.rim, extent, roi_shape, box.origin, image.shape[:2], options):
         return None
     return _observation(box.rim, _marker(box, options), box.origin, image.shape[:2])
 
@@ -225,18 +226,18 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
         return None
     if rim is None:
         return None
-    return replace(box, rim=rim)
+    return _LampBox(box.origin, box.frame_width, brightness, background, red, seed, levels, rim)
 
 
 @kernel
 def _brightest_channel(roi: np.ndarray) -> int:
     """The channel of the brightest pixel value in a colour box (the first of equals)."""
-    maxima = np.zeros(3, np.uint8)
+    # Three scalars, not an array, so that the compiler keeps them in registers.
+    blue, green, red = 0, 0, 0
     for y in range(roi.shape[0]):
         for x in range(roi.shape[1]):
-            for channel in range(3):
-                maxima[channel] = max(maxima[channel], roi[y, x, channel])
-    return int(np.argmax(maxima))
+            blue, green, red = max(blue, roi[y, x, 0]), max(green, roi[y, x, 1]), max(red, roi[y, x, 2])
+    return 0 if blue >= green and blue >= red else 1 if green >= red else 2
 
 
 @kernel
@@ -317,7 +318,7 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     if variance is None:
         return rim
     marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
-    levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * np.sqrt(variance), marker)
+    levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * math.sqrt(variance), marker)
     points, _, clipped = _rim_points(box, levels, options)
     if len(points) < options.min_rim_points or clipped.any():
         return rim
@@ -333,49 +334,70 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    if not np.any(profile > 0.0):
+    lit, rows = _marker_rows(profile, box.background, float(options.saturation_level))
+    if not lit:
         return None
-    # Dim rows still show the marker: anything clearly above the noise takes part. In
-    # clipped rows the marker's redness is no longer proportional to the row's level.
-    with np.errstate(invalid='ignore'):
-        brightest = np.nanmax(profile)
-        rows = ((profile > _MIN_MARKER_ROW_FRACTION * brightest)
-                & steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
-                & (profile + box.background < options.saturation_level))
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
                      profile, rows, shape_spread(box.rim.ellipse, focal_length))
-    if fit is None or geometric_distances(box.rim.ellipse, fit.center[None])[0] > 0.0:
+    if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > 0.0:
         return None
     return fit
 
 
-def _is_whole_lamp(rim: RimFit, roi_shape: tuple[int, int], origin: tuple[int, int],
-                   frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
-    """The rim is elliptic, big enough, seen on both sides, and its blurred disc lies inside the box and frame."""
-    cx, cy, a, b, _ = rim.ellipse
-    if (len(rim.points) < options.min_rim_points or rim.sigma > options.max_rim_sigma
-            or len(rim.points) < _MIN_INLIER_FRACTION * rim.candidates
+@kernel
+def _marker_rows(profile: np.ndarray, background: float, saturation_level: float) -> tuple[bool, np.ndarray]:
+    """(whether any row is lit, the rows ``_marker`` fits on) of a row profile (NaN: unknown)."""
+    lit, brightest = False, -np.inf
+    for level in profile:
+        if level > 0.0:
+            lit = True
+        if level > brightest:
+            brightest = level
+    # Dim rows still show the marker: anything clearly above the noise takes part. In
+    # clipped rows the marker's redness is no longer proportional to the row's level.
+    rows = steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
+    for i in range(profile.size):
+        rows[i] &= profile[i] > _MIN_MARKER_ROW_FRACTION * brightest and profile[i] + background < saturation_level
+    return lit, rows
+
+
+def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],
+                   origin: tuple[int, int], frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
+    """The rim is elliptic, big enough, seen on both sides, and its blurred disc (``extent``: its
+    ellipse's ``_extent``) lies inside the box and frame."""
+    cx, _, a, b, _ = rim.ellipse.tolist()
+    count = len(rim.points)
+    if (count < options.min_rim_points or rim.sigma > options.max_rim_sigma
+            or count < _MIN_INLIER_FRACTION * rim.candidates
             or 2.0 * a < options.min_diameter or b < options.min_axis_ratio * a):
         return False
-    left = np.count_nonzero(rim.points[:, 0] < cx)
-    if min(left, len(rim.points) - left) < _MIN_SIDE_FRACTION * len(rim.points):
+    left = _count_left(rim.points, cx)
+    if min(left, count - left) < _MIN_SIDE_FRACTION * count:
         return False
-    lo, hi = _extent(rim.ellipse)
+    lo_x, lo_y, hi_x, hi_y = extent
     margin = options.blur_margin
-    if np.any(lo < margin) or hi[0] > roi_shape[1] - 1 - margin or hi[1] > roi_shape[0] - 1 - margin:
+    if lo_x < margin or lo_y < margin or hi_x > roi_shape[1] - 1 - margin or hi_y > roi_shape[0] - 1 - margin:
         return False
-    lo, hi = lo + origin, hi + origin
-    return bool(np.all(lo >= margin) and hi[0] <= frame_shape[1] - 1 - margin
-                and hi[1] <= frame_shape[0] - 1 - margin)
+    return (lo_x + origin[0] >= margin and lo_y + origin[1] >= margin
+            and hi_x + origin[0] <= frame_shape[1] - 1 - margin and hi_y + origin[1] <= frame_shape[0] - 1 - margin)
 
 
-def _extent(ellipse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Corners (lo, hi) of the ellipse's axis-aligned bounding box."""
+@kernel
+def _count_left(points: np.ndarray, cx: float) -> int:
+    """How many points lie left of x = ``cx``."""
+    count = 0
+    for i in range(points.shape[0]):
+        count += points[i, 0] < cx
+    return count
+
+
+def _extent(ellipse: np.ndarray) -> tuple[float, float, float, float]:
+    """Corners (lo_x, lo_y, hi_x, hi_y) of the ellipse's axis-aligned bounding box."""
     cx, cy, a, b, theta = ellipse.tolist()
     c, s = math.cos(theta), math.sin(theta)
     half_x, half_y = math.hypot(a * c, b * s), math.hypot(a * s, b * c)
-    return np.array([cx - half_x, cy - half_y]), np.array([cx + half_x, cy + half_y])
+    return cx - half_x, cy - half_y, cx + half_x, cy + half_y
 
 
 def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
@@ -384,29 +406,23 @@ def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
     shift = np.asarray(origin, dtype=float)
     ellipse = rim.ellipse.copy()
     ellipse[:2] += shift
-    lo, hi = _extent(ellipse)
-    bx0, by0 = max(int(np.floor(lo[0])) - 1, 0), max(int(np.floor(lo[1])) - 1, 0)
-    bx1 = min(int(np.ceil(hi[0])) + 2, frame_shape[1])
-    by1 = min(int(np.ceil(hi[1])) + 2, frame_shape[0])
-    bbox = (bx0, by0, bx1, by1)
-    disc_mask = _inside_mask(ellipse, bbox)
+    lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
+    bbox = (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
+            min(math.ceil(hi_x) + 2, frame_shape[1]), min(math.ceil(hi_y) + 2, frame_shape[0]))
+    disc_mask = _chord_mask(conic_of(ellipse), *bbox)
     marker_centre, marker_sigma, marker_mask = None, float('inf'), None
     if marker is not None:
         marker_centre = marker.center + shift
         marker_sigma = marker.sigma
-        marker_mask = _inside_mask(marker.ellipse(shift), bbox)
+        marker_mask = _chord_mask(conic_of(marker.ellipse(shift)), *bbox)
     return LampObservation(ellipse=ellipse, rim_points=rim.points + shift, rim_sigma=rim.sigma,
                            marker=marker_centre, marker_sigma=marker_sigma,
                            bbox=bbox, disc_mask=disc_mask, marker_mask=marker_mask)
 
 
-def _inside_mask(ellipse: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
-    """Pixels of ``bbox`` whose centres lie inside ``ellipse``."""
-    return _chord_mask(conic_of(np.asarray(ellipse, dtype=float)), *bbox)
-
-
 @kernel
 def _chord_mask(conic: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    """Pixels of the box (x0, y0, x1, y1) whose centres lie inside the ellipse ``conic``."""
     left, right, crossed = chords(conic, np.arange(y0, y1).astype(np.float64))
     mask = np.zeros((y1 - y0, x1 - x0), np.bool_)
     for row in range(y1 - y0):

@@ -131,18 +131,14 @@ def _clear_plateaus(brightness: np.ndarray, rows: np.ndarray, ellipse: np.ndarra
     return keep, plateau
 
 
+@kernel
 def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
     """Rows that share their level with a neighbouring row within ``tolerance`` of it (plus ``floor``).
 
     Where blur has mixed a row with a neighbour of another level, its level lies between
     the two stripes' and matches neither neighbour; such a row's profile is not its own.
-    Rows of unknown (NaN) level are never steady.
+    Rows of unknown (NaN) level are never steady. ``profile``: a float array.
     """
-    return _steady(np.asarray(profile, dtype=float), float(tolerance), float(floor))
-
-
-@kernel
-def _steady(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
     steady = np.zeros(profile.size, np.bool_)
     for i in range(profile.size):
         below = abs(profile[i - 1] - profile[i]) if i > 0 else np.nan
