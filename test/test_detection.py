@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import DetectionOptions, detect_lamps
-from vlp_ros.detection.blobs import histogram
+from vlp_ros.detection.blobs import _quantiles, histogram
+from vlp_ros.detection.detector import _box_levels
 from vlp_ros.detection.rows import steady_rows
 from vlp_ros.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
 from vlp_ros.lamp_map import Lamp
@@ -289,6 +290,19 @@ def test_geometric_distances_are_the_sampson_distances():
 def test_search_histogram_counts_every_level():
     image = np.random.default_rng(5).integers(0, 256, (37, 53), dtype=np.uint8)
     assert np.array_equal(histogram(image), np.bincount(image.ravel(), minlength=256))
+
+
+def test_search_quantiles_and_box_levels_equal_numpys():
+    rng = np.random.default_rng(8)
+    for shape in ((1, 1), (2, 3), (37, 53), (120, 90)):
+        for high in (4, 256):
+            image = rng.integers(0, high, shape, dtype=np.uint8)
+            cumulative = np.cumsum(np.bincount(image.ravel(), minlength=256))
+            total = cumulative[-1]
+            expected = [float(np.searchsorted(cumulative, v)) for v in (0.5 * total, 0.75 * total, total - 2)]
+            assert list(_quantiles(image)) == expected
+            border = np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
+            assert _box_levels(image) == (float(np.median(border)), float(image.max()))
 
 
 def test_steady_rows_match_the_neighbour_rule():

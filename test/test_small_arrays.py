@@ -26,7 +26,9 @@ def test_inputs_are_left_unchanged() -> None:
 def test_ranked_is_the_sorted_values_entry() -> None:
     rng = np.random.default_rng(7)
     for count in (1, 2, 9, 25):
-        values = rng.integers(0, 255, 30).astype(float)
-        expected = np.sort(values[:count])
-        for rank in range(count):
-            assert ranked(values.copy(), count, rank) == expected[rank]
+        # Few levels (many ties) and many.
+        for high in (3, 255):
+            values = rng.integers(0, high, 30).astype(float)
+            expected = np.sort(values[:count])
+            for rank in range(count):
+                assert ranked(values.copy(), count, rank) == expected[rank]

@@ -51,6 +51,23 @@ def histogram(small: np.ndarray) -> np.ndarray:
     return partial.sum(axis=0)
 
 
+@kernel
+def _quantiles(small: np.ndarray) -> tuple[float, float, float]:
+    """The median, upper quartile and peak (below the hot pixels) level of a uint8 image: the first
+    levels whose cumulative counts reach half, three quarters and all but ``_HOT_PIXELS`` of it."""
+    counts = histogram(small)
+    total = small.size
+    targets = (0.5 * total, 0.75 * total, float(total - _HOT_PIXELS))
+    levels = np.zeros(3)
+    for k in range(3):
+        cumulative, level = 0, 0
+        while level < 255 and cumulative + counts[level] < targets[k]:
+            cumulative += counts[level]
+            level += 1
+        levels[k] = level
+    return levels[0], levels[1], levels[2]
+
+
 def search_levels(small: np.ndarray, threshold_fraction: float, min_contrast: float,
                   noise_factor: float) -> tuple[float, float, float] | None:
     """(background, noise, threshold) of the search image, or None when nothing stands out.
@@ -59,12 +76,8 @@ def search_levels(small: np.ndarray, threshold_fraction: float, min_contrast: fl
     up to the brightest pixels, and at least ``noise_factor`` robust noise sigmas above
     the background.
     """
-    cumulative = np.cumsum(histogram(small))
-    total = cumulative[-1]
-    background = float(np.searchsorted(cumulative, 0.5 * total))
-    upper_quartile = float(np.searchsorted(cumulative, 0.75 * total))
+    background, upper_quartile, peak = _quantiles(small)
     noise = max((upper_quartile - background) / 0.6745, 0.5)
-    peak = float(np.searchsorted(cumulative, total - _HOT_PIXELS))
     if peak - background < min_contrast:
         return None
     threshold = max(background + threshold_fraction * (peak - background), background + noise_factor * noise)

@@ -18,7 +18,6 @@ from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_e
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
-from vlp_ros.small_arrays import median
 
 # A lamp's rim must have this many kept points on each side of its centre.
 _MIN_SIDE_FRACTION = 0.2
@@ -244,16 +243,31 @@ def _brightest_channel(roi: np.ndarray) -> int:
 def _box_levels(brightness: np.ndarray) -> tuple[float, float]:
     """(background, peak): the median of the box's border pixels and its brightest pixel."""
     height, width = brightness.shape
-    border = np.empty(2 * (width + height), np.uint8)
+    # The border's level counts, from which its median is read (as np.median of the values).
+    counts = np.zeros(256, np.int64)
     for x in range(width):
-        border[x], border[width + x] = brightness[0, x], brightness[height - 1, x]
+        counts[brightness[0, x]] += 1
+        counts[brightness[height - 1, x]] += 1
     for y in range(height):
-        border[2 * width + y], border[2 * width + height + y] = brightness[y, 0], brightness[y, width - 1]
+        counts[brightness[y, 0]] += 1
+        counts[brightness[y, width - 1]] += 1
+    size = 2 * (width + height)
+    lower, upper = _ranked_level(counts, (size - 1) // 2), _ranked_level(counts, size // 2)
     peak = 0
     for y in range(height):
         for x in range(width):
             peak = max(peak, brightness[y, x])
-    return median(border), float(peak)
+    return 0.5 * (float(lower) + float(upper)), float(peak)
+
+
+@kernel
+def _ranked_level(counts: np.ndarray, rank: int) -> int:
+    """The ``rank``-th smallest (from 0) of the values whose level counts are ``counts``."""
+    level, below = 0, counts[0]
+    while below <= rank:
+        level += 1
+        below += counts[level]
+    return level
 
 
 def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
@@ -427,6 +441,7 @@ def _chord_mask(conic: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.nda
     mask = np.zeros((y1 - y0, x1 - x0), np.bool_)
     for row in range(y1 - y0):
         if crossed[row]:
-            for col in range(x1 - x0):
-                mask[row, col] = left[row] <= x0 + col <= right[row]
+            # The integer columns x with left <= x <= right, clipped to the box.
+            start, end = max(math.ceil(left[row]) - x0, 0), min(math.floor(right[row]) - x0 + 1, x1 - x0)
+            mask[row, start:end] = True
     return mask
