@@ -15,7 +15,7 @@ from scipy.special import ndtr
 import vlp_ros.detection.detector as detector
 from vlp_ros.detection import detect_lamps
 from vlp_ros.detection import marker
-from vlp_ros.detection.marker import MarkerSeed, find_seed, fit_marker, redness
+from vlp_ros.detection.marker import MarkerSeed, find_seed, fit_marker, redness, redness_and_peaks
 from vlp_ros.ellipse import geometric_distances
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
@@ -205,10 +205,13 @@ def test_fit_marker_rejects_what_the_numpy_formulation_rejects(recorded_fits):
 def test_redness_matches_numpy():
     rng = np.random.default_rng(1)
     image = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
-    for roi in (image, image[7:41, 13:70]):
+    for roi in (image, image[7:41, 13:70], image[7:41, 13:70] // 3):
         red = redness(roi)
         assert red.dtype == np.int16 and red.flags.c_contiguous
         np.testing.assert_array_equal(red, reference_redness(roi))
+        both, peaks = redness_and_peaks(roi)
+        np.testing.assert_array_equal(both, red)
+        assert peaks == tuple(int(roi[..., channel].max()) for channel in range(3))
 
 
 def test_find_seed_matches_numpy():

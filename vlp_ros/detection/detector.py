@@ -12,7 +12,7 @@ import numpy as np
 
 from vlp_ros.compiled import kernel
 from vlp_ros.detection.blobs import Blob, find_blobs
-from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness, shape_spread
+from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness_and_peaks, shape_spread
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
                                    row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
@@ -199,14 +199,17 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     # the edge. The maximum over channels is not: where a channel dimmer on the lamp is the brighter
     # one on the ceiling, the maximum's ramp bends and its half level lies up to ~0.05 px inside the
     # edge in dim rows, the same way all round the rim: several sigmas of the fitted ellipse's size.
-    brightness = roi[..., _brightest_channel(roi)] if colour else roi
+    red = None
+    brightness = roi
+    if colour:
+        red, peaks = redness_and_peaks(roi)
+        brightness = roi[..., peaks.index(max(peaks))]
     background, peak = _box_levels(brightness)
     if peak - background < options.min_contrast:
         return None
     threshold = max(background + options.threshold_fraction * (peak - background),
                     background + options.noise_factor * noise)
     levels = row_levels(brightness, threshold, background, options.level_fraction)
-    red = redness(roi) if colour else None
     seed = None
     if red is not None:
         lamp_radius = 0.5 * max(x1 - x0, y1 - y0)
@@ -226,17 +229,6 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
     if rim is None:
         return None
     return _LampBox(box.origin, box.frame_width, brightness, background, red, seed, levels, rim)
-
-
-@kernel
-def _brightest_channel(roi: np.ndarray) -> int:
-    """The channel of the brightest pixel value in a colour box (the first of equals)."""
-    # Three scalars, not an array, so that the compiler keeps them in registers.
-    blue, green, red = 0, 0, 0
-    for y in range(roi.shape[0]):
-        for x in range(roi.shape[1]):
-            blue, green, red = max(blue, roi[y, x, 0]), max(green, roi[y, x, 1]), max(red, roi[y, x, 2])
-    return 0 if blue >= green and blue >= red else 1 if green >= red else 2
 
 
 @kernel

@@ -82,7 +82,14 @@ class MarkerFit:
 
 def redness(bgr: np.ndarray) -> np.ndarray:
     """2 R - G - B (int16): large on the marker, near zero on a white lamp; linear in the light."""
-    return _redness(bgr)
+    return _redness(bgr)[0]
+
+
+def redness_and_peaks(bgr: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels
+    (the detector's first over a lamp box: reading it from the frame costs more than either)."""
+    red, blue_peak, green_peak, red_peak = _redness(bgr)
+    return red, (blue_peak, green_peak, red_peak)
 
 
 def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> MarkerSeed | None:
@@ -133,13 +140,16 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
 
 
 @kernel
-def _redness(bgr: np.ndarray) -> np.ndarray:
+def _redness(bgr: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     height, width = bgr.shape[0], bgr.shape[1]
     red = np.empty((height, width), dtype=np.int16)
+    blue_peak = green_peak = red_peak = np.uint8(0)
     for y in range(height):
         for x in range(width):
-            red[y, x] = np.int16(2 * np.int32(bgr[y, x, 2]) - np.int32(bgr[y, x, 1]) - np.int32(bgr[y, x, 0]))
-    return red
+            blue, green, r = bgr[y, x, 0], bgr[y, x, 1], bgr[y, x, 2]
+            blue_peak, green_peak, red_peak = max(blue_peak, blue), max(green_peak, green), max(red_peak, r)
+            red[y, x] = np.int16(2 * np.int32(r) - np.int32(green) - np.int32(blue))
+    return red, int(blue_peak), int(green_peak), int(red_peak)
 
 
 @kernel
