@@ -434,8 +434,10 @@ def _gauss_newton(cycles: float, phase: float, exposure_rows: float, free: bool,
 def _linearised_kernel(cycles: float, phase: float, exposure: float, free_exposure: bool, rows: int, tau: np.ndarray,
                        sqrt_w: np.ndarray, envelope: np.ndarray, y: np.ndarray,
                        null_rss: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """_ToneFit._linearised: the template (0) and its derivatives by cycles, phase (and exposure), weighted,
-    their products with each other, the envelope and y, and from those the Gauss-Newton terms."""
+    """Residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient (J^T J,
+    J^T r) over cycles, phase (and exposure) with envelope and amplitude at their best (Kaufman's variable
+    projection Jacobian J), all from products of the template (0) and its derivatives, weighted, with each
+    other, the envelope and y."""
     m = 4 if free_exposure else 3
     kappa = cycles * exposure / rows
     column = np.empty(m)
