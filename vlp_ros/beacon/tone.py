@@ -139,18 +139,12 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     # (the likelihood has plateaus that no grid of phases follows): the period is known to a gap.
     gap = 1.0 if exposure is None else max(1.0 - peak.exposure_rows, 0.0)
     quantum = _EDGE_QUANTUM * gap * peak.cycles / fit.rows
-    likelihood = fit.likelihood(peak, quantum)
+    likelihood = fit.likelihood(peak, quantum, start)
     if likelihood is None:
         return no_evidence(candidates, mapped, prior, 'the stripes do not pin the frequency down')
-    grid, log_density, least = likelihood.grid, likelihood.log_density, likelihood.least
-    # A frequency beyond the grid that fits nearly as well, of the first scan or of an earlier grid (these
-    # with the grid's phases: a rugged plateau of peaks can leave the last grid on one of them, its t
-    # tails hiding the others): the likelihood has other peaks.
-    tried = np.concatenate([start.tried, likelihood.tried])
-    beyond = (tried < grid[0]) | (tried > grid[-1])
-    rss = np.concatenate([start.rss, likelihood.rss])
-    if np.any(beyond & (rss < least * np.exp(2.0 * _GRID_DROP / (fit.dof + 1)))):
+    if likelihood.other_peaks:
         return no_evidence(candidates, mapped, prior, 'the stripes fit frequencies apart about as well')
+    grid, log_density = likelihood.grid, likelihood.log_density
     log_mass = _log_band_masses(grid / duration, log_density, fit.dof, centres - tolerance_hz,
                                 centres + tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
@@ -202,14 +196,12 @@ class _Peak:
 
 @dataclass(frozen=True)
 class _Likelihood:
-    """Cycles per window on a grid, the log likelihood of each (relative to the best) and the least
-    residual sum of squares; and every cycles that the grid's passes tried, with its residual."""
+    """Cycles per window on a grid and the log likelihood of each (relative to the best); and whether a
+    frequency beyond the grid fits nearly as well (the likelihood has other peaks)."""
 
     grid: np.ndarray
     log_density: np.ndarray
-    least: float
-    tried: np.ndarray
-    rss: np.ndarray
+    other_peaks: bool
 
 
 class _ToneFit:
@@ -282,42 +274,62 @@ class _ToneFit:
                                        self.sqrt_w, self.envelope, self.y, self.null_rss, self.dof)
         return _Peak(*fields) if found else None
 
-    def likelihood(self, peak: _Peak, quantum: float) -> _Likelihood | None:
+    def likelihood(self, peak: _Peak, quantum: float, start: _Start) -> _Likelihood | None:
         """Cycles per window on a grid around the ``peak``, the log likelihood of each (phase, envelope
-        and amplitude at their best, the noise level marginalised; blurred by ``quantum`` cycles) and the
-        least residual sum of squares, with all that the passes tried; None if no grid resolves it."""
-        centre, scale, spread = peak.cycles, max(peak.scale, quantum), peak.phase_spread
-        passes = []
-        for _ in range(_PASSES):
-            grid = centre + scale * _GRID
-            if grid[0] <= 0.0:
-                return None
-            # Each frequency's best phase lies near the regression line through the peak.
-            rss, log_density, density, mean, sigma, best, cornered = _grid_pass(
-                grid, peak.phase + peak.slope * (grid - peak.cycles), spread, peak.exposure_rows, quantum,
-                *self.model)
-            passes.append((grid, rss))
-            if cornered:
-                # The best phase lies beyond the ones tried where the likelihood matters: try wider.
-                spread *= 3.0
-            elif not len(grid) // 4 <= best < len(grid) - len(grid) // 4:
-                centre, scale = grid[best], 3.0 * scale
-            elif sigma < _MIN_STEPS_PER_SIGMA * scale * (_GRID[1] - _GRID[0]):
-                # Narrower than the grid resolves: the spread of a sharp peak shows better in its curvature
-                # (at most ten times narrower: between grid points it is not known yet).
-                bend = log_density[best - 1] + log_density[best + 1] - 2.0 * log_density[best]
-                sigma = min(sigma, scale * (_GRID[1] - _GRID[0]) / np.sqrt(max(-bend, 1e-12)))
-                centre, scale = mean, max(sigma, 0.1 * scale)
-            elif max(log_density[0], log_density[-1]) >= -_GRID_DROP and sigma * _MIN_SPAN > scale * _GRID[-1]:
-                centre, scale = mean, sigma
-            else:
-                break
+        and amplitude at their best, the noise level marginalised; blurred by ``quantum`` cycles), and
+        whether a frequency beyond it that the ``start`` scan or the grid's passes tried fits nearly as
+        well; None if no grid resolves it."""
+        found, grid, log_density, other_peaks = _likelihood_grid(
+            peak.cycles, peak.phase, peak.slope, max(peak.scale, quantum), peak.phase_spread, peak.exposure_rows,
+            quantum, start.tried, start.rss, self.dof, *self.model)
+        return _Likelihood(grid, log_density, other_peaks) if found else None
+
+
+@kernel
+def _likelihood_grid(cycles: float, phase: float, slope: float, scale: float, spread: float, exposure_rows: float,
+                     quantum: float, start_tried: np.ndarray, start_rss: np.ndarray, dof: int, rows: int,
+                     tau_around: np.ndarray, stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float,
+                     power: float) -> tuple[bool, np.ndarray, np.ndarray, bool]:
+    """_ToneFit.likelihood: _grid_pass's passes until the grid resolves the likelihood (whether one does),
+    the last grid and its log likelihood (blurred by ``quantum``), and whether a frequency beyond it fits
+    nearly as well: of the first scan or of an earlier pass (these with the grid's phases: a rugged
+    plateau of peaks can leave the last grid on one of them, its t tails hiding the others)."""
+    n, step = len(_GRID), _GRID[1] - _GRID[0]
+    centre = cycles
+    tried, tried_rss = np.empty(_PASSES * n), np.empty(_PASSES * n)
+    for done in range(_PASSES):
+        grid = centre + scale * _GRID
+        if grid[0] <= 0.0:
+            return False, grid, grid, False
+        # Each frequency's best phase lies near the regression line through the peak.
+        rss, log_density, density, mean, sigma, best, cornered = _grid_pass(
+            grid, phase + slope * (grid - cycles), spread, exposure_rows, quantum, rows, tau_around, stride,
+            products, weights, null_rss, power)
+        tried[done * n:(done + 1) * n], tried_rss[done * n:(done + 1) * n] = grid, rss
+        if cornered:
+            # The best phase lies beyond the ones tried where the likelihood matters: try wider.
+            spread *= 3.0
+        elif not n // 4 <= best < n - n // 4:
+            centre, scale = grid[best], 3.0 * scale
+        elif sigma < _MIN_STEPS_PER_SIGMA * scale * step:
+            # Narrower than the grid resolves: the spread of a sharp peak shows better in its curvature
+            # (at most ten times narrower: between grid points it is not known yet).
+            bend = log_density[best - 1] + log_density[best + 1] - 2.0 * log_density[best]
+            sigma = min(sigma, scale * step / np.sqrt(max(-bend, 1e-12)))
+            centre, scale = mean, max(sigma, 0.1 * scale)
+        elif max(log_density[0], log_density[-1]) >= -_GRID_DROP and sigma * _MIN_SPAN > scale * _GRID[-1]:
+            centre, scale = mean, sigma
         else:
-            return None
-        if quantum > 0.0:
-            log_density = _blurred(grid, density, quantum)
-        tried, tried_rss = (np.concatenate(arrays) for arrays in zip(*passes))
-        return _Likelihood(grid, log_density, float(rss.min()), tried, tried_rss)
+            if quantum > 0.0:
+                log_density = _blurred(grid, density, quantum)
+            bound = rss.min() * np.exp(2.0 * _GRID_DROP / (dof + 1))
+            other_peaks = False
+            for i in range(len(start_tried)):
+                other_peaks |= (start_tried[i] < grid[0] or start_tried[i] > grid[-1]) and start_rss[i] < bound
+            for i in range((done + 1) * n):
+                other_peaks |= (tried[i] < grid[0] or tried[i] > grid[-1]) and tried_rss[i] < bound
+            return True, grid, log_density, other_peaks
+    return False, tried[:n], tried[:n], False
 
 
 @kernel
