@@ -23,9 +23,12 @@ $(STAMP): requirements/ros.txt requirements/tools.txt requirements/constraints.t
 venv: $(STAMP)
 
 # Numba caches machine code beside each copy of the modules: the installed one, which
-# the nodes run, and the source tree, which tests started from the root import.
+# the nodes run, and the source tree, which tests started from the root import. Its cache
+# notices a change in a kernel's own file only, not in the kernels it calls from other
+# files: after any change, everything is compiled afresh.
 $(BUILT): $(STAMP) $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
+	find vlp_ros install/vlp_ros -path '*/__pycache__/*.nb[ic]' -delete
 	$(RUN) cd build && python -m vlp_ros.compile_kernels
 	$(RUN) python -m vlp_ros.compile_kernels
 	touch $@
