@@ -240,20 +240,7 @@ class _ToneFit:
         FFT's peak); None if the range holds no frequency the FFT resolves."""
         n = len(self.y)
         size = _PAD * (1 << (n - 1).bit_length())
-        spectrum = np.fft.rfft(self.weighted_y, size)
-        spectrum = spectrum.real ** 2 + spectrum.imag ** 2
-        first, last = math.ceil(low * size / n), min(int(high * size / n), len(spectrum) - 1)
-        if last < first:
-            return None
-        peak = first + int(np.argmax(spectrum[first:last + 1]))
-        cycles = peak * n / size
-        if 0 < peak < len(spectrum) - 1:
-            # Parabola through the log spectrum around the peak (a Gaussian-like lobe).
-            left, centre, right = (math.log(v + 1e-300) for v in spectrum[peak - 1:peak + 2].tolist())
-            curvature = left - 2.0 * centre + right
-            if curvature < 0.0:
-                cycles += n / size * min(max(0.5 * (left - right) / curvature, -0.5), 0.5)
-        return cycles
+        return _spectral_peak(np.fft.rfft(self.weighted_y, size), n, size, low, high)
 
     def start(self, cycles: float, exposure_rows: float | None) -> _Start:
         """The best square wave among a scan of frequencies around ``cycles`` (the FFT's peak, which the
@@ -558,6 +545,30 @@ def _grid_pass(grid: np.ndarray, phase: np.ndarray, spread: float, exposure_rows
     for i in range(n):
         cornered |= outer[i] and log_density[i] > -_GRID_DROP
     return rss, log_density, density, mean, sigma, int(np.argmax(log_density)), cornered
+
+
+@kernel
+def _spectral_peak(spectrum: np.ndarray, n: int, size: int, low: float, high: float) -> float | None:
+    """_ToneFit.spectral_peak from the ``n`` rows' FFT zero-padded to ``size``."""
+    first, last = math.ceil(low * size / n), min(int(high * size / n), len(spectrum) - 1)
+    if last < first:
+        return None
+    peak, most = first, -1.0
+    for i in range(first, last + 1):
+        power = spectrum[i].real ** 2 + spectrum[i].imag ** 2
+        if power > most:
+            peak, most = i, power
+    cycles = peak * n / size
+    if 0 < peak < len(spectrum) - 1:
+        # Parabola through the log spectrum around the peak (a Gaussian-like lobe).
+        left, right = spectrum[peak - 1], spectrum[peak + 1]
+        left = math.log(left.real ** 2 + left.imag ** 2 + 1e-300)
+        right = math.log(right.real ** 2 + right.imag ** 2 + 1e-300)
+        centre = math.log(most + 1e-300)
+        curvature = left - 2.0 * centre + right
+        if curvature < 0.0:
+            cycles += n / size * min(max(0.5 * (left - right) / curvature, -0.5), 0.5)
+    return cycles
 
 
 def _sinc(x: float) -> float:
