@@ -207,3 +207,22 @@ def test_a_plateau_of_peaks_gives_no_id():
     row_time = 3.4585e-5
     lamps = {k: 1000.0 + 200.0 * k for k in range(46)}
     assert decode_tone(profile, row_time, lamps, TOLERANCE, exposure=3.7857e-5).lamp_id is None
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_spectral_peak_is_the_zero_padded_ffts(seed):
+    # The strongest bin of the zero-padded FFT in the range, moved by the parabola through its log power
+    # and its neighbours'.
+    rng = np.random.default_rng(seed)
+    rows = int(rng.integers(40, 300))
+    fit = tone._ToneFit(np.sin(2 * np.pi * rng.uniform(3, 20) * np.arange(rows) / rows) + rng.normal(size=rows),
+                        rng.uniform(0.5, 1.0, rows))
+    low, high = rng.uniform(1.0, 4.0), rng.uniform(15.0, 40.0)
+    size = tone._PAD * (1 << (rows - 1).bit_length())
+    power = np.abs(np.fft.rfft(fit.weighted_y, size)) ** 2
+    first, last = int(np.ceil(low * size / rows)), min(int(high * size / rows), len(power) - 1)
+    peak = first + int(np.argmax(power[first:last + 1]))
+    left, centre, right = np.log(power[peak - 1:peak + 2])
+    shift = min(max(0.5 * (left - right) / (left - 2 * centre + right), -0.5), 0.5)
+    assert fit.spectral_peak(low, high) == pytest.approx((peak + shift) * rows / size, rel=1e-12)
+    assert fit.spectral_peak(30.0 * rows, 31.0 * rows) is None
