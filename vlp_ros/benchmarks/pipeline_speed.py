@@ -10,7 +10,8 @@ repetition the copy, the pipeline and each stage run in turn, so machine noise
 hits all alike. Each camera pose is a short burst of a static camera's video
 (the beacon's packet phase moves on from frame to frame, stamps advance one
 frame period per call), so beacon evidence is in its steady state; "posed"
-counts the camera poses whose last frame reached a pose.
+counts the camera poses whose last frame reached a pose. The targets (2 ms at
+1080p, 6 ms at 4K) are for the paper's one-lamp frame; the robot row has none.
 
 Single-threaded: OpenCV gets one thread (``cv2.setNumThreads(1)``); run as a
 script, this also sets OMP_NUM_THREADS, OPENBLAS_NUM_THREADS and MKL_NUM_THREADS
@@ -51,8 +52,10 @@ from vlp_ros.solvers.fusion import solve_lamps  # noqa: E402
 STAGES = ('copy', 'process', 'detect', 'beacon', 'solve')
 # Frames rendered per camera pose: enough for the beacon evidence to settle (the untimed warm-up).
 BURST = 4
-# Per-frame budgets on one core (s), by image height.
-TARGET_SECONDS = {1080: 2e-3, 2160: 6e-3}
+# Per-frame budgets on one core (s) of the paper's one-lamp frame, which the pose-engine issue
+# sets against a single-lamp system's 16 ms per frame. A frame with more lamps does each lamp's
+# detection, decoding and fitting again: the robot row is for information.
+TARGET_SECONDS = {'1080p': 2e-3, '4k': 6e-3}
 
 
 @dataclass(frozen=True)
@@ -60,12 +63,14 @@ class Case:
     name: str
     scenario: Scenario
     indices: list[int]
+    target: float | None = None
 
 
 def cases(poses: int, seed: int) -> list[Case]:
     """One lamp at 1080p and 4K (paper grid photos), and 2-3 lamps at 1080p wide angle (robot)."""
     side = max(3, int(np.ceil(np.sqrt(poses))))
-    made = [Case(f'paper {kind}, 1 lamp', paper_scenario(kind, points=side, postures=1, seed=seed), list(range(poses)))
+    made = [Case(f'paper {kind}, 1 lamp', paper_scenario(kind, points=side, postures=1, seed=seed), list(range(poses)),
+                 TARGET_SECONDS[kind])
             for kind in ('1080p', '4k')]
     robot = robot_scenario(seed=seed)
     middle = np.linspace(0.25, 0.75, poses) * len(robot.poses)
@@ -158,11 +163,16 @@ def case_row(case: Case, repeats: int, seed: int) -> list[str]:
             times[stage] += pose_times[stage]
     median = {stage: float(np.median(values)) for stage, values in times.items()}
     camera = case.scenario.camera
-    target = TARGET_SECONDS.get(camera.height, float('nan'))
     return [case.name, f'{camera.width}x{camera.height}', f'{posed}/{len(case.indices)}',
             _ms(median['process']), *(_ms(median[s]) for s in ('detect', 'beacon', 'solve')),
-            _ms(median['copy']), f'{median["process"] / median["copy"]:.1f}', _ms(target),
-            'yes' if median['process'] <= target else 'NO']
+            _ms(median['copy']), f'{median["process"] / median["copy"]:.1f}', *_against(median['process'], case.target)]
+
+
+def _against(seconds: float, target: float | None) -> list[str]:
+    """The target column and whether it is met ('-' for a case without a target)."""
+    if target is None:
+        return ['-', '-']
+    return [_ms(target), 'yes' if seconds <= target else 'NO']
 
 
 def main(argv: list[str] | None = None) -> None:
