@@ -13,7 +13,7 @@ import numpy as np
 
 from vlp_ros.compiled import kernel
 from vlp_ros.pose import Pose
-from vlp_ros.solvers.fit_kernels import perturb
+from vlp_ros.solvers.fit_kernels import information_matrix, perturb
 
 # Beyond this condition number of J^T J scaled to unit diagonal (units cancel)
 # some pose direction is not observed to first order (e.g. an exactly frontal
@@ -42,13 +42,7 @@ def _covariance(jacobian, max_condition):
     """Symmetrised (J^T J)^-1, or None if J^T J is not finite, has an unobserved direction or a
     condition number (scaled to unit diagonal) over ``max_condition``."""
     information = np.empty((6, 6))
-    for i in range(6):
-        for j in range(i, 6):
-            total = 0.0
-            for n in range(jacobian.shape[0]):
-                total += jacobian[n, i] * jacobian[n, j]
-            information[i, j] = total
-            information[j, i] = total
+    information_matrix(jacobian, information)
     if not np.all(np.isfinite(information)):
         return None
     scaled = np.empty((6, 6))

@@ -407,18 +407,25 @@ def forecast(residuals, jacobian):
 
 
 @kernel
+def information_matrix(jacobian, information):
+    """J^T J (6x6) of a whitened residual Jacobian (M, 6), into ``information``."""
+    for i in range(6):
+        for j in range(i, 6):
+            total = 0.0
+            for n in range(jacobian.shape[0]):
+                total += jacobian[n, i] * jacobian[n, j]
+            information[i, j] = total
+            information[j, i] = total
+
+
+@kernel
 def _normal_equations(residuals, jacobian, information, gradient):
     for i in range(6):
         total = 0.0
         for n in range(residuals.shape[0]):
             total += jacobian[n, i] * residuals[n]
         gradient[i] = total
-        for j in range(i, 6):
-            total = 0.0
-            for n in range(residuals.shape[0]):
-                total += jacobian[n, i] * jacobian[n, j]
-            information[i, j] = total
-            information[j, i] = total
+    information_matrix(jacobian, information)
 
 
 @kernel
