@@ -27,15 +27,26 @@ from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
 
 
 def run_scenario(scenario: Scenario, frames: int) -> None:
-    """The scenario's first frames through the pipeline: in colour with gravity, and as mono8 without."""
+    """The scenario's first frames through the pipeline: in colour with gravity, and as mono8 without;
+    each as a writable array (as the simulator gives it) and as a read-only one (as the locator's
+    image messages give it: numba compiles the two separately)."""
     pipeline = Pipeline(scenario_settings(scenario))
     rng = np.random.default_rng(0)
     for index in range(frames):
         stamp, truth = index / scenario.frame_rate, scenario.poses[index]
         image = render_frame(scenario.camera, truth, scenario.lamps, scenario.sensor, stamp, rng).image
         gravity = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
-        pipeline.process(image, scenario.camera, stamp, gravity / np.linalg.norm(gravity))
-        pipeline.process(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), scenario.camera, stamp)
+        up = gravity / np.linalg.norm(gravity)
+        for pixels in (image, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)):
+            for frame in (pixels, read_only(pixels)):
+                pipeline.process(frame, scenario.camera, stamp, up if frame.ndim == 3 else None)
+
+
+def read_only(pixels: np.ndarray) -> np.ndarray:
+    """A view of ``pixels`` that cannot be written, like an array over a message's buffer."""
+    view = pixels.view()
+    view.flags.writeable = False
+    return view
 
 
 def read_tone_lamps(trials: int) -> None:
