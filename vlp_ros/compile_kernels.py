@@ -5,10 +5,10 @@ half a second per kernel, a minute for all of them); a node would pay that on
 its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
 every kind the nodes meet (colour and mono8, one and several lamps, packet and
 tone beacons), so the machine code is cached beside the modules
-(``vlp_ros.compiled``); a later process loads what it needs on its first frame,
-in a few tenths of a second (rendering frames here would cost a starting node
-more). ``make build`` runs this for the installed package and for the source
-tree the tests import.
+(``vlp_ros.compiled``). ``make build`` runs this for the installed package and
+for the source tree the tests import; the locator runs ``warm_up`` before it
+subscribes, which then only loads the machine code (about a second), so that its
+first frames are as quick as the rest.
 """
 from __future__ import annotations
 
@@ -18,7 +18,6 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from vlp_ros.benchmarks.accuracy import scenario_settings
 from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
 from vlp_ros.pipeline import Pipeline
 from vlp_ros.sim.imu import specific_force
@@ -30,7 +29,7 @@ def run_scenario(scenario: Scenario, frames: int) -> None:
     """The scenario's first frames through the pipeline: in colour with gravity, and as mono8 without;
     each as a writable array (as the simulator gives it) and as a read-only one (as the locator's
     image messages give it: numba compiles the two separately)."""
-    pipeline = Pipeline(scenario_settings(scenario))
+    pipeline = Pipeline(scenario.locator_settings())
     rng = np.random.default_rng(0)
     for index in range(frames):
         stamp, truth = index / scenario.frame_rate, scenario.poses[index]

@@ -32,8 +32,6 @@ from vlp_ros.evaluation.metrics import (TABLE_HEADER, WRONG_FIX_M, ErrorSummary,
                                         summarize, summary_row)
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
 from vlp_ros.gravity import GravityBuffer
-from vlp_ros.locator_config import (LocatorSettings, default_parameters, flatten_parameters,
-                                    settings_from_parameters)
 from vlp_ros.pipeline import FrameResult, Pipeline
 from vlp_ros.progress import progress_bar
 from vlp_ros.sim.imu import specific_force
@@ -95,17 +93,10 @@ def setups(quick: bool, seed: int, frames: int | None) -> list[Setup]:
             for number, (family, group, scenario) in enumerate(made)]
 
 
-def scenario_settings(scenario: Scenario) -> LocatorSettings:
-    """The locator's settings for ``scenario`` with the IMU in use."""
-    values = default_parameters()
-    values.update(flatten_parameters(scenario.locator_parameters(imu=True)))
-    return settings_from_parameters(values)
-
-
 def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = None) -> SetupRun:
     """Every frame of ``setup`` through one pipeline per solver."""
     scenario = setup.scenario
-    settings = scenario_settings(scenario)
+    settings = scenario.locator_settings()
     # The paper's solver is measured as published: without the fit gate the locator applies.
     pipelines = {solver: Pipeline(replace(settings, solver=solver), gate_fit=solver != 'paper') for solver in SOLVERS}
     gravity = GravityBuffer(settings.imu_rotation, settings.imu_max_age)

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from vlp_ros.benchmarks.accuracy import scenario_settings
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
 from vlp_ros.ellipse import geometric_distances
@@ -175,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     for number, (label, scenario, imu) in enumerate(setups):
         if args.frames is not None:
             scenario = scenario.truncated(min(args.frames, len(scenario.poses)))
-        settings = scenario_settings(scenario)
+        settings = scenario.locator_settings()
         if imu and args.imu_sigma is not None:
             settings = replace(settings, imu_sigma=args.imu_sigma)
         results.append((label, run_setup(scenario, settings, imu, args.seed, number)))

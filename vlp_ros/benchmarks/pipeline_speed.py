@@ -36,7 +36,6 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vlp_ros.beacon.decoding import decode_packet, row_profile  # noqa: E402
-from vlp_ros.benchmarks.accuracy import scenario_settings  # noqa: E402
 from vlp_ros.detection import detect_lamps  # noqa: E402
 from vlp_ros.evaluation.metrics import format_table  # noqa: E402
 from vlp_ros.lamp_map import Lamp, LampMap  # noqa: E402
@@ -152,7 +151,7 @@ def _ms(seconds: float) -> str:
 
 def case_row(case: Case, repeats: int, seed: int) -> list[str]:
     """The table row of one case: medians over all its camera poses and repetitions."""
-    settings = scenario_settings(case.scenario)
+    settings = case.scenario.locator_settings()
     rng = np.random.default_rng(seed)
     times: dict[str, list[float]] = {stage: [] for stage in STAGES}
     posed = 0
