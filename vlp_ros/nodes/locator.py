@@ -2,7 +2,9 @@
 
 Callbacks only keep the newest frame; one worker thread decodes it, hands it to
 the ROS-free pipeline (vlp_ros.pipeline) and publishes. Frames that arrive while
-the worker is busy replace the waiting one, so latency never grows.
+the worker is busy replace the waiting one, so latency never grows. Before it
+subscribes, the node loads the pipeline's compiled kernels (vlp_ros.compile_kernels),
+so its first frames take no longer than later ones.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 
 from vlp_ros.camera import CameraModel
+from vlp_ros.compile_kernels import warm_up
 from vlp_ros.frame_stats import FrameStats
 from vlp_ros.gravity import GravityBuffer
 from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
@@ -56,6 +59,7 @@ class Locator(Node):
         # player can wait for each frame to be answered even when it yields no pose.
         self.processed_pub = self.create_publisher(Header, 'vlp/processed', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._warm_up()
         self._subscribe()
         self.create_timer(1.0, self._publish_diagnostics)
         self._worker = threading.Thread(target=self._work, name='vlp_locator_worker', daemon=True)
@@ -63,6 +67,16 @@ class Locator(Node):
         self.get_logger().info(
             f'locating with {len(self.settings.lamps)} lamps ({self.settings.beacon.mode} beacon, '
             f'{self.settings.solver} solver) on {self._image_topic}')
+
+    def _warm_up(self) -> None:
+        """Load (or, without the build's cache, compile) the kernels a frame needs."""
+        started = time.monotonic()
+        try:
+            warm_up()
+        except Exception as err:  # frames are still processed; the first ones only take longer
+            self.get_logger().warning(f'loading the compiled kernels failed: {err!r}')
+            return
+        self.get_logger().info(f'compiled kernels ready in {time.monotonic() - started:.1f} s')
 
     def _subscribe(self) -> None:
         reliability = (ReliabilityPolicy.RELIABLE if self.settings.qos_reliability == 'reliable'
@@ -96,6 +110,12 @@ class Locator(Node):
 
     def _on_frame(self, raw: bytes) -> None:
         self.stats.frame_received()
+        if self._camera is None:
+            # Decided on arrival: a camera_info that arrives while the frame waits is not its camera's.
+            self.stats.frame_dropped('no_camera_info')
+            self.get_logger().warning('no valid camera_info yet (K[0] > 0): frames are skipped',
+                                      throttle_duration_sec=THROTTLE_S)
+            return
         with self._wake:
             if self._pending is not None:
                 self.stats.superseded += 1
@@ -151,11 +171,6 @@ class Locator(Node):
             self.get_logger().error(f'frame dropped: {err}', throttle_duration_sec=THROTTLE_S)
             return
         camera = self._camera
-        if camera is None:
-            self.stats.frame_dropped('no_camera_info')
-            self.get_logger().warning('no valid camera_info yet (K[0] > 0): frames are skipped',
-                                      throttle_duration_sec=THROTTLE_S)
-            return
         if (camera.width, camera.height) != (pixels.shape[1], pixels.shape[0]):
             self.stats.frame_dropped('size_mismatch')
             self.get_logger().error(
