@@ -15,8 +15,9 @@ def test_benchmark_prints_tables_targets_and_times(capsys: pytest.CaptureFixture
     assert 'bound %' in out.split('across frames (tracker')[1].split('== tone')[0]
     targets = out.split('== targets ==')[1]
     assert targets.count('PASS') + targets.count('FAIL') == 11
-    # The tone target also on the trials whose frequency the image decides.
-    assert 'exp>=row sinc>=.3' in out.split('tone mode, one frame')[1]
+    # The tone target with the camera set as the locator advises, and on every draw.
+    tone = out.split('tone mode, one frame')[1]
+    assert 'TARGET 3-4, advised' in tone and '3-4 periods, all draws' in tone
     # Demosaiced Bayer frames (rows mixed with their neighbours) have a row of their own.
     assert 'Bayer RGGB, demosaiced' in out.split('tone mode, one frame')[1]
 

@@ -196,7 +196,11 @@ def _start_without_transport_setup(start_process, tmp_path, scenario, **kwargs):
     """The locator as a user would start it without our DDS setup (discovery still kept on loopback)."""
     env = {k: v for k, v in os.environ.items() if k != 'FASTDDS_DEFAULT_PROFILES_FILE'}
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    locator = _start_locator(start_process, tmp_path, scenario, env=env, **kwargs)
+    return _output_once_locating(_start_locator(start_process, tmp_path, scenario, env=env, **kwargs))
+
+
+def _output_once_locating(locator) -> str:
+    """What the locator printed up to its start-up line, then stopped."""
     deadline = time.monotonic() + 15.0
     while 'locating with' not in locator.output() and time.monotonic() < deadline:
         time.sleep(0.2)
@@ -214,3 +218,10 @@ def test_reliable_subscription_does_not_warn(start_process, tmp_path, robot_fram
     output = _start_without_transport_setup(start_process, tmp_path, robot_frame[0],
                                             overrides={'qos': {'reliability': 'reliable'}})
     assert 'FASTDDS_BUILTIN_TRANSPORTS' not in output
+
+
+def test_camera_settings_that_hinder_identification_are_named_at_start(start_process, tmp_path,
+                                                                       robot_frame) -> None:
+    output = _output_once_locating(_start_locator(start_process, tmp_path, robot_frame[0],
+                                                  overrides={'beacon': {'chip_rate': 30000.0}}))
+    assert 'beacon.chip_rate 30000 Hz gives 2.2 rows per chip' in output, output

@@ -26,6 +26,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 
+from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
 from vlp_ros.camera import CameraModel
 from vlp_ros.compile_kernels import warm_up
 from vlp_ros.frame_stats import FrameStats
@@ -59,6 +60,7 @@ class Locator(Node):
         # player can wait for each frame to be answered even when it yields no pose.
         self.processed_pub = self.create_publisher(Header, 'vlp/processed', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._advise_on_camera_settings()
         self._warm_up()
         self._subscribe()
         self.create_timer(1.0, self._publish_diagnostics)
@@ -67,6 +69,17 @@ class Locator(Node):
         self.get_logger().info(
             f'locating with {len(self.settings.lamps)} lamps ({self.settings.beacon.mode} beacon, '
             f'{self.settings.solver} solver) on {self._image_topic}')
+
+    def _advise_on_camera_settings(self) -> None:
+        """Warn once of beacon settings under which lamps are identified less often (never wrongly)."""
+        beacon = self.settings.beacon
+        if beacon.mode == 'tone':
+            frequencies = {lamp.name: lamp.frequency for lamp in self.settings.lamps}
+            advice = tone_setting_advice(frequencies, beacon.row_time, beacon.exposure)
+        else:
+            advice = packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure)
+        for text in advice:
+            self.get_logger().warning(text)
 
     def _warm_up(self) -> None:
         """Load (or, without the build's cache, compile) the kernels a frame needs."""

@@ -1,0 +1,65 @@
+"""Whether the camera's settings let the decoders read the map's lamps (docs/beacon.md, "Camera settings").
+
+Inside these limits the beacon benchmark reads over 99 % of single frames (packet: 1.3 packets in
+view; tone: 3 stripe periods). Outside them frames are still decoded, never with a wrong ID, but
+less often: the locator says so once at start-up, naming the setting to change.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+# Packet mode: rows per chip (the benchmark's fewest, all read), and the longest exposure (in chips)
+# that leaves chips apart.
+MIN_ROWS_PER_CHIP = 2.5
+MAX_EXPOSURE_CHIPS = 1.0
+# Tone mode: rows per stripe period (a stripe of two rows or more), and the least share of the
+# stripes' contrast that the exposure's average over time lets through (|sinc(exposure x frequency)|).
+MIN_ROWS_PER_PERIOD = 4.0
+MIN_TRANSMISSION = 0.3
+
+
+def packet_setting_advice(chip_rate: float, row_time: float, exposure: float | None) -> list[str]:
+    """What to change so that packet-mode frames are read reliably (empty: nothing)."""
+    advice = []
+    rows_per_chip = 1.0 / (chip_rate * row_time)
+    if rows_per_chip < MIN_ROWS_PER_CHIP:
+        advice.append(f'beacon.chip_rate {chip_rate:g} Hz gives {rows_per_chip:.1f} rows per chip at beacon.row_time '
+                      f'{row_time * 1e6:g} us (reliable from {MIN_ROWS_PER_CHIP:g}): lamps need more frames to be '
+                      f'identified, or are not identified at all')
+    if exposure is not None and exposure * chip_rate > MAX_EXPOSURE_CHIPS:
+        advice.append(f'beacon.exposure {exposure * 1e6:g} us spans {exposure * chip_rate:.1f} chips (reliable up to '
+                      f'{MAX_EXPOSURE_CHIPS:g}): neighbouring chips blur together; shorten the exposure')
+    return advice
+
+
+def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, exposure: float | None) -> list[str]:
+    """What to change so that tone-mode frames are read reliably (empty: nothing); ``frequencies`` by lamp name."""
+    advice = []
+    if exposure is None:
+        advice.append('beacon.exposure is 0 (unknown): tone lamps are then identified only from about ten stripe '
+                      'periods in view; set it to the camera\'s exposure time')
+    elif exposure < row_time:
+        advice.append(f'beacon.exposure {exposure * 1e6:g} us is shorter than beacon.row_time {row_time * 1e6:g} us: '
+                      f'stripe edges between the rows\' exposures cannot be placed, and lamps are identified less '
+                      f'often; an exposure of at least a row time reads them best')
+    few_rows = {name: 1.0 / (f * row_time) for name, f in frequencies.items() if f * row_time * MIN_ROWS_PER_PERIOD > 1.0}
+    if few_rows:
+        advice.append(f'fewer than {MIN_ROWS_PER_PERIOD:g} rows per stripe period at beacon.row_time '
+                      f'{row_time * 1e6:g} us for {_listed(few_rows, "rows")}: these lamps need more stripe periods '
+                      f'in view (a larger image of the lamp) to be identified')
+    if exposure is not None:
+        washed = {name: abs(float(np.sinc(exposure * f))) for name, f in frequencies.items()
+                  if abs(np.sinc(exposure * f)) < MIN_TRANSMISSION}
+        if washed:
+            lamps = _listed(washed, 'of the contrast left', percent=True)
+            advice.append(f'beacon.exposure {exposure * 1e6:g} us spans about whole stripe periods of {lamps}: '
+                          f'their stripes are washed out; choose an exposure away from multiples of their periods')
+    return advice
+
+
+def _listed(values: Mapping[str, float], unit: str, percent: bool = False) -> str:
+    shown = [f'{name!r} ({100.0 * v:.0f} % {unit})' if percent else f'{name!r} ({v:.1f} {unit})'
+             for name, v in sorted(values.items())]
+    return ', '.join(shown[:6]) + (f' and {len(shown) - 6} more' if len(shown) > 6 else '')
