@@ -74,9 +74,9 @@ class Condition:
     tilt_deg: tuple[float, float] = (0.0, 40.0)
     peak_dn: float = 200.0
     exposure_given: bool = False
-    # Tone mode: the camera set as the locator advises (vlp_ros.beacon.camera_settings): row times cut to
-    # at least MIN_ROWS_PER_PERIOD rows per stripe period, exposures redrawn until they span at least a
-    # row and pass at least MIN_TRANSMISSION of the tone's fundamental (|sinc(exposure x frequency)|).
+    # Tone mode: the camera set as the locator advises (vlp_ros.beacon.camera_settings): row times redrawn
+    # until they give at least MIN_ROWS_PER_PERIOD rows per stripe period, exposures until they span at
+    # least a row and pass at least MIN_TRANSMISSION of the tone's fundamental (|sinc(exposure x frequency)|).
     advised: bool = False
     # A raw RGGB mosaic, demosaiced as the locator does for bayer_rggb8 (which mixes neighbouring rows).
     bayer: bool = False
@@ -239,10 +239,12 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
         frequency = TONES[lamp_id] + 100.0 if rng.uniform() < 0.7 else max(TONES.values()) + 200.0 * rng.integers(1, 6)
         lamp_id = -1
     row_time = rng.uniform(7e-6, 35e-6)
+    # Redrawn, not cut: a cut would pile the fast tones' draws onto the advised limit. The loop ends: at
+    # 11 kHz, the fastest tone drawn, row times up to 22 us give 4 rows per period.
+    while condition.advised and frequency * row_time * MIN_ROWS_PER_PERIOD > 1.0:
+        row_time = rng.uniform(7e-6, 35e-6)
     if frequency * row_time > 0.4:
         row_time = 0.4 / frequency
-    if condition.advised:
-        row_time = min(row_time, 1.0 / (MIN_ROWS_PER_PERIOD * frequency))
     exposure = rng.uniform(*condition.exposure)
     # The loop ends: row_time <= 0.25 / frequency leaves exposures of a row up to 0.74 period.
     while condition.advised and (exposure < row_time or abs(np.sinc(exposure * frequency)) < MIN_TRANSMISSION):
