@@ -50,8 +50,8 @@ def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, expos
                       f'{row_time * 1e6:g} us for {_listed(few_rows, "rows")}: these lamps need more stripe periods '
                       f'in view (a larger image of the lamp) to be identified')
     if exposure is not None:
-        washed = {name: abs(float(np.sinc(exposure * f))) for name, f in frequencies.items()
-                  if abs(np.sinc(exposure * f)) < MIN_TRANSMISSION}
+        contrast = {name: abs(float(np.sinc(exposure * f))) for name, f in frequencies.items()}
+        washed = {name: left for name, left in contrast.items() if left < MIN_TRANSMISSION}
         if washed:
             lamps = _listed(washed, 'of the contrast left', percent=True)
             advice.append(f'beacon.exposure {exposure * 1e6:g} us spans about whole stripe periods of {lamps}: '
