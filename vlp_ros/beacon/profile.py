@@ -34,7 +34,7 @@ class RowProfile:
         n = len(self.values)
         if len(self.weights) != n or len(self.saturated) != n:
             raise ValueError('profile values, weights and saturated must have the same length')
-        if np.any(self.weights < 0):
+        if (self.weights < 0).any():
             raise ValueError('profile weights must not be negative')
 
 

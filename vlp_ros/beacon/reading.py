@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vlp_ros.compiled import kernel
+
 # Candidate standing for "a frequency that no lamp of the map has" (tone mode).
 UNMAPPED = -1
 # Prior weight of one ID that is not in the map relative to one that is: the map
@@ -63,11 +65,9 @@ def decide(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndarr
     """The most probable candidate if it is mapped and its posterior reaches ``min_confidence``."""
     if not 0.0 < min_confidence < 1.0:
         raise ValueError(f'min_confidence must lie in (0, 1), got {min_confidence}')
-    log_post = np.asarray(log_likelihoods, dtype=float) + log_prior
-    best = int(log_post.argmax())
-    if not math.isfinite(log_post[best]):
+    best, confidence = _most_probable(np.asarray(log_likelihoods, dtype=float), np.asarray(log_prior, dtype=float))
+    if best < 0:
         return Decision(None, 0.0, False, 'no candidate is possible')
-    confidence = 1.0 / float(np.exp(log_post - log_post[best]).sum())
     if confidence < min_confidence:
         return Decision(None, confidence, False, f'not certain (best candidate {candidates[best]} at {confidence:.4g})')
     if not mapped[best]:
@@ -87,3 +87,18 @@ def reading(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndar
 def no_evidence(candidates: np.ndarray, mapped: np.ndarray, log_prior: np.ndarray, detail: str) -> BeaconReading:
     """A reading that adds nothing (flat likelihood), with why."""
     return BeaconReading(None, 0.0, candidates, np.zeros(len(candidates)), log_prior, mapped, False, detail)
+
+
+@kernel
+def _most_probable(log_likelihoods: np.ndarray, log_prior: np.ndarray) -> tuple[int, float]:
+    """The most probable candidate and its posterior probability; -1 if none has a finite posterior."""
+    log_post = log_likelihoods + log_prior
+    best = 0
+    for i in range(len(log_post)):
+        if math.isnan(log_post[i]):
+            return -1, 0.0
+        if log_post[i] > log_post[best]:
+            best = i
+    if not math.isfinite(log_post[best]):
+        return -1, 0.0
+    return best, 1.0 / np.exp(log_post - log_post[best]).sum()

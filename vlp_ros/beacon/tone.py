@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import gammaln, stdtr
+from scipy.special import stdtr
 
 from vlp_ros.beacon.profile import RowProfile
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
@@ -99,23 +99,19 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
         raise ValueError(f'exposure must be positive, got {exposure}')
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
-    ids, centres, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
+    centres, lowest, highest, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
     nyquist = 0.5 / row_time
-    if not centres.max() + tolerance_hz < nyquist:
+    if not highest + tolerance_hz < nyquist:
         raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
                          f'(row Nyquist minus tolerance), got {centres.tolist()}')
 
-    w = np.asarray(profile.weights, dtype=float)
-    used = np.flatnonzero(w > 0)
-    if used.size < 8:
+    used, z, w = _window(np.asarray(profile.values, dtype=float), np.asarray(profile.weights, dtype=float))
+    if used < 8:
         return no_evidence(candidates, mapped, prior, 'too few rows')
-    window = slice(used[0], used[-1] + 1)
-    w = w[window]
-    values = np.asarray(profile.values, dtype=float)[window]
     duration = len(w) * row_time
-    search = (0.5 * centres.min(), min(1.5 * centres.max(), 0.9 * nyquist))
+    search = (0.5 * lowest, min(1.5 * highest, 0.9 * nyquist))
     # The envelope (vignetting, the disc's falloff) is fitted with the stripes, as a quadratic.
-    fit = _ToneFit(values / (values @ w / w.sum()) - 1.0, w)
+    fit = _ToneFit(z, w)
     cycles = fit.spectral_peak(search[0] * duration, search[1] * duration)
     if cycles is None:
         return no_evidence(candidates, mapped, prior, 'no tone in the search range')
@@ -145,16 +141,26 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if likelihood.other_peaks:
         return no_evidence(candidates, mapped, prior, 'the stripes fit frequencies apart about as well')
     grid, log_density = likelihood.grid, likelihood.log_density
-    log_mass = _log_band_masses(grid / duration, log_density, fit.dof, centres - tolerance_hz,
-                                centres + tolerance_hz, search)
+    log_mass = _log_band_masses(grid, duration, log_density, fit.dof, centres, tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
+
+
+@kernel
+def _window(values: np.ndarray, weights: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """How many rows are usable (weight > 0), and from the first to the last of them each row's brightness
+    relative to their weighted mean, minus 1, and its weight."""
+    used = np.flatnonzero(weights > 0)
+    if len(used) == 0:
+        return 0, values[:0], weights[:0]
+    values, weights = values[used[0]:used[-1] + 1], weights[used[0]:used[-1] + 1]
+    return len(used), values / (values @ weights / weights.sum()) - 1.0, weights
 
 
 @lru_cache(maxsize=16)
 def _lamps(items: tuple[tuple[int, float], ...],
-           unmapped_weight: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Lamp IDs and frequencies (by ID), candidates (the lamps, then UNMAPPED), which are mapped, and
-    their log prior: the same for every lamp of a frame."""
+           unmapped_weight: float) -> tuple[np.ndarray, float, float, np.ndarray, np.ndarray, np.ndarray]:
+    """Lamp frequencies (by ID), the lowest and highest, candidates (the lamps, then UNMAPPED), which are
+    mapped, and their log prior: the same for every lamp of a frame."""
     items = sorted(items)
     ids = np.array([i for i, _ in items], dtype=int)
     centres = np.array([f for _, f in items], dtype=float)
@@ -163,7 +169,8 @@ def _lamps(items: tuple[tuple[int, float], ...],
     if not np.all(centres > 0.0):
         raise ValueError(f'lamp frequencies must be positive, got {centres.tolist()}')
     mapped = np.append(np.ones(len(ids), dtype=bool), False)
-    return ids, centres, np.append(ids, UNMAPPED), mapped, log_prior(mapped, unmapped_weight)
+    return (centres, float(centres.min()), float(centres.max()), np.append(ids, UNMAPPED), mapped,
+            log_prior(mapped, unmapped_weight))
 
 
 @dataclass(frozen=True)
@@ -230,7 +237,7 @@ class _ToneFit:
     def thin(self, cycles: float, exposure_rows: float) -> None:
         """Keep every k-th row of a long window, while the rows' exposures still cover the time axis (a
         gap would hide edges)."""
-        stride = min(int(np.ceil(self.rows / _MAX_ROWS)), int(self.rows / cycles / _MIN_ROWS_PER_PERIOD),
+        stride = min(math.ceil(self.rows / _MAX_ROWS), int(self.rows / cycles / _MIN_ROWS_PER_PERIOD),
                      int(exposure_rows))
         if stride > 1:
             self._use(stride)
@@ -247,12 +254,7 @@ class _ToneFit:
         harmonics that few rows per period alias can pull aside), of phases over half a period (the other
         half only flips the sign) and, unknown, of exposures; its phase refined by a parabola through the
         best and its neighbours."""
-        exposures = _KAPPAS * self.rows / cycles if exposure_rows is None else np.array([exposure_rows])
-        # Steps that move the window's ends by half a row, over at least +-_START_REACH cycles.
-        step = max(0.5 * cycles / self.rows, _START_REACH / _START_STEPS)
-        tried = cycles + step * np.arange(-_START_STEPS, _START_STEPS + 1)
-        at, row, phase, evidence, rss = _scan(tried, exposures, self.dof, *self.model)
-        return _Start(float(tried[at]), phase, float(exposures[row]), evidence, tried, rss)
+        return _Start(*_scan(cycles, math.nan if exposure_rows is None else exposure_rows, self.dof, *self.model))
 
     def peak(self, start: _Start, free: bool) -> _Peak | None:
         """The best square wave near the ``start`` (the exposure ``free`` or not): one Gauss-Newton step
@@ -478,12 +480,20 @@ def _linearised_kernel(cycles: float, phase: float, exposure: float, free_exposu
 
 
 @kernel
-def _scan(cycles: np.ndarray, exposure_rows: np.ndarray, dof: int, rows: int, tau_around: np.ndarray, stride: int,
+def _scan(peak_cycles: float, given_exposure_rows: float, dof: int, rows: int, tau_around: np.ndarray, stride: int,
           products: np.ndarray, weights: np.ndarray, null_rss: float,
-          power: float) -> tuple[int, int, float, float, np.ndarray]:
-    """_ToneFit.start's scan: _rss_kernel at every cycles x exposure rows x phase of _PHASE_SCAN; the best's
-    cycles and exposure (indices), its phase refined by a parabola through it and its neighbours, the
-    evidence (nats) by which it beats the envelope alone, and the least rss at each cycles."""
+          power: float) -> tuple[float, float, float, float, np.ndarray, np.ndarray]:
+    """_ToneFit.start's scan: _rss_kernel at every cycles around ``peak_cycles`` x exposure rows (the given
+    ones, or unknown (nan) _KAPPAS of the period) x phase of _PHASE_SCAN; the best's cycles, phase (refined
+    by a parabola through it and its neighbours) and exposure rows, the evidence (nats) by which it beats
+    the envelope alone, the cycles tried and the least rss at each."""
+    # Steps that move the window's ends by half a row, over at least +-_START_REACH cycles.
+    step = max(0.5 * peak_cycles / rows, _START_REACH / _START_STEPS)
+    cycles = peak_cycles + step * np.arange(-_START_STEPS, _START_STEPS + 1)
+    if math.isnan(given_exposure_rows):
+        exposure_rows = _KAPPAS * rows / peak_cycles
+    else:
+        exposure_rows = np.full(1, given_exposure_rows)
     n, m, phases = len(cycles), len(exposure_rows), len(_PHASE_SCAN)
     size = n * m * phases
     flat_cycles, flat_phase, flat_exposure = np.empty(size), np.empty(size), np.empty(size)
@@ -505,8 +515,8 @@ def _scan(cycles: np.ndarray, exposure_rows: np.ndarray, dof: int, rows: int, ta
     least_by_cycles = np.empty(n)
     for i in range(n):
         least_by_cycles[i] = rss[i * m * phases:(i + 1) * m * phases].min()
-    return (row // m, row % m, _PHASE_SCAN[k] + place / (2.0 * phases), (null_rss - least) / (2.0 * sigma2),
-            least_by_cycles)
+    return (cycles[row // m], _PHASE_SCAN[k] + place / (2.0 * phases), exposure_rows[row % m],
+            (null_rss - least) / (2.0 * sigma2), cycles, least_by_cycles)
 
 
 @kernel
@@ -643,26 +653,34 @@ def _inverse(m: np.ndarray) -> tuple[bool, np.ndarray]:
     return np.isfinite(det) and abs(det) > 1e-12 * scale, cofactors / det
 
 
-def _log_band_masses(frequency: np.ndarray, log_density: np.ndarray, dof: int, low: np.ndarray, high: np.ndarray,
-                     search: tuple[float, float]) -> np.ndarray:
-    """log P(f in each band) and, last, log P(f in none), for f's density given on an even grid of
-    ``frequency`` (exponential between grid points: a Gaussian's tails are integrated well from a
-    coarse grid), continued beyond it by the Student's t (``dof`` degrees of freedom, centred on the
-    grid's peak) whose density meets the grid's ends, all cut to the ``search`` range: a frequency
-    outside it would have shown as another peak."""
-    edges = np.clip(np.concatenate([low, high, search]), search[0], search[1])
-    log_density, cdf = _grid_cdf(frequency, log_density, edges)
+def _log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray, dof: int, centres: np.ndarray,
+                     tolerance: float, search: tuple[float, float]) -> np.ndarray:
+    """log P(f in each band: ``centres`` +- ``tolerance``) and, last, log P(f in none), for f's density
+    given on an even ``grid`` of cycles per window of ``duration`` (exponential between grid points: a
+    Gaussian's tails are integrated well from a coarse grid), continued beyond it by the Student's t
+    (``dof`` degrees of freedom, centred on the grid's peak) whose density meets the grid's ends, all cut
+    to the ``search`` range: a frequency outside it would have shown as another peak."""
+    frequency, edges, log_density, cdf, tailed = _grid_cdf(grid, duration, log_density, centres, tolerance,
+                                                           search[0], search[1])
+    if tailed:
+        _add_t_tails(frequency, log_density, dof, edges, cdf)
+    return _band_log_masses(cdf, len(centres))
+
+
+def _add_t_tails(frequency: np.ndarray, log_density: np.ndarray, dof: int, edges: np.ndarray, cdf: np.ndarray) -> None:
+    """Adds to ``cdf`` at the ``edges`` beyond the grid the mass of the Student's t whose density meets the
+    grid's end there, where that end's density is not negligible."""
     for end, beyond in ((0, edges < frequency[0]), (-1, edges > frequency[-1])):
         if log_density[end] < _NEGLIGIBLE or not beyond.any():
             continue
         # The t's scale that makes it exp(log_density[end]) at the grid's end, 1 at the centre (where the
         # t density is gamma((dof + 1) / 2) / (sqrt(dof pi) gamma(dof / 2))).
         centre = frequency[np.argmax(log_density)]
-        scale = abs(frequency[end] - centre) / np.sqrt(dof * max(np.expm1(-2.0 * log_density[end] / (dof + 1)), 1e-12))
-        peak = np.exp(gammaln(0.5 * (dof + 1)) - gammaln(0.5 * dof)) / np.sqrt(dof * np.pi)
+        scale = abs(frequency[end] - centre) / math.sqrt(dof * max(math.expm1(-2.0 * log_density[end] / (dof + 1)),
+                                                                   1e-12))
+        peak = math.exp(math.lgamma(0.5 * (dof + 1)) - math.lgamma(0.5 * dof)) / math.sqrt(dof * math.pi)
         tail = stdtr(dof, (edges[beyond] - centre) / scale) - stdtr(dof, (frequency[end] - centre) / scale)
         cdf[beyond] += tail * scale / peak
-    return _band_log_masses(cdf, len(low))
 
 
 @kernel
@@ -678,9 +696,18 @@ def _blurred(grid: np.ndarray, density: np.ndarray, quantum: float) -> np.ndarra
 
 
 @kernel
-def _grid_cdf(frequency: np.ndarray, log_density: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The log density relative to its peak (at least _FLOOR), and its integral from the grid's start to each
-    of ``edges`` (exponential between grid points; 0 before the grid, the whole beyond it)."""
+def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centres: np.ndarray, tolerance: float,
+              search_low: float, search_high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """The grid's frequencies (cycles per window of ``duration``), the edges (the bands' low edges, high edges, then the search range's ends, all cut to that range),
+    the log density relative to its peak (at least _FLOOR), its integral from the grid's start to each
+    edge (exponential between grid points; 0 before the grid, the whole beyond it), and whether an edge
+    lies beyond an end of the grid whose density is not negligible (where _add_t_tails adds mass)."""
+    frequency = grid / duration
+    bands = len(centres)
+    edges = np.empty(2 * bands + 2)
+    edges[:bands], edges[bands:2 * bands] = centres - tolerance, centres + tolerance
+    edges[-2], edges[-1] = search_low, search_high
+    edges = np.minimum(np.maximum(edges, search_low), search_high)
     # Below _FLOOR there is nothing to count (and the exponentials stay finite).
     log_density = np.maximum(log_density - log_density.max(), _FLOOR)
     step = frequency[1] - frequency[0]
@@ -692,7 +719,11 @@ def _grid_cdf(frequency: np.ndarray, log_density: np.ndarray, edges: np.ndarray)
         cumulative[i + 1] = cumulative[i] + np.exp(log_density[i]) * step * shape
     # Within a grid step the cumulative is taken as linear: where a band's edge falls in a tail, that
     # gives the band around the peak a little less and "none" a little more than the exponential would.
-    return log_density, np.interp(edges, frequency, cumulative)
+    tailed = False
+    for edge in edges:
+        tailed |= ((edge < frequency[0] and log_density[0] >= _NEGLIGIBLE)
+                   or (edge > frequency[-1] and log_density[-1] >= _NEGLIGIBLE))
+    return frequency, edges, log_density, np.interp(edges, frequency, cumulative), tailed
 
 
 @kernel
