@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from beacon_scenes import lamp_image
 
-from vlp_ros.beacon.encoding import Waveform, packet_waveform, tone_waveform
-from vlp_ros.beacon.profile import RowProfile, modulation, row_profile
+from vlp_ros.beacon.encoding import packet_waveform
+from vlp_ros.beacon.decoding import decode_packet, decode_tone
+from vlp_ros.beacon.profile import RowProfile, relative_brightness, row_profile
 
 ROW_TIME = 2e-5
 EXPOSURE = 3e-5
@@ -100,23 +101,31 @@ def test_disc_of_several_runs_per_row_is_rejected():
         row_profile(image, dataclasses.replace(observation, disc_mask=ring))
 
 
-def test_modulation_removes_the_envelope():
-    steady = Waveform(np.array([1], dtype=np.uint8), 1000.0, 0.0)
-    image, observation = lamp_image(steady, ROW_TIME, EXPOSURE, (60.0, 45.0), falloff=0.3, noise=0.0)
-    profile = row_profile(image, observation)
-    assert np.ptp(profile.values[profile.weights > 0]) > 20.0
-    assert np.max(np.abs(modulation(profile))) < 0.03
+def test_relative_brightness_spans_the_usable_rows_around_their_weighted_mean():
+    values = np.array([0.0, 0.0, 90.0, 110.0, 0.0, 120.0, 80.0, 0.0])
+    weights = np.array([0.0, 0.0, 10.0, 30.0, 0.0, 20.0, 40.0, 0.0])
+    z, w, usable = relative_brightness(RowProfile(values, weights, np.zeros(8), 0))
+    assert usable == 4
+    np.testing.assert_array_equal(w, weights[2:7])
+    mean = (values @ weights) / weights.sum()
+    used = w > 0
+    np.testing.assert_allclose(z[used], values[2:7][used] / mean - 1.0)
+    assert abs(z[used] @ w[used]) < 1e-12
 
 
-def test_modulation_over_whole_periods_suits_periodic_light():
-    rows = np.arange(43)
-    light = tone_waveform(1.0 / (7.3 * ROW_TIME), 0.8, 1e-5).mean_brightness(ROW_TIME * rows, EXPOSURE)
-    envelope = 100.0 * (1.0 + 0.004 * rows - 0.0002 * (rows - 20.0) ** 2)
-    profile = RowProfile(envelope * light, np.full(43, 50.0), np.zeros(43), 0)
-    expected = light / 0.6 - 1.0  # a square wave's mean level is 1 - depth / 2
-    # Through the stripes, the envelope leans on them; over whole periods it does not.
-    assert np.max(np.abs(modulation(profile, period=7.3) - expected)) < 0.06
-    assert np.max(np.abs(modulation(profile) - expected)) > 0.15
+def test_a_profile_without_usable_rows_is_empty():
+    z, w, usable = relative_brightness(RowProfile(np.ones(5), np.zeros(5), np.zeros(5), 0))
+    assert (len(z), len(w), usable) == (0, 0, 0)
+
+
+def test_negative_weights_are_refused_by_both_decoders():
+    weights = np.full(60, 20.0)
+    weights[30] = -1.0
+    profile = RowProfile(np.full(60, 100.0), weights, np.zeros(60), 0)
+    with pytest.raises(ValueError, match='must not be negative'):
+        decode_packet(profile, 1.0 / (5 * ROW_TIME), ROW_TIME)
+    with pytest.raises(ValueError, match='must not be negative'):
+        decode_tone(profile, ROW_TIME, {1: 2000.0}, 60.0)
 
 
 def test_bad_inputs_are_rejected():

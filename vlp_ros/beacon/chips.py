@@ -76,12 +76,13 @@ def _at(sums: np.ndarray, rows: np.ndarray, field: int, u: float) -> float:
     return sums[field, i] + (u - i) * rows[field, i]
 
 
+@kernel
 def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
     """Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges).
 
     Pairs with an empty row count as noiseless; the median shrugs them off."""
     if np.count_nonzero(w) < 4:
-        return float('inf')
+        return np.inf
     d = z[1:] - z[:-1]
     inverse = 1.0 / np.maximum(w, 1e-12)
     return median(d * d / (inverse[:-1] + inverse[1:])) / _CHI2_1_MEDIAN
@@ -99,7 +100,7 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
     if not period > 1.0:
         raise ValueError(f'a chip must span more than one row, got {period:.3g} rows')
     sigma2 = _noise_variance(z, w)
-    if not np.isfinite(sigma2) or len(z) < 3 * period:
+    if not math.isfinite(sigma2) or len(z) < 3 * period:
         return None
     sigma2 = max(sigma2, 1e-12)
     sums, rows = _cumulative(z, w)

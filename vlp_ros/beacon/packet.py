@@ -18,7 +18,7 @@ from scipy.stats import chi2
 
 from vlp_ros.beacon.chips import chip_levels
 from vlp_ros.beacon.encoding import packet_bits, packet_chips, packet_length
-from vlp_ros.beacon.profile import RowProfile, modulation
+from vlp_ros.beacon.profile import RowProfile, relative_brightness
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
                                     reading)
 from vlp_ros.compiled import kernel
@@ -75,8 +75,8 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     margin = None if exposure is None else 0.5 * exposure / row_time + 0.25
     # Only the mean level: a curve fitted through few chips bends with them, and the chip levels
     # follow the envelope locally anyway.
-    z, w = _central_rows(modulation(profile, degree=0), np.asarray(profile.weights, dtype=float),
-                         MAX_PACKETS * packet_length(id_bits) * period)
+    z, w, _ = relative_brightness(profile)
+    z, w = _central_rows(z, w, MAX_PACKETS * packet_length(id_bits) * period)
     levels = chip_levels(z, w, period, timing_tolerance, margin)
     if levels is None:
         return no_evidence(candidates, mapped, prior, 'too few rows for a chip grid')
@@ -90,14 +90,11 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
 
 
 def _central_rows(z: np.ndarray, w: np.ndarray, rows: float) -> tuple[np.ndarray, np.ndarray]:
-    """The lamp's rows (those with weight), cut to the central ``rows`` when there are more."""
-    used = (w > 0).nonzero()[0]
-    if used.size == 0:
-        return z[:0], w[:0]
-    first, last = int(used[0]), int(used[-1]) + 1
-    excess = last - first - math.ceil(rows)
-    if excess > 0:
-        first, last = first + excess // 2, last - (excess - excess // 2)
+    """The window cut to its central ``rows`` when it holds more."""
+    excess = len(z) - math.ceil(rows)
+    if excess <= 0:
+        return z, w
+    first, last = excess // 2, len(z) - (excess - excess // 2)
     return z[first:last], w[first:last]
 
 
@@ -137,11 +134,8 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     design, chip_weights = _codebook(id_bits)
     per_bit, baseline_rss = _per_bit_sums(x, v, k, chip_weights)
     # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
-    sums = per_bit @ design
-    half_gain, best = _half_gains(sums, np.float32(v.sum()), len(chip_weights))
-    # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
-    spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / len(chip_weights))
-    return best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - 2.0 * float(best.max())
+    log_likelihoods, best = _shifts_marginalised(per_bit @ design, np.float32(v.sum()), len(chip_weights))
+    return log_likelihoods - 0.5 * baseline_rss, baseline_rss - 2.0 * best
 
 
 @kernel
@@ -191,11 +185,12 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
 
 
 @kernel
-def _half_gains(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
-    ID's best (float32 arithmetic, like the sums).
+def _shifts_marginalised(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.ndarray, float]:
+    """Each ID's log-likelihood beyond the baseline, its window's start in the packet marginalised (equal
+    prior over the ``length`` shifts), from ``sums`` (4 L, ids); and the best half gain of all.
 
-    With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
+    A (shift, ID)'s half gain is that of its best-fitting contrast (float32 arithmetic, like the sums):
+    with an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
     contrast must be positive.
     """
     ids = sums.shape[1]
@@ -209,7 +204,11 @@ def _half_gains(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.nd
             target = max(sums[3 * length + shift, i], np.float32(0.0))
             gains[shift, i] = target * target / schur
             best[i] = max(best[i], gains[shift, i])
-    return gains, best
+    spread = np.zeros(ids)
+    for shift in range(length):
+        for i in range(ids):
+            spread[i] += math.exp(gains[shift, i] - best[i])
+    return best + np.log(spread / length), float(best.max())
 
 
 @kernel

@@ -21,8 +21,8 @@ class RowProfile:
     """Mean brightness of one lamp's usable pixels, one value per frame row.
 
     ``values[i]`` belongs to frame row ``first_row + i``; ``weights[i]`` is the number of
-    pixels averaged (0: none usable, value meaningless); ``saturated[i]`` the fraction
-    of them at the sensor's ceiling in some channel.
+    pixels averaged (0: none usable, value meaningless; never negative: the decoders refuse
+    such a profile); ``saturated[i]`` the fraction of them at the sensor's ceiling in some channel.
     """
 
     values: np.ndarray
@@ -34,8 +34,6 @@ class RowProfile:
         n = len(self.values)
         if len(self.weights) != n or len(self.saturated) != n:
             raise ValueError('profile values, weights and saturated must have the same length')
-        if (self.weights < 0).any():
-            raise ValueError('profile weights must not be negative')
 
 
 def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: int = 2,
@@ -177,46 +175,25 @@ def _near(mask: np.ndarray, y: int, x: int, radius: int) -> bool:
     return False
 
 
-def modulation(profile: RowProfile, period: float | None = None, degree: int = 2) -> np.ndarray:
-    """Each row's brightness relative to the lamp's slow envelope, minus 1 (0 where unusable).
+def relative_brightness(profile: RowProfile) -> tuple[np.ndarray, np.ndarray, int]:
+    """The rows from the first usable one (weight > 0) to the last: each one's brightness relative to
+    their weighted mean, minus 1, and its weight (0: unusable, its value meaningless); and how many are
+    usable. Empty when none is. Negative weights raise ValueError.
 
-    The envelope (vignetting, the disc's falloff, the rows' different chords) is a
-    weighted polynomial in the row index. Without ``period`` it is fitted through
-    the stripes, which mostly average out of it because every bit of either beacon
-    mode is half bright, half dark; with the light's ``period`` (rows) it is fitted
-    to the running mean over one period, which periodic light leaves exactly
-    flat. All zero when the envelope is not positive (no light to compare with).
+    The slow envelope (vignetting, the disc's falloff, the rows' chords) stays in: each decoder
+    takes it out with what it knows of its light (packet mode against each chip's neighbours, tone
+    mode as a quadratic fitted with the stripes).
     """
-    w = np.asarray(profile.weights, dtype=float)
-    values = np.asarray(profile.values, dtype=float)
-    used = (w > 0).nonzero()[0]
-    out = np.zeros(len(w))
-    if used.size == 0:
-        return out
-    if degree == 0 and period is None:
-        values, w = values[used], w[used]
-        out[used] = values * (w.sum() / (values @ w)) - 1.0
-        return out
-    first, last = used[0], used[-1] + 1
-    centre, half = 0.5 * (first + last - 1), max(0.5 * (last - 1 - first), 1.0)
-    if period is not None and last - first >= 1.5 * period:
-        # Running weighted mean over [r + 0.5 - period / 2, r + 0.5 + period / 2), rows split pro rata.
-        edges = np.arange(first, last + 1, dtype=float)
-        rows = np.arange(first + int(np.ceil(0.5 * period)), last - int(np.ceil(0.5 * period)) + 1)
-        lo, hi = rows + 0.5 - 0.5 * period, rows + 0.5 + 0.5 * period
-        cum_w = np.concatenate([[0.0], np.cumsum(w[first:last])])
-        cum_wy = np.concatenate([[0.0], np.cumsum(w[first:last] * values[first:last])])
-        weight = np.interp(hi, edges, cum_w) - np.interp(lo, edges, cum_w)
-        fit_rows, fit_values, fit_weights = rows, (np.interp(hi, edges, cum_wy) - np.interp(lo, edges, cum_wy)) / \
-            np.maximum(weight, 1e-300), weight
-    else:
-        fit_rows, fit_values, fit_weights = used, values[used], w[used]
-    degree = min(degree, len(fit_rows) - 1)
-    basis = np.vander((fit_rows - centre) / half, degree + 1, increasing=True)
-    weighted = basis * fit_weights[:, None]
-    coef = np.linalg.solve(weighted.T @ basis, weighted.T @ fit_values)
-    envelope = np.vander((used - centre) / half, degree + 1, increasing=True) @ coef
-    if np.any(envelope <= 0.0):
-        return out
-    out[used] = values[used] / envelope - 1.0
-    return out
+    return _relative_window(np.asarray(profile.values, dtype=float), np.asarray(profile.weights, dtype=float))
+
+
+@kernel
+def _relative_window(values: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    # Checked here, not by RowProfile: every decoder comes here, and a check there costs as much again.
+    if np.any(weights < 0):
+        raise ValueError('profile weights must not be negative')
+    used = np.flatnonzero(weights > 0)
+    if len(used) == 0:
+        return values[:0], weights[:0], 0
+    values, weights = values[used[0]:used[-1] + 1], weights[used[0]:used[-1] + 1]
+    return values / (values @ weights / weights.sum()) - 1.0, weights, len(used)

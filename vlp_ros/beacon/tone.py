@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import stdtr
 
-from vlp_ros.beacon.profile import RowProfile
+from vlp_ros.beacon.profile import RowProfile, relative_brightness
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
                                     no_evidence, reading)
 from vlp_ros.compiled import kernel
@@ -105,8 +105,8 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
         raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
                          f'(row Nyquist minus tolerance), got {centres.tolist()}')
 
-    used, z, w = _window(np.asarray(profile.values, dtype=float), np.asarray(profile.weights, dtype=float))
-    if used < 8:
+    z, w, usable = relative_brightness(profile)
+    if usable < 8:
         return no_evidence(candidates, mapped, prior, 'too few rows')
     duration = len(w) * row_time
     search = (0.5 * lowest, min(1.5 * highest, 0.9 * nyquist))
@@ -143,17 +143,6 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     grid, log_density = likelihood.grid, likelihood.log_density
     log_mass = _log_band_masses(grid, duration, log_density, fit.dof, centres, tolerance_hz, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
-
-
-@kernel
-def _window(values: np.ndarray, weights: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
-    """How many rows are usable (weight > 0), and from the first to the last of them each row's brightness
-    relative to their weighted mean, minus 1, and its weight."""
-    used = np.flatnonzero(weights > 0)
-    if len(used) == 0:
-        return 0, values[:0], weights[:0]
-    values, weights = values[used[0]:used[-1] + 1], weights[used[0]:used[-1] + 1]
-    return len(used), values / (values @ weights / weights.sum()) - 1.0, weights
 
 
 @lru_cache(maxsize=16)
