@@ -134,8 +134,11 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     design, chip_weights = _codebook(id_bits)
     per_bit, baseline_rss = _per_bit_sums(x, v, k, chip_weights)
     # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
-    log_likelihoods, best = _shifts_marginalised(per_bit @ design, np.float32(v.sum()), len(chip_weights))
-    return log_likelihoods - 0.5 * baseline_rss, baseline_rss - 2.0 * best
+    sums = per_bit @ design
+    half_gain, best = _half_gains(sums, np.float32(v.sum()), len(chip_weights))
+    # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
+    spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / len(chip_weights))
+    return best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - 2.0 * float(best.max())
 
 
 @kernel
@@ -185,12 +188,11 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
 
 
 @kernel
-def _shifts_marginalised(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.ndarray, float]:
-    """Each ID's log-likelihood beyond the baseline, its window's start in the packet marginalised (equal
-    prior over the ``length`` shifts), from ``sums`` (4 L, ids); and the best half gain of all.
+def _half_gains(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
+    ID's best (float32 arithmetic, like the sums).
 
-    A (shift, ID)'s half gain is that of its best-fitting contrast (float32 arithmetic, like the sums):
-    with an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
+    With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
     contrast must be positive.
     """
     ids = sums.shape[1]
@@ -204,11 +206,7 @@ def _shifts_marginalised(sums: np.ndarray, total: np.float32, length: int) -> tu
             target = max(sums[3 * length + shift, i], np.float32(0.0))
             gains[shift, i] = target * target / schur
             best[i] = max(best[i], gains[shift, i])
-    spread = np.zeros(ids)
-    for shift in range(length):
-        for i in range(ids):
-            spread[i] += math.exp(gains[shift, i] - best[i])
-    return best + np.log(spread / length), float(best.max())
+    return gains, best
 
 
 @kernel
