@@ -649,27 +649,26 @@ def _log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray,
     Gaussian's tails are integrated well from a coarse grid), continued beyond it by the Student's t
     (``dof`` degrees of freedom, centred on the grid's peak) whose density meets the grid's ends, all cut
     to the ``search`` range: a frequency outside it would have shown as another peak."""
-    frequency, edges, log_density, cdf, tailed = _grid_cdf(grid, duration, log_density, centres, tolerance,
-                                                           search[0], search[1])
-    if tailed:
-        _add_t_tails(frequency, log_density, dof, edges, cdf)
+    frequency, edges, log_density, cdf, tails = _grid_cdf(grid, duration, log_density, centres, tolerance,
+                                                          search[0], search[1])
+    for end, tailed in zip((0, -1), tails):
+        if tailed:
+            _add_t_tail(frequency, log_density, dof, edges, cdf, end)
     return _band_log_masses(cdf, len(centres))
 
 
-def _add_t_tails(frequency: np.ndarray, log_density: np.ndarray, dof: int, edges: np.ndarray, cdf: np.ndarray) -> None:
-    """Adds to ``cdf`` at the ``edges`` beyond the grid the mass of the Student's t whose density meets the
-    grid's end there, where that end's density is not negligible."""
-    for end, beyond in ((0, edges < frequency[0]), (-1, edges > frequency[-1])):
-        if log_density[end] < _NEGLIGIBLE or not beyond.any():
-            continue
-        # The t's scale that makes it exp(log_density[end]) at the grid's end, 1 at the centre (where the
-        # t density is gamma((dof + 1) / 2) / (sqrt(dof pi) gamma(dof / 2))).
-        centre = frequency[np.argmax(log_density)]
-        scale = abs(frequency[end] - centre) / math.sqrt(dof * max(math.expm1(-2.0 * log_density[end] / (dof + 1)),
-                                                                   1e-12))
-        peak = math.exp(math.lgamma(0.5 * (dof + 1)) - math.lgamma(0.5 * dof)) / math.sqrt(dof * math.pi)
-        tail = stdtr(dof, (edges[beyond] - centre) / scale) - stdtr(dof, (frequency[end] - centre) / scale)
-        cdf[beyond] += tail * scale / peak
+def _add_t_tail(frequency: np.ndarray, log_density: np.ndarray, dof: int, edges: np.ndarray, cdf: np.ndarray,
+                end: int) -> None:
+    """Adds to ``cdf`` at the ``edges`` beyond the grid's ``end`` (0 or -1) the mass of the Student's t whose
+    density meets the grid's there."""
+    beyond = edges < frequency[0] if end == 0 else edges > frequency[-1]
+    # The t's scale that makes it exp(log_density[end]) at the grid's end, 1 at the centre (where the
+    # t density is gamma((dof + 1) / 2) / (sqrt(dof pi) gamma(dof / 2))).
+    centre = frequency[np.argmax(log_density)]
+    scale = abs(frequency[end] - centre) / math.sqrt(dof * max(math.expm1(-2.0 * log_density[end] / (dof + 1)), 1e-12))
+    peak = math.exp(math.lgamma(0.5 * (dof + 1)) - math.lgamma(0.5 * dof)) / math.sqrt(dof * math.pi)
+    tail = stdtr(dof, (edges[beyond] - centre) / scale) - stdtr(dof, (frequency[end] - centre) / scale)
+    cdf[beyond] += tail * scale / peak
 
 
 @kernel
@@ -686,11 +685,13 @@ def _blurred(grid: np.ndarray, density: np.ndarray, quantum: float) -> np.ndarra
 
 @kernel
 def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centres: np.ndarray, tolerance: float,
-              search_low: float, search_high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
-    """The grid's frequencies (cycles per window of ``duration``), the edges (the bands' low edges, high edges, then the search range's ends, all cut to that range),
-    the log density relative to its peak (at least _FLOOR), its integral from the grid's start to each
-    edge (exponential between grid points; 0 before the grid, the whole beyond it), and whether an edge
-    lies beyond an end of the grid whose density is not negligible (where _add_t_tails adds mass)."""
+              search_low: float, search_high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                              tuple[bool, bool]]:
+    """The grid's frequencies (cycles per window of ``duration``); the edges (the bands' low edges, high
+    edges, then the search range's ends, all cut to that range); the log density relative to its peak
+    (at least _FLOOR); its integral from the grid's start to each edge (exponential between grid points;
+    0 before the grid, the whole beyond it); and, for the grid's start and end, whether an edge lies
+    beyond it where the density is not negligible (_add_t_tail adds mass there)."""
     frequency = grid / duration
     bands = len(centres)
     edges = np.empty(2 * bands + 2)
@@ -708,11 +709,12 @@ def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centre
         cumulative[i + 1] = cumulative[i] + np.exp(log_density[i]) * step * shape
     # Within a grid step the cumulative is taken as linear: where a band's edge falls in a tail, that
     # gives the band around the peak a little less and "none" a little more than the exponential would.
-    tailed = False
+    before = after = False
     for edge in edges:
-        tailed |= ((edge < frequency[0] and log_density[0] >= _NEGLIGIBLE)
-                   or (edge > frequency[-1] and log_density[-1] >= _NEGLIGIBLE))
-    return frequency, edges, log_density, np.interp(edges, frequency, cumulative), tailed
+        before |= edge < frequency[0]
+        after |= edge > frequency[-1]
+    tails = (before and log_density[0] >= _NEGLIGIBLE, after and log_density[-1] >= _NEGLIGIBLE)
+    return frequency, edges, log_density, np.interp(edges, frequency, cumulative), tails
 
 
 @kernel
