@@ -91,12 +91,35 @@ def test_a_hint_no_candidate_satisfies_gives_no_pose(pair) -> None:
     assert choice.pose is None and choice.reason is Reason.NO_CANDIDATE_AGREES
 
 
-def test_hints_pointing_at_different_candidates_conflict(pair) -> None:
+def test_a_decisive_up_direction_outweighs_continuity_and_restarts_the_track(pair) -> None:
+    # The recent pose sits at the twin (a wrong track, or a camera that jumped): gravity,
+    # which singles out the right candidate, is decisive and continuity is not a veto.
     right, twin = pair
     hints = DisambiguationHints(up_in_camera=[(TRUTH.up_in_camera(), np.radians(5.0))],
-                                recent_pose=twin.pose, recent_gate_m=0.05)
+                                recent_pose=twin.pose, recent_gate_m=0.05, recent_age=0.1, recent_max_age=1.0)
     choice = choose_candidate(list(pair), hints)
-    assert choice.pose is None and choice.reason is Reason.CONFLICTING_HINTS
+    assert choice.pose is right.pose and choice.reason is Reason.UP_DIRECTION
+    assert choice.restarts_track and 'restarted' in choice.detail
+    within = replace(hints, recent_pose=looking_up(TRUTH.position + [0.02, 0.0, 0.0]))
+    continued = choose_candidate(list(pair), within)
+    assert continued.pose is right.pose and not continued.restarts_track
+
+
+def test_a_decisive_cost_gap_outweighs_continuity(pair) -> None:
+    right, twin = pair
+    fit = replace(right, cost=float(right.residual_count - 6))
+    decisive = replace(twin, cost=fit.cost + 10 * COST_GAP)
+    hints = DisambiguationHints(recent_pose=twin.pose, recent_gate_m=0.05, recent_age=0.1)
+    choice = choose_candidate([decisive, fit], hints, cost_reason=Reason.MULTI_LAMP)
+    assert choice.pose is fit.pose and choice.reason is Reason.MULTI_LAMP and choice.restarts_track
+
+
+def test_continuity_that_rejects_every_undecided_candidate_gives_no_pose(pair) -> None:
+    far = looking_up(TRUTH.position + [3.0, 0.0, 0.0])
+    hints = DisambiguationHints(recent_pose=far, recent_gate_m=0.3, recent_age=0.1, recent_max_speed=2.0)
+    choice = choose_candidate(list(pair), hints)
+    assert choice.pose is None and choice.reason is Reason.NO_CANDIDATE_AGREES
+    assert 'recent pose rejects every candidate' in choice.detail and '0.50 m' in choice.detail
 
 
 def test_continuity_decides_within_its_gates(pair) -> None:
@@ -104,9 +127,23 @@ def test_continuity_decides_within_its_gates(pair) -> None:
     recent = looking_up(TRUTH.position + [0.03, 0.0, 0.0])
     hints = DisambiguationHints(recent_pose=recent, recent_gate_m=0.1, recent_age=0.2, recent_max_age=0.5)
     choice = choose_candidate(list(pair), hints)
-    assert choice.pose is right.pose and choice.reason is Reason.CONTINUITY
+    assert choice.pose is right.pose and choice.reason is Reason.CONTINUITY and not choice.restarts_track
     stale = replace(hints, recent_age=2.0)
     assert choose_candidate(list(pair), stale).reason is Reason.AMBIGUOUS
+
+
+def test_the_continuity_gate_grows_with_the_time_since_the_recent_pose(pair) -> None:
+    # 0.4 m away: outside the 0.3 m gate at once, inside it 0.1 s later at 2 m/s.
+    right, twin = pair
+    assert twin.pose.position_error(right.pose) > 1.0
+    moved = looking_up(right.pose.position + [0.4, 0.0, 0.0])
+    at_once = DisambiguationHints(recent_pose=moved, recent_gate_m=0.3, recent_max_speed=2.0)
+    assert at_once.recent_gate() == pytest.approx(0.3)
+    assert choose_candidate(list(pair), at_once).reason is Reason.NO_CANDIDATE_AGREES
+    later = replace(at_once, recent_age=0.1)
+    assert later.recent_gate() == pytest.approx(0.5)
+    choice = choose_candidate(list(pair), later)
+    assert choice.pose is right.pose and choice.reason is Reason.CONTINUITY
 
 
 def test_only_an_overwhelming_cost_gap_decides(pair) -> None:
@@ -152,3 +189,5 @@ def test_bad_hints_raise() -> None:
             UpHint(np.array([0.0, 0.0, 1.0]), 0.3, sigma)
     with pytest.raises(ValueError):
         DisambiguationHints(recent_gate_m=-1.0)
+    with pytest.raises(ValueError, match='recent_max_speed'):
+        DisambiguationHints(recent_max_speed=-1.0)

@@ -48,6 +48,7 @@ def test_valid_map_accepts_integers_for_doubles_and_fills_defaults() -> None:
     ({'prior.up_in_camera': [0, 0]}, 'prior.up_in_camera'),
     ({'prior.up_in_camera': [0, 0, 0]}, 'prior.up_in_camera'),
     ({'imu.rotation': [0, 0, 0]}, 'imu.rotation'),
+    ({'continuity.max_speed': -0.5}, 'continuity.max_speed'),
     ({'qos.reliability': 'sometimes'}, 'qos.reliability'),
     ({'qos.depth': 0}, 'qos.depth'),
     ({'map_frame': ''}, 'map_frame'),

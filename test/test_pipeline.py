@@ -49,3 +49,26 @@ def test_paper_solver_pose_that_does_not_explain_the_image_is_not_published(obli
     assert ungated.pose is not None and ungated.pose.position_error(frame.pose) > 0.2
     gated = Pipeline(paper).process(frame.image, camera, 0.0, up)
     assert gated.pose is None and gated.outcome == 'poor_fit'
+
+
+def _photo(scenario, index: int, seed: int):
+    pose = scenario.poses[index]
+    frame = render_frame(scenario.camera, pose, scenario.lamps, scenario.sensor, 0.0, np.random.default_rng(seed))
+    up = specific_force(pose, noise_std=scenario.imu_noise, rng=np.random.default_rng(seed + 1)) / STANDARD_GRAVITY
+    return frame, up
+
+
+def test_stills_that_jump_restart_the_track_instead_of_locking_it_out() -> None:
+    # Test points 0.6 m apart, photographed 0.1 s apart: beyond the 0.3 + 2 m/s x 0.1 s gate,
+    # but gravity singles out one candidate, so every still gets its pose.
+    scenario = paper_scenario('4k', height=2.0, points=6, postures=2, seed=2017)
+    values = default_parameters()
+    values.update(flatten_parameters(scenario.locator_parameters(imu=True)))
+    values.update({'continuity.max_age': 1.0, 'continuity.gate': 0.3, 'continuity.max_speed': 2.0})
+    pipeline = Pipeline(settings_from_parameters(values))
+    for k, index in enumerate((0, 2, 4)):
+        frame, up = _photo(scenario, index, seed=20 + 2 * k)
+        result = pipeline.process(frame.image, scenario.camera, 0.1 * k, up)
+        assert result.outcome == 'pose', result
+        assert result.pose.position_error(frame.pose) < 0.02
+    assert pipeline.track_restarts == 2

@@ -59,6 +59,8 @@ PARAMETERS = (
                   "standard deviation (rad) of the IMU's up direction; > 0 makes gravity a measurement in the pose fit, 0 only a gate"),
     ParameterSpec('continuity.gate', 'number', 0.3, 'a candidate within this distance (m) of a recent pose continues it'),
     ParameterSpec('continuity.max_age', 'number', 1.0, 'how long (s) a pose may vouch for the next; 0 disables'),
+    ParameterSpec('continuity.max_speed', 'number', 2.0,
+                  'fastest the camera is expected to move (m/s): the gate grows by this times the time since the recent pose'),
     ParameterSpec('image_transport', 'string', 'raw', 'raw (image_raw) or compressed (image_raw/compressed)'),
     ParameterSpec('qos.reliability', 'string', 'best_effort', 'image subscription reliability: best_effort or reliable'),
     ParameterSpec('qos.depth', 'integer', 1, 'image subscription queue depth'),
@@ -112,6 +114,7 @@ class LocatorSettings:
     imu_sigma: float | None
     continuity_gate: float
     continuity_max_age: float
+    continuity_max_speed: float
     image_transport: str
     qos_reliability: str
     qos_depth: int
@@ -266,6 +269,7 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         imu_sigma=_number(values, 'imu.sigma', minimum=0.0) or None,
         continuity_gate=_number(values, 'continuity.gate', positive=True),
         continuity_max_age=_number(values, 'continuity.max_age', minimum=0.0),
+        continuity_max_speed=_number(values, 'continuity.max_speed', minimum=0.0),
         image_transport=_choice(values, 'image_transport', IMAGE_TRANSPORTS),
         qos_reliability=_choice(values, 'qos.reliability', RELIABILITIES),
         qos_depth=_integer(values, 'qos.depth', 1, 1000))

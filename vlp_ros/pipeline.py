@@ -52,6 +52,8 @@ class Pipeline:
         self._frequencies = settings.lamps.frequencies()
         self.tracker = EvidenceTracker(known_ids=self._known_ids)
         self._recent: tuple[Pose, float] | None = None
+        # Poses published against continuity (decisive evidence outside the recent pose's gate).
+        self.track_restarts = 0
 
     def process(self, image: np.ndarray, camera: CameraModel, stamp: float,
                 gravity_up: np.ndarray | None = None) -> FrameResult:
@@ -72,6 +74,7 @@ class Pipeline:
         if choice.pose is None:
             return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail)
         self._recent = (choice.pose, stamp)
+        self.track_restarts += choice.restarts_track
         return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value)
 
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
@@ -90,10 +93,13 @@ class Pipeline:
             up.append(UpHint(s.prior_up, s.prior_tolerance, s.prior_sigma))
         if gravity_up is not None:
             up.append(UpHint(gravity_up, s.imu_tolerance, s.imu_sigma))
-        recent = None
-        if self._recent is not None and 0.0 <= stamp - self._recent[1] <= s.continuity_max_age:
-            recent = self._recent[0]
-        return DisambiguationHints(up_in_camera=up, recent_pose=recent, recent_gate_m=s.continuity_gate)
+        recent, age = None, 0.0
+        # A pose vouches only for later frames (stamps may arrive out of order), and never when max_age is 0.
+        if self._recent is not None and s.continuity_max_age > 0.0 and 0.0 <= stamp - self._recent[1]:
+            recent, age = self._recent[0], stamp - self._recent[1]
+        return DisambiguationHints(up_in_camera=up, recent_pose=recent, recent_gate_m=s.continuity_gate,
+                                   recent_age=age, recent_max_age=s.continuity_max_age,
+                                   recent_max_speed=s.continuity_max_speed)
 
     def _solve(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None) -> Choice:

@@ -9,7 +9,9 @@ from vlp_ros.frame_stats import FrameStats
 AMBIGUITY_OUTCOMES = ('ambiguous', 'conflicting_hints', 'no_candidate_agrees', 'inconsistent_lamps')
 
 
-def diagnostic_array(stats: FrameStats, has_camera_info: bool, image_topic: str) -> DiagnosticArray:
+def diagnostic_array(stats: FrameStats, has_camera_info: bool, image_topic: str,
+                     track_restarts: int = 0) -> DiagnosticArray:
+    """``track_restarts``: poses published against continuity (``Pipeline.track_restarts``)."""
     input_rate, processed_rate = stats.rates()
     latency_median, latency_max = stats.latency_ms()
     values = {
@@ -25,6 +27,7 @@ def diagnostic_array(stats: FrameStats, has_camera_info: bool, image_topic: str)
         'decoded ids': ' '.join(f'{i}:{n}' for i, n in sorted(stats.decoded_ids.items())) or 'none',
         'unknown ids': stats.unknown_ids,
         'ambiguity rejections': sum(n for r, n in stats.no_pose.items() if r in AMBIGUITY_OUTCOMES),
+        'track restarts': track_restarts,
     }
     values.update({f'no pose: {reason}': n for reason, n in sorted(stats.no_pose.items())})
     values.update({f'dropped: {reason}': n for reason, n in sorted(stats.dropped.items())})

@@ -208,7 +208,8 @@ class Locator(Node):
         self.processed_pub.publish(processed)
 
     def _publish_diagnostics(self) -> None:
-        array = diagnostic_array(self.stats, self._camera is not None, self._image_topic)
+        array = diagnostic_array(self.stats, self._camera is not None, self._image_topic,
+                                 self.pipeline.track_restarts)
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 

@@ -5,9 +5,18 @@ separate them: a known up direction in the camera frame (a static mounting
 prior, or gravity from an IMU at rest; given a sigma it is also a measurement
 in the fit, which then mostly leaves one candidate), continuity with a recent
 pose of the same camera, other lamps in the frame (``fusion``), and, only when
-the gap is overwhelming, the fit itself. Every hint must accept the chosen candidate and
-reject the others it rules out; otherwise no pose is returned and the reason
-says why.
+the gap is overwhelming, the fit itself. Every up hint must accept the chosen
+candidate and reject the others it rules out; otherwise no pose is returned and the
+reason says why.
+
+Continuity is evidence, never a veto over decisive evidence. Its gate grows with the
+time since the recent pose (``recent_gate_m + recent_max_speed * recent_age``), so a
+camera that moved or lost the lamps for a while is not shut out. When the up hints,
+the other lamps or an overwhelming cost gap single out one candidate, that candidate
+is chosen even if it is outside the gate, and the choice says the track restarts
+(the camera jumped, or the recent pose was wrong). Only when nothing else decides
+does continuity pick the one candidate within its gate, or, rejecting them all,
+leave the frame without a pose.
 
 Cost rule. Let A be the cheapest candidate and B another, with chi-squares
 c_A < c_B over the same residuals. If B were the truth, A could undercut it by
@@ -21,7 +30,6 @@ larger than its stated sigma does not fake a gap.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,7 +70,8 @@ class DisambiguationHints:
     ``up_in_camera``: one ``UpHint`` per source, or its fields as a tuple
     ``(vector, tolerance[, sigma])``. ``recent_pose``: a recent pose of this camera, taken
     ``recent_age`` seconds ago; it counts when ``recent_age <= recent_max_age`` and then
-    accepts candidates within ``recent_gate_m`` of it.
+    accepts candidates within ``recent_gate()`` of it: ``recent_gate_m`` plus the
+    distance ``recent_max_speed`` (m/s) covers in ``recent_age``.
     """
 
     up_in_camera: list[UpHint] = field(default_factory=list)
@@ -70,11 +79,25 @@ class DisambiguationHints:
     recent_gate_m: float = 0.5
     recent_age: float = 0.0
     recent_max_age: float = float('inf')
+    recent_max_speed: float = 0.0
 
     def __post_init__(self) -> None:
         self.up_in_camera = [hint if isinstance(hint, UpHint) else UpHint(*hint) for hint in self.up_in_camera]
         if not self.recent_gate_m > 0.0:
             raise ValueError(f'recent_gate_m must be positive, got {self.recent_gate_m}')
+        if not self.recent_max_speed >= 0.0:
+            raise ValueError(f'recent_max_speed must be non-negative, got {self.recent_max_speed}')
+        if not self.recent_age >= 0.0:
+            raise ValueError(f'recent_age must be non-negative, got {self.recent_age}')
+
+    @property
+    def continuity_counts(self) -> bool:
+        """Whether a recent pose is known and young enough to vouch for this frame."""
+        return self.recent_pose is not None and self.recent_age <= self.recent_max_age
+
+    def recent_gate(self) -> float:
+        """How far (m) from the recent pose a candidate may be and still continue it."""
+        return self.recent_gate_m + self.recent_max_speed * self.recent_age
 
     def up_measurements(self) -> list[UpMeasurement]:
         """The up hints that have a sigma, as measurements for the pose fit."""
@@ -84,31 +107,59 @@ class DisambiguationHints:
 def choose_candidate(candidates: list[PoseCandidate], hints: DisambiguationHints,
                      cost_reason: Reason = Reason.COST) -> Choice:
     """The candidate the hints (or an overwhelming cost gap, reported as ``cost_reason``)
-    single out, or no pose and why."""
+    single out, or no pose and why. A candidate singled out against continuity restarts
+    the track (``Choice.restarts_track``)."""
     candidates = distinct(candidates)
     if not candidates:
         return Choice(None, Reason.NO_CANDIDATES, 'the solver found no pose')
     remaining = list(range(len(candidates)))
     decided_by: Reason | None = None
-    for reason, label, accepts in _hint_tests(hints):
-        agreeing = [i for i in range(len(candidates)) if accepts(candidates[i].pose)]
+    for k, hint in enumerate(hints.up_in_camera):
+        agreeing = [i for i in range(len(candidates)) if _up_accepts(hint, candidates[i].pose)]
         if not agreeing:
-            return Choice(None, Reason.NO_CANDIDATE_AGREES, f'{label} rejects every candidate')
+            return Choice(None, Reason.NO_CANDIDATE_AGREES, f'up direction hint {k} rejects every candidate')
         narrowed = [i for i in remaining if i in agreeing]
         if not narrowed:
-            return Choice(None, Reason.CONFLICTING_HINTS, f'{label} rejects the candidate other hints chose')
+            return Choice(None, Reason.CONFLICTING_HINTS, f'up direction hint {k} rejects the candidate '
+                                                          'other hints chose')
         if len(narrowed) < len(remaining) and decided_by is None:
-            decided_by = reason
+            decided_by = Reason.UP_DIRECTION
         remaining = narrowed
     winner = overwhelming_winner(candidates)
     if winner is not None and winner not in remaining:
         return Choice(None, Reason.CONFLICTING_HINTS, 'the fit overwhelmingly favours a candidate the hints reject')
     if len(remaining) == 1:
-        reason = decided_by if decided_by is not None else Reason.UNIQUE
-        return Choice(candidates[remaining[0]].pose, reason)
+        return _continued_or_restarted(candidates[remaining[0]].pose, decided_by or Reason.UNIQUE, hints)
     if winner is not None:
-        return Choice(candidates[winner].pose, cost_reason)
-    return Choice(None, Reason.AMBIGUOUS, f'{len(remaining)} candidates fit and no hint separates them')
+        return _continued_or_restarted(candidates[winner].pose, cost_reason, hints)
+    return _decided_by_continuity([candidates[i].pose for i in remaining], hints)
+
+
+def _continued_or_restarted(pose: Pose, reason: Reason, hints: DisambiguationHints) -> Choice:
+    """``pose``, decided without continuity: it continues the recent pose, or restarts the track."""
+    if not hints.continuity_counts:
+        return Choice(pose, reason)
+    distance = pose.position_error(hints.recent_pose)
+    if distance <= hints.recent_gate():
+        return Choice(pose, reason)
+    return Choice(pose, reason, f'track restarted: {distance:.2f} m from the recent pose, beyond its '
+                                f'{hints.recent_gate():.2f} m gate', restarts_track=True)
+
+
+def _decided_by_continuity(poses: list[Pose], hints: DisambiguationHints) -> Choice:
+    """The one of ``poses`` (which nothing else separates) within the recent pose's gate, or
+    no pose and why."""
+    if not hints.continuity_counts:
+        return Choice(None, Reason.AMBIGUOUS, f'{len(poses)} candidates fit and no hint separates them')
+    gate = hints.recent_gate()
+    agreeing = [pose for pose in poses if pose.position_error(hints.recent_pose) <= gate]
+    if not agreeing:
+        return Choice(None, Reason.NO_CANDIDATE_AGREES, f'the recent pose rejects every candidate (none within '
+                                                        f'{gate:.2f} m, {hints.recent_age:.2f} s after it)')
+    if len(agreeing) == 1:
+        return Choice(agreeing[0], Reason.CONTINUITY)
+    return Choice(None, Reason.AMBIGUOUS, f'{len(agreeing)} candidates fit within {gate:.2f} m of the recent pose '
+                                          'and no hint separates them')
 
 
 def overwhelming_winner(candidates: list[PoseCandidate]) -> int | None:
@@ -122,18 +173,8 @@ def overwhelming_winner(candidates: list[PoseCandidate]) -> int | None:
     return order[0] if (runner_up.cost - best.cost) / noise_scale > COST_GAP else None
 
 
-def _hint_tests(hints: DisambiguationHints) -> list[tuple[Reason, str, Callable[[Pose], bool]]]:
-    tests = []
-    for k, hint in enumerate(hints.up_in_camera):
-        def accepts_up(pose: Pose, hint=hint) -> bool:
-            return _angle(pose.up_in_camera(), hint.vector) <= hint.tolerance
-        tests.append((Reason.UP_DIRECTION, f'up direction hint {k}', accepts_up))
-    recent = hints.recent_pose
-    if recent is not None and hints.recent_age <= hints.recent_max_age:
-        def accepts_recent(pose: Pose) -> bool:
-            return pose.position_error(recent) <= hints.recent_gate_m
-        tests.append((Reason.CONTINUITY, 'the recent pose', accepts_recent))
-    return tests
+def _up_accepts(hint: UpHint, pose: Pose) -> bool:
+    return _angle(pose.up_in_camera(), hint.vector) <= hint.tolerance
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:

@@ -43,11 +43,14 @@ class Reason(str, Enum):
 
 @dataclass
 class Choice:
-    """The outcome of disambiguation: ``pose`` is None exactly when no pose may be published."""
+    """The outcome of disambiguation: ``pose`` is None exactly when no pose may be published.
+    ``restarts_track``: the pose was singled out by evidence that outweighs continuity while
+    lying outside the recent pose's gate, so it starts a new track."""
 
     pose: Pose | None
     reason: Reason
     detail: str = ''
+    restarts_track: bool = False
 
     @property
     def ok(self) -> bool:

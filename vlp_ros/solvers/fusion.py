@@ -15,6 +15,7 @@ misidentified lamp, a wrong map entry) give INCONSISTENT_LAMPS.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -77,7 +78,7 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
                       f'best joint chi-square {best.cost:.0f} for {best.residual_count - 6} degrees of freedom')
     choice = choose_candidate(candidates, hints, cost_reason=Reason.MULTI_LAMP)
     # A single joint minimum is the other lamps' doing: each lamp alone has two.
-    return Choice(choice.pose, Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice
+    return replace(choice, reason=Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice
 
 
 def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
