@@ -29,7 +29,7 @@ from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, explains_the_image
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
-from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
+from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp, widened_where_up_disagrees
 from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_from, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
@@ -70,6 +70,7 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
                                                  f'{candidates[0].residual_count - 6} degrees of freedom')
         return choose_candidate(explaining, hints)
     candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing), up)
+    candidates = widened_where_up_disagrees(candidates, up, np.mean([lamp.position for _, lamp in pairs], axis=0))
     if not candidates:
         return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
     best = candidates[0]

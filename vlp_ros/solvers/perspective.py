@@ -41,7 +41,7 @@ from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import COST_GAP
 from vlp_ros.solvers.candidates import PoseCandidate, distinct
 from vlp_ros.solvers.circle_pose import CirclePose, circle_poses, normalized_conic
-from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
+from vlp_ros.solvers.covariance import perturbed, widened_toward_up, with_rotation_curvature
 from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, forecast_minimum, linearize, refine_pose
@@ -61,6 +61,10 @@ HOPELESS_GAP = 25.0 * COST_GAP
 # Innovation chi-square gap between the two poses of a frontal-straddling pair beyond
 # which the up measurements single one out (the other's posterior weight < 1e-3).
 PAIR_RESOLVED_GAP = 2.0 * np.log(1000.0)
+# Innovation chi-square (2 dof) of an up measurement beyond which the pose is widened toward it
+# (its 95 % point: a lamp whose shape departs from the model tilts the pose by degrees while
+# claiming tenths, and only gravity shows it).
+UP_DOUBT = 5.99
 
 
 def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np.ndarray) -> Pose | None:
@@ -150,7 +154,19 @@ def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel,
             return [_updated(_midpoint(*candidates, measurement), measurement, agreeing)]
         return _refined_with_up(minima, measurement, agreeing) if agreeing else candidates
 
-    return with_agreeing_up(solve, up)
+    return widened_where_up_disagrees(with_agreeing_up(solve, up), up, lamp.position)
+
+
+def widened_where_up_disagrees(candidates: list[PoseCandidate], up: Sequence[UpMeasurement],
+                               pivot: np.ndarray) -> list[PoseCandidate]:
+    """``candidates`` with each covariance widened toward every up measurement it disagrees with
+    beyond ``UP_DOUBT`` (``covariance.widened_toward_up``; ``pivot`` the map point the image pins)."""
+    for candidate in candidates:
+        pose = candidate.pose
+        for measurement in up:
+            if measurement.innovation(pose) > UP_DOUBT:
+                pose.covariance = widened_toward_up(pose, measurement.direction, pivot)
+    return candidates
 
 
 def _clearly_apart(starts: list[Pose], measurement: LampMeasurement) -> bool:

@@ -17,7 +17,7 @@ import numpy as np
 
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
-from vlp_ros.solvers.covariance import covariance_from_jacobian
+from vlp_ros.solvers.covariance import allow_for_model_error, perturbed
 from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, forecast, iterate, joined, linearize_into
 from vlp_ros.solvers.fit_kernels import linearize as linearize_terms
 from vlp_ros.solvers.measurement import LampMeasurement
@@ -62,15 +62,16 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
         raise ValueError(f'{count} residuals cannot determine a 6-DoF pose')
     try:
         pose, residuals, jacobian, converged = _levenberg_marquardt(initial, terms, _MAX_ITERATIONS, give_up)
-        covariance = covariance_from_jacobian(jacobian)
+        if not converged:
+            return None
+        joint = joined([m.terms for m in terms])
+        fit = allow_for_model_error(residuals, jacobian, joint.rim_sigma, len(joint.centres), len(joint.marker_maps))
     except (np.linalg.LinAlgError, ValueError):
         return None
-    if not converged:
-        return None
+    pose = Pose(*perturbed(pose, fit.step), fit.covariance)
     if not all(m.lamp_center_in_camera(pose.rotation, pose.position)[2] > 0.0 for m in measurements):
         return None
-    pose.covariance = covariance
-    return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=count)
+    return PoseCandidate(pose=pose, cost=fit.cost, residual_count=count)
 
 
 def forecast_minimum(initial: Pose, measurements: Sequence[Measurement]) -> float:
