@@ -18,7 +18,7 @@ from vlp_ros.sim.scenarios import Scenario
 from vlp_ros.sim.sensor import encode_jpeg
 
 # Clutter lamps hang this many lamp radii from a mapped lamp, and at least CLUTTER_CLEARANCE radii from any.
-CLUTTER_DISTANCE_RADII = 8.0
+CLUTTER_DISTANCE_RADII = 10.0
 CLUTTER_CLEARANCE_RADII = 4.0
 # Steady light: one chip, always on.
 STEADY = Waveform(np.array([1], dtype=np.uint8), 1.0, 0.0)
@@ -61,14 +61,15 @@ class Look:
             raise ValueError(f'row-time error must be within +-0.1, got {self.row_time_error}')
 
 
-# The independent renderer's realistic look (foreign_frames/README.md), as JPEG at issue 14's q90.
-REALISTIC = Look(blur_sigma=1.6, glare=0.2, falloff=0.3, clutter=2)
+# The independent renderer's realistic look (foreign_frames/README.md), lamps overexposed as in its
+# frames (about half the lamp pixels read 255; docs/simulator.md), and as JPEG at issue 14's q90.
+REALISTIC = Look(blur_sigma=1.6, glare=0.2, falloff=0.3, brightness=2.2, clutter=2)
 LOOKS = {
     'clean': Look(),
     'blur': Look(blur_sigma=2.0),
     'glare': Look(glare=0.2),
     'falloff': Look(falloff=0.3),
-    'saturated': Look(brightness=3.0, bloom=0.3),
+    'saturated': Look(brightness=2.5, bloom=0.3),
     'clutter': Look(clutter=2),
     'jpeg': Look(jpeg_quality=90),
     'row_time_error': Look(row_time_error=0.02),

@@ -20,7 +20,7 @@ from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_o
 
 RIM_SAMPLES = 180
 MARKER_RADIUS_FRACTION = 0.09
-# The glare halo is drawn out to this many of its sigmas (beyond, it is < 0.05 % of the disc's level).
+# The glare halo is drawn out to this many of its sigmas beyond the rim (< 0.05 % of the disc's level there).
 GLARE_REACH_SIGMAS = 3.5
 
 
@@ -177,8 +177,8 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
                 lamp_layers.append((sim, layer))
                 lit.append(truth)
         # The halo forms in the lens, in front of every lamp: added once all discs are drawn, nothing hides it.
-        for (sim, layer), truth in zip(lamp_layers, lit):
-            _add_glare(layer, region, truth, sim, sensor)
+        for (_, layer), truth in zip(lamp_layers, lit):
+            _add_glare(layer, region, truth, sensor)
         canvas = _blurred(background, sensor)
         rows = sensor.row_start_times(first_row_time, ry0, ry1 - ry0)
         for sim, layer in lamp_layers:
@@ -271,34 +271,57 @@ def _image_diameter(truth: LampTruth) -> float:
     return float(2.0 * np.sqrt(truth.ellipse[2] * truth.ellipse[3]))
 
 
+def _glare_box(truth: LampTruth, sensor: SensorModel) -> tuple[int, int, int, int] | None:
+    """The pixel box (x0, y0, x1, y1; not clipped) the lamp's glare halo reaches (None without glare)."""
+    if sensor.glare <= 0.0 or truth.ellipse is None or not np.all(np.isfinite(truth.center_pixel)):
+        return None
+    diameter = _image_diameter(truth)
+    reach = 0.5 * diameter + GLARE_REACH_SIGMAS * sensor.glare_sigma(diameter)
+    cx, cy = truth.center_pixel
+    return (int(np.floor(cx - reach)), int(np.floor(cy - reach)), int(np.ceil(cx + reach)) + 1,
+            int(np.ceil(cy + reach)) + 1)
+
+
 def _light_box(bbox: tuple[int, int, int, int], truth: LampTruth, sensor: SensorModel,
                camera: CameraModel) -> tuple[int, int, int, int]:
     """The pixel box that a lamp's light reaches before blur: its disc, and its glare halo if any."""
-    if sensor.glare <= 0.0 or not np.all(np.isfinite(truth.center_pixel)):
+    glare = _glare_box(truth, sensor)
+    if glare is None:
         return bbox
-    reach = GLARE_REACH_SIGMAS * sensor.glare_sigma(_image_diameter(truth))
-    cx, cy = truth.center_pixel
-    return (max(min(bbox[0], int(np.floor(cx - reach))), 0), max(min(bbox[1], int(np.floor(cy - reach))), 0),
-            min(max(bbox[2], int(np.ceil(cx + reach)) + 1), camera.width),
-            min(max(bbox[3], int(np.ceil(cy + reach)) + 1), camera.height))
+    return (max(min(bbox[0], glare[0]), 0), max(min(bbox[1], glare[1]), 0),
+            min(max(bbox[2], glare[2]), camera.width), min(max(bbox[3], glare[3]), camera.height))
 
 
-def _add_glare(layer: np.ndarray, region: tuple[int, int, int, int], truth: LampTruth, sim: SimLamp,
-               sensor: SensorModel) -> None:
-    """Add the lens-glare halo around a lamp's image centre to its full-level ``layer`` over ``region``."""
-    if sensor.glare <= 0.0 or not np.all(np.isfinite(truth.center_pixel)):
+def _add_glare(layer: np.ndarray, region: tuple[int, int, int, int], truth: LampTruth, sensor: SensorModel) -> None:
+    """Add the lens-glare halo to a lamp's full-level ``layer`` (its light alone) over ``region``.
+
+    The halo is the lamp's light spread by a wide Gaussian (sigma ``glare_width`` x the
+    image diameter), scaled so that over a uniform disc it peaks at ``glare`` x the disc's
+    level: the shape measured on the independent renderer's frames (docs/simulator.md).
+    """
+    glare = _glare_box(truth, sensor)
+    if glare is None:
         return
-    sigma = sensor.glare_sigma(_image_diameter(truth))
-    reach = GLARE_REACH_SIGMAS * sigma
-    cx, cy = truth.center_pixel
-    x0, y0 = max(int(np.floor(cx - reach)), region[0]), max(int(np.floor(cy - reach)), region[1])
-    x1, y1 = min(int(np.ceil(cx + reach)) + 1, region[2]), min(int(np.ceil(cy + reach)) + 1, region[3])
+    x0, y0 = max(glare[0], region[0]) - region[0], max(glare[1], region[1]) - region[1]
+    x1, y1 = min(glare[2], region[2]) - region[0], min(glare[3], region[3]) - region[1]
     if x0 >= x1 or y0 >= y1:
         return
-    gx = np.exp(-0.5 * ((np.arange(x0, x1) - cx) / sigma) ** 2).astype(np.float32)
-    gy = np.exp(-0.5 * ((np.arange(y0, y1) - cy) / sigma) ** 2).astype(np.float32)
-    level = np.asarray(sim.color_bgr, dtype=np.float32) * np.float32(sim.peak_dn * sensor.glare)
-    layer[y0 - region[1]:y1 - region[1], x0 - region[0]:x1 - region[0]] += np.outer(gy, gx)[..., None] * level
+    window = layer[y0:y1, x0:x1]
+    # The centre of a disc of diameter D blurred by sigma = w D keeps 1 - exp(-1 / (8 w^2)) of its level.
+    peak = 1.0 - np.exp(-1.0 / (8.0 * sensor.glare_width ** 2))
+    halo = _wide_blur(window, sensor.glare_sigma(_image_diameter(truth)))
+    window += halo * np.float32(sensor.glare / peak)
+
+
+def _wide_blur(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur with a wide ``sigma``, done at a resolution where sigma is ~8 px (error < 0.1 % of the peak)."""
+    factor = max(1, int(sigma // 8.0))
+    if factor == 1:
+        return cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    height, width = image.shape[:2]
+    small = cv2.resize(image, (-(-width // factor), -(-height // factor)), interpolation=cv2.INTER_AREA)
+    small = cv2.GaussianBlur(small, (0, 0), sigma / factor, borderType=cv2.BORDER_CONSTANT)
+    return cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR)
 
 
 def _rim_ellipse(camera: CameraModel, pose: Pose, lamp: Lamp) -> np.ndarray:
