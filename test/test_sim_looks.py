@@ -14,6 +14,7 @@ from vlp_ros.image_message import parse_compressed_image
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
 from vlp_ros.sim import __main__ as cli
+from vlp_ros.sim import look_check
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC, JPEG_FORMAT, TYPESTORE
 from vlp_ros.sim.looks import LOOKS, Look, apply_look, transported
 from vlp_ros.sim.recording import record, write_params
@@ -238,3 +239,18 @@ def test_command_line_records_a_look_with_its_options(tmp_path, capsys):
     assert params['leds']['lamp']['marker_distance'] == pytest.approx(0.9 * params['leds']['lamp']['radius'])
     nominal = paper_scenario('1080p', points=1, postures=1).sensor.row_time
     assert params['beacon']['row_time'] == pytest.approx(nominal, rel=1e-9)
+
+
+def test_look_check_finds_our_own_realistic_frames_match_our_realistic_look(tmp_path, capsys):
+    scenario = apply_look(with_rim_markers(paper_scenario('1080p', points=1, postures=2, seed=4)), LOOKS['realistic_jpeg'])
+    record(scenario, tmp_path / 'bag', 'mcap', False, np.random.default_rng(2))
+    write_params(tmp_path / 'params.yaml', scenario, False)
+    assert look_check.main([str(tmp_path), '--look', 'realistic']) == 0
+    lines = [line.split() for line in capsys.readouterr().out.splitlines() if ' theirs ' in line or ' ours ' in line]
+    assert len(lines) == 4
+    for theirs, ours in zip(lines[::2], lines[1::2]):
+        assert theirs[3] == 'theirs' and ours[3] == 'ours'
+        halo_theirs, halo_ours = np.array(theirs[4:10], dtype=float), np.array(ours[4:10], dtype=float)
+        assert halo_theirs[0] > 10.0
+        np.testing.assert_allclose(halo_ours, halo_theirs, atol=3.0)
+        assert abs(float(theirs[10]) - float(ours[10])) < 15.0

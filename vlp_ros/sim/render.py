@@ -267,8 +267,8 @@ def _marker_outline(sim: SimLamp) -> np.ndarray:
 
 
 def _image_diameter(truth: LampTruth) -> float:
-    """The lamp's image diameter (px): that of the circle as large as its rim ellipse."""
-    return float(2.0 * np.sqrt(truth.ellipse[2] * truth.ellipse[3]))
+    """The lamp's image diameter (px): the longest, the major axis of its rim ellipse."""
+    return float(2.0 * truth.ellipse[2])
 
 
 def _glare_box(truth: LampTruth, sensor: SensorModel) -> tuple[int, int, int, int] | None:
