@@ -8,7 +8,8 @@ from vlp_ros.pose import Pose
 from vlp_ros.gravity import STANDARD_GRAVITY
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
-from vlp_ros.sim.scenarios import PAPER_DESIGN_DISTANCE, design_beacon, paper_scenario, robot_scenario
+from vlp_ros.sim.scenarios import (PAPER_DESIGN_DISTANCE, as_stills, design_beacon, paper_scenario, robot_drive_scenario,
+                                   robot_scenario, robot_tone_scenario, with_rim_markers)
 
 
 @pytest.mark.parametrize('kind, focal', [('4k', 3223.0), ('1080p', 1612.0)])
@@ -81,3 +82,58 @@ def test_accelerometer_adds_motion_and_noise():
     assert samples.std(axis=0) == pytest.approx([0.05] * 3, rel=0.1)
     with pytest.raises(ValueError, match='random generator'):
         specific_force(pose, noise_std=0.05)
+
+
+def lamps_fully_in_view(scenario, index):
+    frame = render_frame(scenario.camera, scenario.poses[index], scenario.lamps, scenario.sensor, 0.0, None)
+    return [t for t in frame.lamps if t.fully_inside]
+
+
+def test_robot_drive_is_issue_13s_moving_robot_with_gaps():
+    scenario = robot_drive_scenario()
+    assert scenario.frame_rate == 10.0 and scenario.sensor.row_time == 15e-6
+    assert (scenario.beacon.chip_rate, scenario.beacon.id_bits) == (16000.0, 8)
+    steps = np.diff([pose.position[:2] for pose in scenario.poses], axis=0)
+    np.testing.assert_allclose(np.linalg.norm(steps, axis=1) * scenario.frame_rate, 0.8, rtol=0.02)
+    headings = [np.arctan2(pose.rotation[1, 1], pose.rotation[0, 1]) for pose in scenario.poses]
+    turn = np.abs(np.diff(np.unwrap(headings))) * scenario.frame_rate
+    assert 0.25 < turn.max() < 0.35
+    spacing = {round(abs(a.lamp.position[0] - b.lamp.position[0]), 6) for a in scenario.lamps for b in scenario.lamps}
+    assert 2.4 in spacing and 1.2 not in spacing
+    in_view = [lamps_fully_in_view(scenario, k) for k in range(len(scenario.poses))]
+    gaps = sum(1 for seen in in_view if not seen)
+    assert 0.03 * len(in_view) < gaps < 0.25 * len(in_view)
+    # ~77 px across at 4 rows per chip: 0.8 of a 24-chip packet per frame.
+    diameters = [2 * np.sqrt(t.ellipse[2] * t.ellipse[3]) for seen in in_view for t in seen]
+    assert 70.0 < np.median(diameters) < 85.0
+    rows_per_chip = 1.0 / (scenario.beacon.chip_rate * scenario.sensor.row_time)
+    assert np.median(diameters) / (rows_per_chip * packet_length(8)) == pytest.approx(0.8, abs=0.05)
+
+
+def test_robot_tone_lamps_span_two_to_six_periods_and_are_300_hz_apart():
+    scenario = robot_tone_scenario(frames=6)
+    frequencies = sorted(s.lamp.frequency for s in scenario.lamps)
+    assert frequencies[0] == 2000.0 and frequencies[-1] == 5300.0 and set(np.diff(frequencies)) == {300.0}
+    params = scenario.locator_parameters(False)
+    assert params['beacon'] == {'mode': 'tone', 'row_time': 15e-6, 'exposure': 20e-6}
+    assert params['leds']['lamp_1']['frequency'] == 2000.0
+    # A frontal lamp spans its image diameter in rows.
+    span_rows = np.median([2 * np.sqrt(t.ellipse[2] * t.ellipse[3]) for k in range(6)
+                           for t in lamps_fully_in_view(scenario, k)])
+    periods = span_rows * scenario.sensor.row_time * np.array([2000.0, 5300.0])
+    assert 2.0 < periods[0] < 2.6 and 5.6 < periods[1] < 6.6
+
+
+def test_rim_markers_and_stills_keep_everything_else():
+    scenario = paper_scenario('1080p', points=2, postures=1)
+    rim = with_rim_markers(scenario)
+    lamp = rim.lamps[0]
+    assert lamp.lamp.marker_distance == pytest.approx(0.9 * lamp.lamp.radius)
+    assert lamp.marker_radius == pytest.approx(0.1 * lamp.lamp.radius)
+    assert lamp.lamp.marker_angle == scenario.lamps[0].lamp.marker_angle and lamp.waveform == scenario.lamps[0].waveform
+    stills = as_stills(rim, 0.1)
+    np.testing.assert_allclose(np.diff(stills.frame_times()), 0.1)
+    assert 'continuity' not in stills.locator_parameters(True)
+    assert scenario.locator_parameters(True)['continuity'] == {'max_age': 0.0}
+    with pytest.raises(ValueError, match='marker distance'):
+        with_rim_markers(scenario, 1.2)

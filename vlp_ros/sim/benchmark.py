@@ -12,6 +12,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
+from vlp_ros.sim.looks import LOOKS, apply_look
 from vlp_ros.sim.render import lamp_roi, render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 from vlp_ros.benchmarks.timing import median_seconds
@@ -32,13 +33,15 @@ def main(argv: list[str] | None = None) -> None:
              ('paper 4k bayer', paper_scenario('4k', points=1, postures=1, bayer='rggb'), None),
              ('paper 1080p bgr8', paper_scenario('1080p', points=1, postures=1), None),
              ('robot 1080p bgr8 (3 lamps)', robot_scenario(), 240),
-             ('paper 4k roi 256x256', paper_scenario('4k', points=1, postures=1), 'roi')]
+             ('paper 4k roi 256x256', paper_scenario('4k', points=1, postures=1), 'roi'),
+             ('paper 4k realistic look', apply_look(paper_scenario('4k', points=1, postures=1), LOOKS['realistic']), None),
+             ('robot 1080p realistic look', apply_look(robot_scenario(), LOOKS['realistic']), 240)]
     print(f'{"case":<28} {"median ms":>10} {"noise pass ms":>14} {"ratio":>7}')
     for name, scenario, which in cases:
         pose = scenario.poses[which if isinstance(which, int) else 0]
         roi = lamp_roi(scenario.camera, pose, scenario.lamps[0].lamp, 256) if which == 'roi' else None
-        render = median_seconds(lambda: render_frame(scenario.camera, pose, scenario.lamps, scenario.sensor,
-                                                     0.0, rng, roi=roi), args.repeats)
+        render = median_seconds(lambda: render_frame(scenario.camera, pose, scenario.lamps + scenario.clutter,
+                                                     scenario.sensor, 0.0, rng, roi=roi), args.repeats)
         height, width = (roi[3], roi[2]) if roi else (scenario.camera.height, scenario.camera.width)
         reference = median_seconds(noise_pass(height, width, scenario.sensor.bayer is not None), args.repeats)
         print(f'{name:<28} {1e3 * render:>10.1f} {1e3 * reference:>14.1f} {render / reference:>7.2f}')
