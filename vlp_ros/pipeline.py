@@ -70,12 +70,20 @@ class Pipeline:
         if not pairs:
             outcome = UNKNOWN_ID if unknown else NO_ID
             return FrameResult(None, outcome, decoded, unknown, len(observations))
-        choice = self._solve(pairs, camera, stamp, gravity_up)
+        choice = self.locate(pairs, camera, stamp, gravity_up)
         if choice.pose is None:
             return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail)
-        self._recent = (choice.pose, stamp)
-        self.track_restarts += choice.restarts_track
         return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value)
+
+    def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
+               gravity_up: np.ndarray | None = None) -> Choice:
+        """The pose from identified lamps of the frame at ``stamp``, which then continues (or
+        restarts) the track; ``process`` after detection and identification."""
+        choice = self._solve(pairs, camera, stamp, gravity_up)
+        if choice.pose is not None:
+            self._recent = (choice.pose, stamp)
+            self.track_restarts += choice.restarts_track
+        return choice
 
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon

@@ -1,11 +1,14 @@
-"""Covariance honesty on rendered frames: python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S].
+"""Covariance honesty on rendered frames: python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S] [--look NAME ...] [--ids-from-truth].
 
 Whether the published pose covariance is honest, and which measurement makes it
 not. Setups: the seed paper's grid with a 4K camera and the lamp 2 m and 1.5 m up
 (8 x 8 points, 2 postures, gravity from the scenario's IMU as a measurement), and
 the robot's drive (continuous frames, its static mount prior with a sigma, no
 IMU). Every frame is rendered, its lamps detected and matched to the simulator's
-truth, and the frame run through ``Pipeline.process``. Printed per setup:
+truth, and the frame run through ``Pipeline.process`` (or, with ``--ids-from-truth``,
+the matched lamps through ``Pipeline.locate``: the solver's honesty whatever the beacon
+reads). ``--look`` renders every setup with a look of ``vlp_ros.sim.looks`` (falloff,
+glare, blur, realistic, ...; repeatable). Printed per setup and look:
 
 - detection: the rim points' mean signed distance from the true edge (px) and their
   RMS over ``rim_sigma`` (1 if it describes them); the marker's error over
@@ -33,7 +36,8 @@ from vlp_ros.observation import LampObservation
 from vlp_ros.pipeline import Pipeline
 from vlp_ros.pose import Pose
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.render import LampTruth, render_frame
+from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.render import LampTruth
 from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -112,26 +116,33 @@ def up_measurements(settings: LocatorSettings, gravity_up: np.ndarray | None) ->
     return up
 
 
-def run_setup(scenario: Scenario, settings: LocatorSettings, imu: bool, seed: int, number: int) -> Tally:
+def run_setup(scenario: Scenario, settings: LocatorSettings, imu: bool, seed: int, number: int,
+              ids_from_truth: bool = False) -> Tally:
+    """One setup's tally; ``ids_from_truth`` solves the lamps matched to the truth (the solver's
+    honesty whatever the beacon reads) instead of the pipeline's own identification."""
     pipeline = Pipeline(settings)
     lamps = {sim.lamp.id: sim.lamp for sim in scenario.lamps}
     tally = Tally()
     for index, (truth, stamp) in enumerate(zip(scenario.poses, scenario.frame_times())):
         rng = np.random.default_rng([seed, number, index])
-        frame = render_frame(scenario.camera, truth, scenario.lamps, scenario.sensor, float(stamp), rng)
+        frame = scenario.render(index, rng)
+        image = transported(scenario, frame.image)
         force = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
         gravity_up = force / np.linalg.norm(force) if imu else None
-        observations = detect_lamps(frame.image)
+        observations = detect_lamps(image)
         pairs = []
-        for lamp_truth in (t for t in frame.lamps if t.visible and t.fully_inside):
+        for lamp_truth in (t for t in scenario.mapped_truths(frame) if t.visible and t.fully_inside):
             observation = match(observations, lamp_truth)
             if observation is not None:
                 tally_detection(tally, observation, lamp_truth, scenario.camera)
                 pairs.append((observation, lamps[lamp_truth.lamp_id]))
         tally_measurements(tally, pairs, up_measurements(settings, gravity_up), scenario.camera, truth)
-        result = pipeline.process(frame.image, scenario.camera, float(stamp), gravity_up)
-        if result.pose is not None and result.pose.covariance is not None:
-            tally_pose(tally, result.pose, truth)
+        if ids_from_truth:
+            pose = pipeline.locate(pairs, scenario.camera, float(stamp), gravity_up).pose if pairs else None
+        else:
+            pose = pipeline.process(image, scenario.camera, float(stamp), gravity_up).pose
+        if pose is not None and pose.covariance is not None:
+            tally_pose(tally, pose, truth)
     return tally
 
 
@@ -164,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--frames', type=int, default=None, help='at most this many frames per setup')
     parser.add_argument('--imu-sigma', type=float, default=None,
                         help="rad: the locator's imu.sigma on the paper setups (default: the scenario's own)")
+    parser.add_argument('--look', action='append', choices=sorted(LOOKS), default=None,
+                        help='render every setup with this look of vlp_ros.sim.looks (repeatable; default clean)')
+    parser.add_argument('--ids-from-truth', action='store_true',
+                        help='solve the lamps matched to the truth, whatever the beacon reads')
     args = parser.parse_args(argv)
     if args.frames is not None and args.frames < 1:
         parser.error('--frames must be at least 1')
@@ -171,14 +186,18 @@ def main(argv: list[str] | None = None) -> int:
                True) for height in (2.0, 1.5)]
     setups.append(('robot (prior)', robot_scenario(seed=args.seed), False))
     results = []
-    for number, (label, scenario, imu) in enumerate(setups):
-        if args.frames is not None:
-            scenario = scenario.truncated(min(args.frames, len(scenario.poses)))
-        settings = scenario.locator_settings()
-        if imu and args.imu_sigma is not None:
-            settings = replace(settings, imu_sigma=args.imu_sigma)
-        results.append((label, run_setup(scenario, settings, imu, args.seed, number)))
-    print(f'Covariance honesty on rendered frames (seed {args.seed})')
+    for look in args.look or ['clean']:
+        for number, (label, scenario, imu) in enumerate(setups):
+            if args.frames is not None:
+                scenario = scenario.truncated(min(args.frames, len(scenario.poses)))
+            scenario = apply_look(scenario, LOOKS[look], args.seed)
+            settings = scenario.locator_settings()
+            if imu and args.imu_sigma is not None:
+                settings = replace(settings, imu_sigma=args.imu_sigma)
+            results.append((f'{label} {look}', run_setup(scenario, settings, imu, args.seed, number,
+                                                         args.ids_from_truth)))
+    print(f'Covariance honesty on rendered frames (seed {args.seed}'
+          f'{", IDs from the truth" if args.ids_from_truth else ""})')
     print(tables(results))
     return 0
 
