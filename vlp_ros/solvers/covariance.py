@@ -118,17 +118,21 @@ def _add_rotation_curvature(covariance, lever):
 # Model error. A lamp that is not the model's uniform disc with a sharp edge (a diffuser
 # brighter in the middle, glare, soft edges) moves its half-level crossings in or out all
 # round the rim together: measured on an independent renderer's frames with blur 1.6 px,
-# 30 % falloff and glare, 0.4-0.6 px inward with 0.3-0.4 px scatter about that, where
-# clean frames are within 0.03 px. One lamp's rim cannot tell that offset from range
-# (a larger disc farther away has the same image), so it is a parameter of the fit with a
-# prior of ``RIM_OFFSET_PRIOR`` times the rim's scatter (px). Where the data determine it
-# (several lamps fix the scale: its variance falls below ``OFFSET_DETERMINED`` of the
-# prior's) it is estimated and the pose moves with it; otherwise (one lamp, whose marker
-# alone fixes the scale too noisily to be worth moving the pose for) it only widens the
-# covariance along range by what it could be. The rim points' scatter beyond their stated
-# sigma, and a marker that the pose cannot place within ``MARKER_CONSISTENT`` sigmas,
-# widen their own information by what their residuals show.
+# 30 % falloff and glare, 0.4-0.6 px inward with 0.3-0.4 px scatter about that, and on
+# the simulator's falloff look 0.31 px, where clean frames are within 0.03 px. One lamp's
+# rim cannot tell that offset from range (a larger disc farther away has the same image),
+# so it is a parameter of the fit (``measurement.rim_offset_shape`` says how it varies
+# round the rim). With several lamps, which fix the scale, it is estimated with a prior of
+# ``RIM_OFFSET_FLOOR_PX`` (or ``RIM_OFFSET_PRIOR`` times the rim's scatter, if more), and
+# the pose moves with it where the data determine it (its variance below
+# ``OFFSET_DETERMINED`` of the prior's). One lamp's marker would fix the scale too, but
+# too noisily and with a bias near frontal views (measured: 2 mm at 0.3 m, 5 standard
+# errors): there it only widens the covariance along range by ``RIM_OFFSET_PRIOR`` times
+# the rim's scatter. The rim points' scatter beyond their stated sigma, and a marker that
+# the pose cannot place within ``MARKER_CONSISTENT`` sigmas, widen their own information
+# by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
+RIM_OFFSET_FLOOR_PX = 0.5
 OFFSET_DETERMINED = 0.25
 MARKER_CONSISTENT = 2.0
 _REWEIGHTINGS = 2
@@ -147,49 +151,53 @@ class ModelErrorFit:
 
 
 def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma: np.ndarray,
-                          lamp_count: int, marker_count: int) -> ModelErrorFit:
+                          offset_shape: np.ndarray, lamp_count: int, marker_count: int) -> ModelErrorFit:
     """The linear update of a converged fit (whitened ``residuals`` and ``jacobian`` laid out as
     ``fit_kernels.Terms``: rim points, then 2 per marker, then 2 per up direction) by a common
-    rim offset and the residuals' own scatter; ValueError if the pose is not fully observed."""
+    rim offset, each rim point moved by it times its ``offset_shape`` (``measurement.rim_offset_shape``),
+    and by the residuals' own scatter; ValueError if the pose is not fully observed."""
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
     rims, markers = slice(0, rim_count), slice(rim_count, rim_count + 2 * marker_count)
     # d residual / d offset: an outward offset moves every rim point out by it.
     design = np.column_stack([jacobian, np.zeros(len(residuals))])
-    design[rims, 6] = -1.0 / rim_sigma
+    design[rims, 6] = -offset_shape / rim_sigma
     scatter_px = float(np.sqrt(np.mean(np.square(residuals[rims] * rim_sigma))))
     offset_sigma = RIM_OFFSET_PRIOR * max(scatter_px, float(np.mean(rim_sigma)))
+    estimated = lamp_count >= 2
+    if estimated:
+        offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
     weights = np.ones(len(residuals))
     rim_dof = max(rim_count - 5 * lamp_count - 1, 1)
     for _ in range(_REWEIGHTINGS):
-        step, covariance = _weighted_fit(residuals, design, weights, offset_sigma)
+        step, covariance = _weighted_fit(residuals, design, weights, offset_sigma, estimated)
         predicted = residuals + design @ step
         weights[rims] = 1.0 / max(1.0, float(predicted[rims] @ predicted[rims]) / rim_dof)
         marker_chi2 = np.square(predicted[markers]).reshape(-1, 2).sum(axis=1)
         weights[markers] = np.repeat(1.0 / np.where(marker_chi2 > MARKER_CONSISTENT ** 2, marker_chi2, 1.0), 2)
-    step, covariance = _weighted_fit(residuals, design, weights, offset_sigma)
+    step, covariance = _weighted_fit(residuals, design, weights, offset_sigma, estimated)
     predicted = residuals + design @ step
     return ModelErrorFit(step=step[:6], covariance=0.5 * (covariance + covariance.T),
                          cost=float(predicted @ predicted + (step[6] / offset_sigma) ** 2), rim_offset=float(step[6]))
 
 
-def _weighted_fit(residuals: np.ndarray, design: np.ndarray, weights: np.ndarray,
-                  offset_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+def _weighted_fit(residuals: np.ndarray, design: np.ndarray, weights: np.ndarray, offset_sigma: float,
+                  estimated: bool) -> tuple[np.ndarray, np.ndarray]:
     """The Gauss-Newton step (pose, offset) of the weighted residuals with the offset's prior,
-    the offset left at 0 where the data do not determine it, and the pose's covariance."""
+    the offset left at 0 unless ``estimated`` and the data determine it, and the pose's covariance."""
     information = design.T @ (design * weights[:, None])
     information[6, 6] += 1.0 / offset_sigma ** 2
     covariance = np.linalg.inv(information)
     gradient = design.T @ (weights * residuals)
-    if covariance[6, 6] < OFFSET_DETERMINED * offset_sigma ** 2:
+    if estimated and covariance[6, 6] < OFFSET_DETERMINED * offset_sigma ** 2:
         return -covariance @ gradient, covariance[:6, :6]
     step = np.zeros(7)
     step[:6] = -np.linalg.solve(information[:6, :6], gradient[:6])
     return step, covariance[:6, :6]
 
 
-def widened_toward_up(pose: Pose, up_in_camera: np.ndarray, pivot: np.ndarray) -> np.ndarray:
-    """``pose``'s covariance plus the outer product of the pose change that would make it agree
+def widened_toward_up(pose: Pose, up_in_camera: np.ndarray, pivot: np.ndarray, share: float = 1.0) -> np.ndarray:
+    """``pose``'s covariance plus ``share`` of the outer product of the pose change that would make it agree
     with a measured up direction (unit, camera frame): the rotation turning its up onto it, the
     camera turning about the map point ``pivot`` whose bearing the image pins. Whether the up
     measurement (an accelerating IMU) or the lamps (a shape off the model) are wrong, the frame
@@ -204,6 +212,6 @@ def widened_toward_up(pose: Pose, up_in_camera: np.ndarray, pivot: np.ndarray) -
     # exactly the measured angle nor exactly pivoting about ``pivot``.
     for tilt in (rotation, np.array([-rotation[1], rotation[0], 0.0])):
         moved = -np.cross(tilt, pivot - pose.position)
-        widened[:3, :3] += np.outer(moved, moved)
-        widened[3:, 3:] += np.outer(tilt, tilt)
+        widened[:3, :3] += share * np.outer(moved, moved)
+        widened[3:, 3:] += share * np.outer(tilt, tilt)
     return widened

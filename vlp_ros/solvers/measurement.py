@@ -125,3 +125,25 @@ class LampMeasurements:
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """As ``LampMeasurement.linearize``, for all the parts at once."""
         return linearize(self.terms, rotation, position)
+
+
+def rim_offset_shape(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """How far (relative, mean 1 per lamp) model error moves each rim point of ``terms`` across the
+    edge, for the camera pose (``rotation`` camera to map, ``position``): inversely as the image
+    scale across the edge there. A diffuser's falloff or a glare halo changes the light by a
+    fixed share per metre of the disc; blurred by the optics over a fixed number of pixels, it
+    moves the half-level crossing by fewer pixels where the disc is drawn larger (its near side)."""
+    rays_in_map = np.ascontiguousarray(terms.rays, dtype=float) @ rotation.T
+    centres = terms.centres[terms.lamp_of_point]
+    along = (centres[:, 2] - position[2]) / rays_in_map[:, 2]
+    on_disc = position + along[:, None] * rays_in_map
+    radial = on_disc - centres
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    # The image of a point a millimetre further out on the disc.
+    outward = (on_disc + 1e-3 * radial - position) @ rotation
+    moved = outward[:, :2] / outward[:, 2:3] - terms.rays[:, :2] / terms.rays[:, 2:3]
+    shape = 1.0 / np.linalg.norm(moved, axis=1)
+    for lamp in range(len(terms.centres)):
+        mine = terms.lamp_of_point == lamp
+        shape[mine] /= shape[mine].mean()
+    return shape
