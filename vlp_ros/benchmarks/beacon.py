@@ -42,8 +42,9 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
+from vlp_ros.sim.looks import LOOKS, STEADY, Look
 from vlp_ros.sim.render import RenderedFrame, SimLamp, lamp_roi, render_frame
-from vlp_ros.sim.sensor import SensorModel
+from vlp_ros.sim.sensor import SensorModel, encode_jpeg
 
 CAMERA = CameraModel.from_horizontal_fov(2048, 2048, np.radians(60.0))
 RADIUS = 0.1
@@ -81,6 +82,10 @@ class Condition:
     advised: bool = False
     # A raw RGGB mosaic, demosaiced as the locator does for bayer_rggb8 (which mixes neighbouring rows).
     bayer: bool = False
+    # How real optics and cameras show the lamp (vlp_ros.sim.looks; its clutter count is not used: a
+    # ``steady`` lamp, unmodulated and not in the map, stands for clutter).
+    look: Look = Look()
+    steady: bool = False
 
 
 PACKET_BASE = Condition()
@@ -123,6 +128,7 @@ class Scene:
     sim: SimLamp
     sensor: SensorModel
     roi: tuple[int, int, int, int]
+    jpeg_quality: int | None = None
 
 
 @dataclass
@@ -147,16 +153,22 @@ def lamp_scene(rng: np.random.Generator, lamp_id: int, rows: float, waveform, co
     rim = CAMERA.project(pose.map_to_camera(lamp.rim_points(64)))
     distance = float(np.ptp(rim[:, 1])) / rows
     lamp = replace(lamp, position=distance * axis)
-    sim = SimLamp(lamp, waveform, peak_dn=condition.peak_dn)
+    look = condition.look
+    sim = SimLamp(lamp, STEADY if condition.steady else waveform, peak_dn=condition.peak_dn * look.brightness,
+                  falloff=look.falloff, marker_radius=0.0 if condition.steady else None)
     sensor = SensorModel(row_time=row_time, exposure=exposure, full_well=condition.full_well,
-                         bayer='rggb' if condition.bayer else None)
+                         bayer='rggb' if condition.bayer else None, glare=look.glare, glare_width=look.glare_width,
+                         bloom=look.bloom)
+    if look.blur_sigma is not None:
+        sensor = replace(sensor, blur_sigma=look.blur_sigma)
     rim = CAMERA.project(pose.map_to_camera(lamp.rim_points(64)))
-    size = int(np.ceil(np.ptp(rim, axis=0).max())) + 16
+    # A glare halo reaches beyond the disc: the ROI holds it (three diameters).
+    size = min(int(np.ceil(np.ptp(rim, axis=0).max()) * (3.0 if look.glare > 0.0 else 1.0)) + 16, CAMERA.height)
     x0, y0, width, height = lamp_roi(CAMERA, pose, lamp, size)
     if condition.bayer:
         # An even origin keeps the roi's mosaic RGGB.
         x0, y0, width, height = x0 - x0 % 2, y0 - y0 % 2, width + x0 % 2, height + y0 % 2
-    return Scene(CAMERA, pose, sim, sensor, (x0, y0, width, height))
+    return Scene(CAMERA, pose, sim, sensor, (x0, y0, width, height), look.jpeg_quality)
 
 
 def observe(scene: Scene, rng: np.random.Generator) -> tuple[RenderedFrame, LampObservation | None]:
@@ -166,6 +178,8 @@ def observe(scene: Scene, rng: np.random.Generator) -> tuple[RenderedFrame, Lamp
     if scene.sensor.bayer is not None:
         # As image_conversion reads bayer_rggb8: OpenCV's bilinear demosaic.
         frame = replace(frame, image=cv2.cvtColor(frame.image, cv2.COLOR_BayerBG2BGR))
+    if scene.jpeg_quality is not None:
+        frame = replace(frame, image=cv2.imdecode(encode_jpeg(frame.image, scene.jpeg_quality), cv2.IMREAD_COLOR))
     truth = frame.truth(scene.sim.lamp.id)
     if not truth.fully_inside:
         return frame, None
@@ -209,6 +223,8 @@ def packet_trial(rng: np.random.Generator, condition: Condition, tally: Tally, t
     scene, decode = packet_setup(rng, condition, lamp_id)
     frame, observation = observe(scene, rng)
     if observation is not None:
+        # A steady lamp sends no ID: any ID read is wrong.
+        mapped = mapped and not condition.steady
         tally.add_reading(lamp_id, mapped, timed_read(frame, observation, decode, timer)[1])
 
 
@@ -222,7 +238,7 @@ def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
     waveform = packet_waveform(lamp_id, chip_rate, rng.uniform(*condition.depth), ID_BITS)
     scene = lamp_scene(rng, lamp_id, rows, waveform, condition, row_time, exposure)
     nominal_rate = chip_rate * (1.0 + rng.uniform(-0.02, 0.02))
-    nominal_row_time = row_time * (1.0 + rng.uniform(-0.01, 0.01))
+    nominal_row_time = row_time * (1.0 + rng.uniform(-0.01, 0.01)) / (1.0 + condition.look.row_time_error)
     return scene, lambda profile: decode_packet(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS,
                                                 unmapped_weight=unmapped_weight)
 
@@ -254,13 +270,13 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
         rows = MAX_LAMP_ROWS
     waveform = tone_waveform(frequency, rng.uniform(*condition.depth))
     scene = lamp_scene(rng, max(lamp_id, 0), rows, waveform, condition, row_time, exposure)
-    nominal_row_time = row_time * (1.0 + rng.uniform(-0.001, 0.001))
+    nominal_row_time = row_time * (1.0 + rng.uniform(-0.001, 0.001)) / (1.0 + condition.look.row_time_error)
     given = exposure if condition.exposure_given else None
     frame, observation = observe(scene, rng)
     if observation is not None:
         _, reading = timed_read(frame, observation, lambda profile: decode_tone(
             profile, nominal_row_time, TONES, TOLERANCE_HZ, exposure=given), timer, glow=False)
-        tally.add_reading(lamp_id, mapped, reading)
+        tally.add_reading(lamp_id, mapped and not condition.steady, reading)
 
 
 @dataclass
@@ -350,6 +366,16 @@ PACKET_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
     ('tilt (deg)', [(f'{t:g}', replace(PACKET_BASE, tilt_deg=(t, t))) for t in (0, 20, 40, 60)]),
     ('peak DN (255 saturates)', [(f'{p:g}', replace(PACKET_BASE, peak_dn=p)) for p in (100, 200, 300, 450)]),
 ]
+
+
+def look_rows(base: Condition) -> list[tuple[str, Condition]]:
+    """The simulator's looks of real lamps and cameras (vlp_ros.sim.looks), and a steady lamp for clutter."""
+    rows = [(name, replace(base, look=look)) for name, look in LOOKS.items() if name != 'clutter']
+    return rows + [('clutter (steady lamp)', replace(base, steady=True))]
+
+
+# Appended last, so that the tables above keep their draws.
+PACKET_TABLES.append(('look (vlp_ros.sim.looks)', look_rows(PACKET_BASE)))
 # Exactly half a packet (the worst case), bands above it, and the target's population: every span from
 # half a packet up to the 1.3 packets from which one frame is the target.
 TRACK_SPANS = [(0.5, 0.5), (0.5, 0.75), (0.75, 1.0), (0.5, 1.3)]
@@ -368,6 +394,7 @@ TONE_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
     ('exposure not given (periods)', [(f'{lo:g}-{hi:g}', replace(TONE_BASE, span=(lo, hi), exposure_given=False))
                                       for lo, hi in [(3.0, 4.0), (6.0, 10.0), (10.0, 16.0)]]),
     ('Bayer RGGB, demosaiced (periods)', [('3-6', replace(TONE_BASE, span=(3.0, 6.0), bayer=True))]),
+    ('look, 3-6 periods (vlp_ros.sim.looks)', look_rows(replace(TONE_BASE, span=(3.0, 6.0)))),
 ]
 
 HEADER = f'{"":<26}{"trials":>7}{"correct %":>10}{"unmapped %":>12}{"wrong":>7}'
