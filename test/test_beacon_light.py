@@ -1,8 +1,9 @@
 """The light profile: every row a lamp's light reaches, its glow included, and clipped discs read on it."""
 import numpy as np
+import pytest
 from beacon_scenes import glaring_lamp
 
-from vlp_ros.beacon.decoding import decode_packet, decode_tone, light_profile
+from vlp_ros.beacon.decoding import decode_packet, decode_tone, light_profile, read_lamp
 from vlp_ros.beacon.encoding import Waveform, packet_waveform
 
 ROW_TIME = 1.5e-5
@@ -40,3 +41,15 @@ def test_an_unmodulated_glaring_lamp_is_never_identified():
         assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP).lamp_id is None
         tone = decode_tone(profile, ROW_TIME, {1: 2000.0, 2: 2300.0, 3: 2600.0}, 60.0, exposure=2e-5)
         assert tone.lamp_id is None and not tone.unknown
+
+
+@pytest.mark.parametrize('offset', [1e-4, 4e-4, 7e-4])
+def test_a_packet_blurred_by_2_px_with_glare_is_read(offset):
+    # 5 rows per chip under a 2 px blur: an isolated chip keeps about half its contrast.
+    wave = packet_waveform(130, CHIP_RATE, depth=0.6, offset=offset)
+    image, observation = glaring_lamp(wave, ROW_TIME, 1e-5, 95.0, peak=200.0, blur=2.0, rng=np.random.default_rng(1))
+    reading = read_lamp(image, observation, lambda profile: decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP))
+    assert reading.lamp_id == 130
+    sharp_only = read_lamp(image, observation, lambda profile: decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP,
+                                                                             blur_mixes=(0.0,)))
+    assert sharp_only.lamp_id in (None, 130)

@@ -24,6 +24,9 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
                                     no_evidence, reading)
 from vlp_ros.compiled import kernel
 
+# A lamp's band reaches this share of the way to its nearest neighbour (when that is wider than the
+# configured tolerance).
+BAND_SHARE = 0.4
 # Evidence (nats) by which the square wave must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
@@ -80,8 +83,10 @@ _MIXED_WEIGHT = 0.01
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
                 unmapped_weight: float = UNMAPPED_WEIGHT, min_confidence: float = MIN_CONFIDENCE,
-                min_periods: float = 2.8, exposure: float | None = None) -> BeaconReading:
-    """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within ``tolerance_hz``.
+                min_periods: float = 2.0, exposure: float | None = None) -> BeaconReading:
+    """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within its band: ``tolerance_hz``,
+    or BAND_SHARE of the distance to its nearest neighbour in the map if that is wider (a row time known only
+    to about 2 % moves every frequency by 2 %: 106 Hz at 5.3 kHz, inside the 120 Hz of lamps 300 Hz apart).
 
     A frequency outside every band counts for the candidate ``UNMAPPED`` (prior
     ``unmapped_weight`` per hertz relative to the bands). Fewer than
@@ -100,10 +105,11 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
     centres, lowest, highest, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
+    halves = _band_halves(tuple(centres.tolist()), tolerance_hz)
     nyquist = 0.5 / row_time
-    if not highest + tolerance_hz < nyquist:
-        raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
-                         f'(row Nyquist minus tolerance), got {centres.tolist()}')
+    if not np.all(centres + halves < nyquist):
+        raise ValueError(f'lamp frequencies must lie in (0, Nyquist {nyquist:.0f} Hz minus their band) '
+                         f'got {centres.tolist()}')
 
     z, w, usable = relative_brightness(profile)
     if usable < 8:
@@ -141,8 +147,24 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if likelihood.other_peaks:
         return no_evidence(candidates, mapped, prior, 'the stripes fit frequencies apart about as well')
     grid, log_density = likelihood.grid, likelihood.log_density
-    log_mass = _log_band_masses(grid, duration, log_density, fit.dof, centres, tolerance_hz, search)
+    log_mass = _log_band_masses(grid, duration, log_density, fit.dof, centres, halves, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
+
+
+@lru_cache(maxsize=16)
+def _band_halves(centres: tuple[float, ...], tolerance_hz: float) -> np.ndarray:
+    """Each lamp's band half-width (Hz): ``tolerance_hz``, or BAND_SHARE of the distance to its nearest
+    neighbour if wider. The bands keep a gap of 1 - 2 BAND_SHARE of the spacing between them, where a lamp
+    that the map does not hold, half-way between two that it does, reads as unknown."""
+    frequencies = np.array(centres)
+    order = np.argsort(frequencies)
+    gaps = np.diff(frequencies[order])
+    nearest = np.empty(len(frequencies))
+    nearest[order] = np.minimum(np.append(gaps, np.inf), np.insert(gaps, 0, np.inf))
+    # A lone lamp has no neighbour to measure against: its tolerance stands.
+    halves = np.maximum(tolerance_hz, BAND_SHARE * np.where(np.isfinite(nearest), nearest, 0.0))
+    halves.flags.writeable = False
+    return halves
 
 
 @lru_cache(maxsize=16)
@@ -643,8 +665,8 @@ def _inverse(m: np.ndarray) -> tuple[bool, np.ndarray]:
 
 
 def _log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray, dof: int, centres: np.ndarray,
-                     tolerance: float, search: tuple[float, float]) -> np.ndarray:
-    """log P(f in each band: ``centres`` +- ``tolerance``) and, last, log P(f in none), for f's density
+                     tolerance: np.ndarray, search: tuple[float, float]) -> np.ndarray:
+    """log P(f in each band: ``centres`` +- ``tolerance``, per lamp) and, last, log P(f in none), for f's density
     given on an even ``grid`` of cycles per window of ``duration`` (exponential between grid points: a
     Gaussian's tails are integrated well from a coarse grid), continued beyond it by the Student's t
     (``dof`` degrees of freedom, centred on the grid's peak) whose density meets the grid's ends, all cut
@@ -684,7 +706,7 @@ def _blurred(grid: np.ndarray, density: np.ndarray, quantum: float) -> np.ndarra
 
 
 @kernel
-def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centres: np.ndarray, tolerance: float,
+def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centres: np.ndarray, tolerance: np.ndarray,
               search_low: float, search_high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                                               tuple[bool, bool]]:
     """The grid's frequencies (cycles per window of ``duration``); the edges (the bands' low edges, high
