@@ -58,6 +58,8 @@ LOST_ROWS = 6
 # Tallest lamp (rows) a trial renders: it must fit in the 2048-row sensor with its margins.
 MAX_LAMP_ROWS = 1500
 UNMAPPED_SHARE = 0.1
+# Tone mode: how far off the nominal row time is drawn (and the decoder told so; a look may add more).
+ROW_TIME_ERROR = 0.001
 FRAME_PERIOD = 1.0 / 30.0
 
 
@@ -270,12 +272,14 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
         rows = MAX_LAMP_ROWS
     waveform = tone_waveform(frequency, rng.uniform(*condition.depth))
     scene = lamp_scene(rng, max(lamp_id, 0), rows, waveform, condition, row_time, exposure)
-    nominal_row_time = row_time * (1.0 + rng.uniform(-0.001, 0.001)) / (1.0 + condition.look.row_time_error)
+    nominal_row_time = (row_time * (1.0 + rng.uniform(-ROW_TIME_ERROR, ROW_TIME_ERROR))
+                        / (1.0 + condition.look.row_time_error))
     given = exposure if condition.exposure_given else None
     frame, observation = observe(scene, rng)
     if observation is not None:
         _, reading = timed_read(frame, observation, lambda profile: decode_tone(
-            profile, nominal_row_time, TONES, TOLERANCE_HZ, exposure=given), timer, glow=False)
+            profile, nominal_row_time, TONES, TOLERANCE_HZ, exposure=given,
+            row_time_tolerance=max(ROW_TIME_ERROR, abs(condition.look.row_time_error))), timer, glow=False)
         tally.add_reading(lamp_id, mapped and not condition.steady, reading)
 
 
