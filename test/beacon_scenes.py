@@ -62,7 +62,8 @@ def lamp_image(waveform: Waveform, row_time: float, exposure: float, semi_axes: 
 
 def glaring_lamp(waveform: Waveform, row_time: float, exposure: float, radius: float, peak: float = 400.0,
                  halo: float = 0.2, blur: float = 1.6, falloff: float = 0.3, noise: float = 2.0,
-                 background: float = 12.0, rng: np.random.Generator | None = None) -> tuple[np.ndarray, LampObservation]:
+                 background: float = 12.0,
+                 rng: np.random.Generator | None = None) -> tuple[np.ndarray, LampObservation]:
     """An 8-bit mono frame of a round lamp as real optics show it: a diffuser ``falloff`` dimmer at the rim, a
     glare halo (Gaussian of 0.35 of the diameter, ``halo`` of the disc's level at its peak) lit row by row
     like the disc, a Gaussian blur of ``blur`` px, and a disc ``peak`` DN bright at its centre (above 255:

@@ -102,7 +102,7 @@ def test_moving_lamps_keep_their_own_tracks():
     for frame in range(6):
         shift = 70.0 * frame
         readings = [half_packet(201, frame), half_packet(17, frame + 100)]
-        ids = tracker.update([observation_at(100.0 + shift, 50.0, a=38.0), observation_at(1300.0 + shift, 80.0, a=38.0)],
-                             readings, 0.1 * frame)
+        observations = [observation_at(100.0 + shift, 50.0, a=38.0), observation_at(1300.0 + shift, 80.0, a=38.0)]
+        ids = tracker.update(observations, readings, 0.1 * frame)
     assert ids == [201, 17]
     assert len(tracker.tracks) == 2
