@@ -30,6 +30,8 @@ MAX_PACKETS = 2.3
 # about a third and a half of the chip (a 2 px blur of 5-row chips leaves an isolated chip 40 % of its
 # contrast, mix 0.2).
 BLUR_MIXES = (0.0, 0.15, 0.3)
+# The default: sharp chips only. With BLUR_MIXES the benchmark's tracker rows have not been run yet.
+SHARP = (0.0,)
 # A best fit worse than this tail probability of its chi-square means the lamp is not sending packets.
 MISFIT_PROBABILITY = 1e-6
 
@@ -66,7 +68,7 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
                   known_ids: Iterable[int] | None = None, *, exposure: float | None = None,
                   timing_tolerance: float = 0.05, unmapped_weight: float = UNMAPPED_WEIGHT,
                   min_confidence: float = MIN_CONFIDENCE, model_error: float = 0.2,
-                  blur_mixes: tuple[float, ...] = BLUR_MIXES) -> BeaconReading:
+                  blur_mixes: tuple[float, ...] = SHARP) -> BeaconReading:
     """The ID a packet-mode lamp sends, from its row profile.
 
     ``chip_rate`` (Hz) and ``row_time`` (s) are nominal: the chip period is searched
