@@ -58,3 +58,32 @@ def lamp_image(waveform: Waveform, row_time: float, exposure: float, semi_axes: 
         bbox=(x0, y0, x1, y1), disc_mask=disc[y0:y1, x0:x1],
         marker_mask=marker_mask[y0:y1, x0:x1] if marker else None)
     return frame, observation
+
+
+def glaring_lamp(waveform: Waveform, row_time: float, exposure: float, radius: float, peak: float = 400.0,
+                 halo: float = 0.2, blur: float = 1.6, falloff: float = 0.3, noise: float = 2.0,
+                 background: float = 12.0,
+                 rng: np.random.Generator | None = None) -> tuple[np.ndarray, LampObservation]:
+    """An 8-bit mono frame of a round lamp as real optics show it: a diffuser ``falloff`` dimmer at the rim, a
+    glare halo (Gaussian of 0.35 of the diameter, ``halo`` of the disc's level at its peak) lit row by row
+    like the disc, a Gaussian blur of ``blur`` px, and a disc ``peak`` DN bright at its centre (above 255:
+    clipped); the observation holds the disc's ellipse and mask."""
+    import cv2
+    rng = rng or np.random.default_rng(0)
+    size = int(8 * radius)
+    centre = 0.5 * size + 0.3
+    y, x = np.mgrid[0:size, 0:size].astype(float)
+    r2 = ((x - centre) ** 2 + (y - centre) ** 2) / radius ** 2
+    disc = r2 <= 1.0
+    light = peak * (1.0 - falloff * r2) * disc
+    if blur > 0.0:
+        light = cv2.GaussianBlur(light, (0, 0), blur)
+    light = light + halo * peak * np.exp(-0.5 * r2 / 0.7 ** 2)
+    level = row_brightness(waveform, size, row_time, exposure)
+    frame = background + light * level[:, None] + rng.normal(0.0, noise, light.shape)
+    frame = np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+    top, bottom = int(centre - radius) - 1, int(centre + radius) + 2
+    observation = LampObservation(
+        ellipse=np.array([centre, centre, radius, radius, 0.0]), rim_points=np.zeros((0, 2)), rim_sigma=0.3,
+        marker=None, marker_sigma=0.1, bbox=(top, top, bottom, bottom), disc_mask=disc[top:bottom, top:bottom])
+    return frame, observation

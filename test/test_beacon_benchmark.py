@@ -10,7 +10,7 @@ def test_benchmark_prints_tables_targets_and_times(capsys: pytest.CaptureFixture
     for section in ('packet mode, one frame', 'across frames (tracker', 'tone mode, one frame', '== time ==',
                     '== targets =='):
         assert section in out
-    assert 'decode / copy' in out
+    assert 'read / copy' in out
     # The tracker table holds what a noiseless decoder could do with the same frames.
     assert 'bound %' in out.split('across frames (tracker')[1].split('== tone')[0]
     targets = out.split('== targets ==')[1]

@@ -47,3 +47,9 @@ def test_an_exposure_of_about_whole_periods_names_the_washed_out_lamps() -> None
     # 200 us is one period of 5 kHz and 1.6 of 8 kHz (|sinc| 0.19); 1 kHz keeps 94 % of its contrast.
     (advice,) = tone_setting_advice(TONES, 2.0e-5, 2.0e-4)
     assert "'door' (0 %" in advice and "'desk' (19 %" in advice and 'hall' not in advice
+
+
+def test_tone_lamps_closer_than_a_row_time_error_allows_are_named() -> None:
+    # 2 % of the row time moves 8000 Hz by 160 Hz: lamps 250 Hz apart cannot be told apart there.
+    (advice,) = tone_setting_advice({'a': 2000.0, 'b': 2300.0, 'c': 8000.0, 'd': 8250.0}, 2.0e-5, 3.0e-5)
+    assert "'c' and 'd'" in advice and "'a'" not in advice

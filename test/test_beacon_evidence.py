@@ -83,3 +83,26 @@ def test_bad_inputs_are_rejected():
     reading = half_packet(201, 0)
     with pytest.raises(ValueError, match='same length'):
         dataclasses.replace(reading, log_prior=reading.log_prior[:3])
+
+
+def test_a_lamp_moving_through_the_image_becomes_certain_within_a_few_frames():
+    # A robot at 0.8 m/s turning at 0.3 rad/s, 10 frames/s: a 38 px lamp moves 40-100 px a frame on a curve.
+    tracker = EvidenceTracker(MAP)
+    ids = []
+    for frame in range(5):
+        angle = 0.3 * frame
+        x, y = 900.0 + 250.0 * np.cos(angle), 500.0 + 250.0 * np.sin(angle)
+        ids.append(tracker.update([observation_at(x, y, a=38.0)], [half_packet(201, frame)], 0.1 * frame)[0])
+    assert set(ids) <= {None, 201} and ids[-1] == 201
+    assert len(tracker.tracks) == 1
+
+
+def test_moving_lamps_keep_their_own_tracks():
+    tracker = EvidenceTracker(MAP)
+    for frame in range(6):
+        shift = 70.0 * frame
+        readings = [half_packet(201, frame), half_packet(17, frame + 100)]
+        observations = [observation_at(100.0 + shift, 50.0, a=38.0), observation_at(1300.0 + shift, 80.0, a=38.0)]
+        ids = tracker.update(observations, readings, 0.1 * frame)
+    assert ids == [201, 17]
+    assert len(tracker.tracks) == 2

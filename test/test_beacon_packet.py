@@ -137,15 +137,22 @@ def test_other_id_widths_decode(id_bits, lamp_id):
     assert reading.lamp_id == lamp_id and np.argmax(reading.log_likelihoods) == lamp_id
 
 
-def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift():
+@pytest.mark.parametrize('mix', [0.0, 0.2])
+def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift(mix):
     # Each (ID, shift) fitted directly: a weighted quadratic baseline in the chip index plus a positive
-    # contrast times the chip signs; its half gain over the baseline alone, marginalised over shifts.
+    # contrast times the chip signs, each mixed with its neighbours' by ``mix`` (blur across rows); its half
+    # gain over the baseline alone, marginalised over shifts.
     rng = np.random.default_rng(5)
     id_bits, length = 4, 16
+
+    def template(lamp_id, k, shift):
+        chips = packet_chips(lamp_id, id_bits) * 2.0 - 1.0
+        return chips[(k + shift) % length] + mix * (chips[(k + shift - 1) % length] + chips[(k + shift + 1) % length])
+
     k = np.sort(rng.choice(40, 30, replace=False))
-    x = (packet_chips(9, id_bits)[(k + 5) % length] * 2.0 - 1.0) * 0.8 + rng.normal(0.0, 0.5, len(k))
+    x = template(9, k, 5) * 0.8 + rng.normal(0.0, 0.5, len(k))
     v = rng.uniform(0.5, 3.0, len(k))
-    log_likelihoods, misfit = packet._id_log_likelihoods(x, v, k, id_bits)
+    log_likelihoods, misfit = packet._id_log_likelihoods(x, v, k, id_bits, (mix,))
     sqrt_v = np.sqrt(v)
     baseline = np.column_stack([np.ones(len(k)), k, k * k]) * sqrt_v[:, None]
 
@@ -158,8 +165,7 @@ def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift():
     gains = np.zeros((2 ** id_bits, length))
     for lamp_id in range(2 ** id_bits):
         for shift in range(length):
-            signs = packet_chips(lamp_id, id_bits)[(k + shift) % length] * 2.0 - 1.0
-            rss1, contrast = rss(np.column_stack([baseline, signs * sqrt_v]))
+            rss1, contrast = rss(np.column_stack([baseline, template(lamp_id, k, shift) * sqrt_v]))
             gains[lamp_id, shift] = 0.5 * (rss0 - rss1) if contrast > 0.0 else 0.0
     expected = np.log(np.exp(gains).mean(axis=1)) - 0.5 * rss0
     np.testing.assert_allclose(log_likelihoods, expected, rtol=1e-4, atol=1e-4)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, row_profile
+from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, read_lamp
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
@@ -87,12 +87,13 @@ class Pipeline:
 
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon
-        profile = row_profile(image, observation)
         if beacon.mode == 'tone':
-            return decode_tone(profile, beacon.row_time, self._frequencies,
-                               beacon.frequency_tolerance, exposure=beacon.exposure)
+            return read_lamp(image, observation, lambda profile: decode_tone(
+                profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance, exposure=beacon.exposure),
+                glow=False)
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
-        return decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids)
+        return read_lamp(image, observation, lambda profile: decode_packet(
+            profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids))
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
         s = self.settings

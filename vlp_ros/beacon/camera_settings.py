@@ -10,6 +10,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from vlp_ros.beacon.tone import ROW_TIME_TOLERANCE
+
 # Packet mode: rows per chip (the benchmark's fewest, all read), and the longest exposure (in chips)
 # that leaves chips apart.
 MIN_ROWS_PER_CHIP = 2.5
@@ -49,6 +51,12 @@ def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, expos
         advice.append(f'fewer than {MIN_ROWS_PER_PERIOD:g} rows per stripe period at beacon.row_time '
                       f'{row_time * 1e6:g} us for {_listed(few_rows, "rows")}: these lamps need more stripe periods '
                       f'in view (a larger image of the lamp) to be identified')
+    crowded = _crowded_pairs(frequencies)
+    if crowded:
+        pairs = ', '.join(crowded[:6]) + (' and more' if len(crowded) > 6 else '')
+        advice.append(f'tone lamps {pairs} lie closer than {200.0 * ROW_TIME_TOLERANCE:g} % apart: a row time '
+                      f'known to {100.0 * ROW_TIME_TOLERANCE:g} % reads each as the other, so they are not '
+                      f'identified; spread their frequencies')
     if exposure is not None:
         contrast = {name: abs(float(np.sinc(exposure * f))) for name, f in frequencies.items()}
         washed = {name: left for name, left in contrast.items() if left < MIN_TRANSMISSION}
@@ -57,6 +65,13 @@ def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, expos
             advice.append(f'beacon.exposure {exposure * 1e6:g} us spans about whole stripe periods of {lamps}: '
                           f'their stripes are washed out; choose an exposure away from multiples of their periods')
     return advice
+
+
+def _crowded_pairs(frequencies: Mapping[str, float]) -> list[str]:
+    """Neighbouring lamps whose bands overlap under the decoder's row-time tolerance alone (no lamp tolerance)."""
+    ordered = sorted(frequencies.items(), key=lambda item: item[1])
+    return [f'{low!r} and {high!r}' for (low, f_low), (high, f_high) in zip(ordered, ordered[1:])
+            if f_low * (1.0 + ROW_TIME_TOLERANCE) >= f_high * (1.0 - ROW_TIME_TOLERANCE)]
 
 
 def _listed(values: Mapping[str, float], unit: str, percent: bool = False) -> str:

@@ -1,9 +1,12 @@
 """Beacon evidence across frames: a lamp too small to read in one frame is read over several.
 
-Each lamp is tracked by its image position (nearest ellipse centre within a gate
-proportional to its size); the log-likelihoods of its frames add, since the noise
-and the packet phase are independent from frame to frame. A track that is not seen
-for ``max_gap`` seconds is dropped. A frame that is itself certain of another
+Each lamp is tracked by its image position: a moving camera carries lamps through
+the image by tens of pixels a frame, so each track predicts where its lamp is now
+(its last centre moved on at its last velocity) and takes the nearest lamp of a
+similar size within a gate that grows with the time since it was seen. The
+log-likelihoods of its frames add, since the noise and the packet phase are
+independent from frame to frame. A track that is not seen for ``max_gap`` seconds
+is dropped. A frame that is itself certain of another
 candidate than its track starts the track afresh: two lamps were confused.
 """
 from __future__ import annotations
@@ -17,16 +20,32 @@ from vlp_ros.beacon.reading import MIN_CONFIDENCE, BeaconReading, Decision, deci
 from vlp_ros.observation import LampObservation
 
 
+# Largest ratio between the sizes of a lamp in consecutive frames of one track.
+_MAX_SIZE_RATIO = 1.5
+
+
 @dataclass
 class _Track:
     center: np.ndarray
     size: float
     last_seen: float
+    velocity: np.ndarray | None = None
     candidates: np.ndarray | None = None
     log_likelihoods: np.ndarray | None = None
     log_prior: np.ndarray | None = None
     mapped: np.ndarray | None = None
     frames: int = 0
+
+    def predicted(self, elapsed: float) -> np.ndarray:
+        """Where the lamp should be ``elapsed`` s after it was last seen."""
+        return self.center if self.velocity is None else self.center + self.velocity * elapsed
+
+    def follow(self, observation: LampObservation, stamp: float) -> None:
+        """Move the track to ``observation``, seen at ``stamp``."""
+        elapsed = stamp - self.last_seen
+        if elapsed > 0.0:
+            self.velocity = (observation.center - self.center) / elapsed
+        self.center, self.size, self.last_seen = observation.center, float(observation.ellipse[2]), stamp
 
     def restart(self, reading: BeaconReading) -> None:
         """Forget the evidence so far and start from ``reading``."""
@@ -38,20 +57,27 @@ class _Track:
 class EvidenceTracker:
     """Accumulates per-candidate evidence for every lamp in view until its ID is certain.
 
-    ``known_ids`` (None: any) limits the IDs it returns; ``gate`` is the largest
-    centre jump between frames as a fraction of the lamp's semi-major axis.
+    ``known_ids`` (None: any) limits the IDs it returns. A lamp continues a track when
+    its centre lies within ``gate`` + ``reach`` x (time since the track was seen, s)
+    semi-major axes of where the track predicts it: ``gate`` is what the prediction
+    may miss by, ``reach`` how fast (semi-major axes per second) a lamp's image may
+    change its speed. The gate must stay below half the distance between lamps in the
+    image (in semi-major axes, the lamps' spacing over their radius: 32 for 15 cm
+    lamps 2.4 m apart).
     """
 
     def __init__(self, known_ids: Iterable[int] | None = None, min_confidence: float = MIN_CONFIDENCE,
-                 gate: float = 0.5, max_gap: float = 0.5) -> None:
+                 gate: float = 0.5, max_gap: float = 0.5, reach: float = 30.0) -> None:
         if not 0.0 < min_confidence < 1.0:
             raise ValueError(f'min_confidence must lie in (0, 1), got {min_confidence}')
-        if not (gate > 0.0 and max_gap > 0.0):
-            raise ValueError(f'gate and max_gap must be positive, got {gate} and {max_gap}')
+        if not (gate > 0.0 and max_gap > 0.0 and reach >= 0.0):
+            raise ValueError(f'gate and max_gap must be positive and reach not negative, got {gate}, {max_gap} '
+                             f'and {reach}')
         self.known_ids = None if known_ids is None else set(int(i) for i in known_ids)
         self.min_confidence = min_confidence
         self.gate = gate
         self.max_gap = max_gap
+        self.reach = reach
         self.tracks: list[_Track] = []
         self.decisions: list[Decision] = []
         self._stamp: float | None = None
@@ -65,7 +91,7 @@ class EvidenceTracker:
             self.tracks = []
         self._stamp = stamp
         self.tracks = [t for t in self.tracks if stamp - t.last_seen <= self.max_gap]
-        matches = self._associate(observations)
+        matches = self._associate(observations, stamp)
         self.decisions = []
         for k, (observation, reading) in enumerate(zip(observations, readings)):
             track = matches.get(k)
@@ -77,18 +103,23 @@ class EvidenceTracker:
                 track.log_likelihoods = track.log_likelihoods + reading.log_likelihoods
             else:
                 track.restart(reading)
-            track.center, track.size, track.last_seen = observation.center, float(observation.ellipse[2]), stamp
+            track.follow(observation, stamp)
             track.frames += 1
             self.decisions.append(self._decide(track))
         return [d.lamp_id for d in self.decisions]
 
-    def _associate(self, observations: Sequence[LampObservation]) -> dict[int, _Track]:
-        """Observation index -> track, nearest pairs first, each track used once."""
+    def _associate(self, observations: Sequence[LampObservation], stamp: float) -> dict[int, _Track]:
+        """Observation index -> track, nearest to the tracks' predictions first, each track used once."""
         pairs = []
-        for k, observation in enumerate(observations):
-            for track in self.tracks:
-                distance = float(np.linalg.norm(observation.center - track.center))
-                if distance <= self.gate * max(float(observation.ellipse[2]), track.size):
+        for track in self.tracks:
+            elapsed = stamp - track.last_seen
+            predicted = track.predicted(elapsed)
+            for k, observation in enumerate(observations):
+                size = float(observation.ellipse[2])
+                if not 1.0 / _MAX_SIZE_RATIO <= size / track.size <= _MAX_SIZE_RATIO:
+                    continue
+                distance = float(np.linalg.norm(observation.center - predicted))
+                if distance <= (self.gate + self.reach * elapsed) * max(size, track.size):
                     pairs.append((distance, k, id(track), track))
         matches: dict[int, _Track] = {}
         taken: set[int] = set()

@@ -16,7 +16,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2
 
-from vlp_ros.beacon.chips import chip_levels
+from vlp_ros.beacon.chips import ChipLevels, chip_levels
 from vlp_ros.beacon.encoding import packet_bits, packet_chips, packet_length
 from vlp_ros.beacon.profile import RowProfile, relative_brightness
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
@@ -26,8 +26,22 @@ from vlp_ros.compiled import kernel
 MIN_CHIPS = 6
 # Beyond this many packets more rows add little but time: the central ones are used.
 MAX_PACKETS = 2.3
+# Shares of each neighbouring chip that blur across rows may mix into a chip: sharp, and a Gaussian blur of
+# about a third and a half of the chip (a 2 px blur of 5-row chips leaves an isolated chip 40 % of its
+# contrast, mix 0.2).
+BLUR_MIXES = (0.0, 0.15, 0.3)
+# The default: sharp chips only. With BLUR_MIXES the benchmark's tracker rows have not been run yet.
+SHARP = (0.0,)
 # A best fit worse than this tail probability of its chi-square means the lamp is not sending packets.
 MISFIT_PROBABILITY = 1e-6
+
+
+@lru_cache(maxsize=4)
+def _neighbour_products(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ID's products of chip signs one and two positions apart around the packet, (L, 2^id_bits)
+    each: s[p] s[p + 1] and s[p] s[p + 2]."""
+    signs = np.array([packet_chips(i, id_bits) for i in range(2 ** id_bits)], dtype=float) * 2 - 1
+    return ((signs * np.roll(signs, -1, axis=1)).T.copy(), (signs * np.roll(signs, -2, axis=1)).T.copy())
 
 
 @lru_cache(maxsize=4)
@@ -53,7 +67,8 @@ def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
 def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bits: int = 8,
                   known_ids: Iterable[int] | None = None, *, exposure: float | None = None,
                   timing_tolerance: float = 0.05, unmapped_weight: float = UNMAPPED_WEIGHT,
-                  min_confidence: float = MIN_CONFIDENCE, model_error: float = 0.2) -> BeaconReading:
+                  min_confidence: float = MIN_CONFIDENCE, model_error: float = 0.2,
+                  blur_mixes: tuple[float, ...] = SHARP) -> BeaconReading:
     """The ID a packet-mode lamp sends, from its row profile.
 
     ``chip_rate`` (Hz) and ``row_time`` (s) are nominal: the chip period is searched
@@ -61,7 +76,9 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     at each chip edge see both neighbours. ``known_ids`` are the map's IDs (None:
     all); every other ID has ``unmapped_weight`` times their prior. ``model_error``
     is the spread (in half-contrasts) that any chip level may have beyond pixel
-    noise: it keeps single chips from deciding alone.
+    noise: it keeps single chips from deciding alone. ``blur_mixes`` are the shares of each
+    neighbouring chip that optical blur across rows may mix into a chip, equally likely a priori; they
+    are weighed in only when sharp chips leave the ID open.
     """
     if not (chip_rate > 0.0 and row_time > 0.0):
         raise ValueError(f'chip_rate and row_time must be positive, got {chip_rate} and {row_time}')
@@ -82,8 +99,18 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
         return no_evidence(candidates, mapped, prior, 'too few rows for a chip grid')
     if levels.index.size < MIN_CHIPS:
         return no_evidence(candidates, mapped, prior, f'only {levels.index.size} chips visible')
-    log_likelihoods, misfit = _id_log_likelihoods(
-        levels.levels, 1.0 / (levels.variances + model_error ** 2), levels.index, id_bits)
+    weights = 1.0 / (levels.variances + model_error ** 2)
+    # Sharp chips first (quick, and all a sharp lamp needs); blurred ones weighed in when that leaves the ID open.
+    sharp = _packet_reading(levels, weights, id_bits, (0.0,), candidates, mapped, prior, min_confidence)
+    if sharp.lamp_id is not None or sharp.unknown or blur_mixes == (0.0,):
+        return sharp
+    return _packet_reading(levels, weights, id_bits, blur_mixes, candidates, mapped, prior, min_confidence)
+
+
+def _packet_reading(levels: ChipLevels, weights: np.ndarray, id_bits: int, mixes: tuple[float, ...],
+                    candidates: np.ndarray, mapped: np.ndarray, prior: np.ndarray,
+                    min_confidence: float) -> BeaconReading:
+    log_likelihoods, misfit = _id_log_likelihoods(levels.levels, weights, levels.index, id_bits, mixes)
     if misfit > _misfit_limit(levels.index.size - 4):
         return no_evidence(candidates, mapped, prior, 'the chips fit no packet')
     return reading(candidates, mapped, log_likelihoods, prior, min_confidence)
@@ -122,29 +149,60 @@ def _hypotheses(id_bits: int, known_ids: tuple[int, ...] | None,
     return candidates, mapped, prior
 
 
-def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: int) -> tuple[np.ndarray, float]:
-    """Log-likelihood of each ID (the window's start in the packet marginalised), and the best fit's
-    weighted squared residual.
+def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: int,
+                        mixes: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, float]:
+    """Log-likelihood of each ID (the window's start in the packet and the blur's mix marginalised), and the
+    best fit's weighted squared residual.
 
     Chip k of the window is packet position (k + shift) % L; its level is a
-    quadratic baseline in k plus beta * sign, Gaussian with weights ``v``, fitted per
-    hypothesis with beta > 0. The baseline takes up what the ID-blind envelope left:
+    quadratic baseline in k plus beta * (sign_k + mix (sign_k-1 + sign_k+1)), Gaussian with weights ``v``,
+    fitted per hypothesis with beta > 0: optical blur across rows mixes each chip with its neighbours
+    (``mixes``, equally likely a priori; 0: sharp). The baseline takes up what the ID-blind envelope left:
     a preamble's run of bright chips leans any envelope fitted through the stripes.
     """
     design, chip_weights = _codebook(id_bits)
-    per_bit, baseline_rss = _per_bit_sums(x, v, k, chip_weights)
-    # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
-    sums = per_bit @ design
-    half_gain, best = _half_gains(sums, np.float32(v.sum()), len(chip_weights))
-    # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
-    spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / len(chip_weights))
-    return best.astype(float) + spread - 0.5 * baseline_rss, baseline_rss - 2.0 * float(best.max())
+    length = len(chip_weights)
+    per_mix, misfit = [], np.inf
+    for mix in mixes:
+        per_bit, baseline_rss, by_weight = _per_bit_sums(x, v, k, chip_weights, mix)
+        # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
+        sums = per_bit @ design
+        energy = _template_energy(by_weight, mix, id_bits, float(v.sum()))
+        half_gain, best = _half_gains(sums, energy, length)
+        # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
+        spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / length)
+        per_mix.append(best.astype(float) + spread - 0.5 * baseline_rss)
+        misfit = min(misfit, baseline_rss - 2.0 * float(best.max()))
+    if len(per_mix) == 1:
+        return per_mix[0], misfit
+    stacked = np.array(per_mix)
+    top = stacked.max(axis=0)
+    return top + np.log(np.exp(stacked - top).mean(axis=0)), misfit
+
+
+def _template_energy(by_weight: np.ndarray, mix: float, id_bits: int, total: float) -> np.ndarray:
+    """sum(v t^2) of every (shift, ID)'s template t_k = s_k + mix (s_k-1 + s_k+1), (L, ids) float32;
+    ``by_weight`` (L, L) holds the weights v summed by packet position for each shift."""
+    length = by_weight.shape[0]
+    if mix == 0.0:
+        return np.full((length, 2 ** id_bits), total, dtype=np.float32)
+    next_products, second_products = _neighbour_products(id_bits)
+    # s_k s_k+1 and s_k s_k-1 (the product one back, at position p - 1), and s_k-1 s_k+1 (at p - 1).
+    before = np.roll(by_weight, -1, axis=1)
+    energy = ((1.0 + 2.0 * mix * mix) * total + 2.0 * mix * ((by_weight + before) @ next_products)
+              + 2.0 * mix * mix * (before @ second_products))
+    return energy.astype(np.float32)
 
 
 @kernel
-def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.ndarray) -> tuple[np.ndarray, float]:
-    """What each hypothesis's fit needs, factored by bit: (4 L, 2 + id_bits) float32, row f L + shift,
-    and the baseline's weighted squared residual.
+def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.ndarray,
+                  mix: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """What each hypothesis's fit needs, factored by bit: (4 L, 2 + id_bits) float32, row f L + shift;
+    the baseline's weighted squared residual; and the weights v summed by packet position for each
+    shift (L, L).
+
+    With ``mix``, chip j's template also holds mix times its neighbours' signs: what it puts on its own
+    position goes on the neighbouring positions too, times mix.
 
     Per packet position: sums of v times each orthonormal baseline column over the chips that land
     there, and of v times what the baseline leaves of x (every ID's fit is linear in it), the latter
@@ -165,15 +223,28 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
     # Twice over, so that position - shift + L indexes (position - shift) % L.
     by_position = np.zeros((4, 2 * length))
     half = math.sqrt(0.5)
+    weight_at = np.zeros(2 * length)
     for j in range(n):
         position = k[j] % length
+        earlier, later = (position - 1) % length, (position + 1) % length
+        weight_at[position] += v[j]
         explained = 0.0
         for f in range(3):
             vbasis = basis[f, j] * v[j]
-            by_position[f, position] += vbasis
             explained += baseline[f] * vbasis
-        by_position[3, position] += (v[j] * x[j] - explained) * half
+            by_position[f, position] += vbasis
+            by_position[f, earlier] += mix * vbasis
+            by_position[f, later] += mix * vbasis
+        residual = (v[j] * x[j] - explained) * half
+        by_position[3, position] += residual
+        by_position[3, earlier] += mix * residual
+        by_position[3, later] += mix * residual
     by_position[:, length:] = by_position[:, :length]
+    weight_at[length:] = weight_at[:length]
+    by_weight = np.empty((length, length))
+    for shift in range(length):
+        for position in range(length):
+            by_weight[shift, position] = weight_at[position - shift + length]
     per_bit = np.empty((4 * length, bits), dtype=np.float32)
     totals = np.empty(bits)
     for f in range(4):
@@ -184,11 +255,11 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
                 for b in range(bits):
                     totals[b] += folded * chip_weights[position, b]
             per_bit[f * length + shift] = totals
-    return per_bit, baseline_rss
+    return per_bit, baseline_rss, by_weight
 
 
 @kernel
-def _half_gains(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.ndarray, np.ndarray]:
+def _half_gains(sums: np.ndarray, energy: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
     """Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
     ID's best (float32 arithmetic, like the sums).
 
@@ -196,13 +267,13 @@ def _half_gains(sums: np.ndarray, total: np.float32, length: int) -> tuple[np.nd
     contrast must be positive.
     """
     ids = sums.shape[1]
-    floor = np.float32(1e-6) * total
     gains = np.empty((length, ids), dtype=np.float32)
     best = np.full(ids, -np.inf, dtype=np.float32)
     for shift in range(length):
         for i in range(ids):
             a, b, c = sums[shift, i], sums[length + shift, i], sums[2 * length + shift, i]
-            schur = max(total - (a * a + b * b + c * c), floor)
+            total = energy[shift, i]
+            schur = max(total - (a * a + b * b + c * c), np.float32(1e-6) * total)
             target = max(sums[3 * length + shift, i], np.float32(0.0))
             gains[shift, i] = target * target / schur
             best[i] = max(best[i], gains[shift, i])

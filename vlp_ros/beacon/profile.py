@@ -7,6 +7,7 @@ the disc, so both are left out; rows that keep fewer pixels are weighted less.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -197,3 +198,179 @@ def _relative_window(values: np.ndarray, weights: np.ndarray) -> tuple[np.ndarra
         return values[:0], weights[:0], 0
     values, weights = values[used[0]:used[-1] + 1], weights[used[0]:used[-1] + 1]
     return values / (values @ weights / weights.sum()) - 1.0, weights, len(used)
+
+
+# How far out (semi-major axes from the centre) a lamp's light is read, the columns read per row at
+# most (every k-th, so a 4K lamp costs what a small one does), and the radial bins of its light.
+LIGHT_REACH = 3.0
+_MAX_COLUMNS = 128
+_RADIAL_BINS = 72
+# Fits of the light's shape and the rows' brightness, in turn.
+_ROUNDS = 4
+# A bin whose light is below this share of the brightest is background: it carries no stripes.
+_MIN_LIGHT = 0.02
+# Pixels within this many pixels of the rim are left out: blur makes their light depend on where the edge
+# passes them, which no radial shape follows.
+_RIM_MARGIN = 3.0
+# Pixels this far out (semi-major axes) are beyond the blurred rim: the background is measured on them.
+_OUTSIDE = 1.25
+# A pixel this close to the ceiling is taken as clipped (JPEG rings saturated areas by a few DN).
+_CLIPPED = 0.97
+
+
+def light_profile(image: np.ndarray, observation: LampObservation, marker_margin: int = 2,
+                  ceiling: float | None = None, reach: float = LIGHT_REACH) -> RowProfile:
+    """The lamp's brightness per row from every pixel its light reaches, glow and glare included.
+
+    A lamp lights its pixels as ``background + light(rho) x brightness(row)``: the disc,
+    its diffuser's falloff and the glare halo around it make one radial shape ``light``
+    (rho: the distance from the centre in the ellipse's own axes), and the rolling shutter
+    makes every row's ``brightness``; both are fitted in turn by least squares, over the
+    pixels within ``reach`` semi-major axes of the centre (the background is the darkest fifth
+    of the pixels beyond the rim). Each row's weight is sum(light^2) over its pixels in units of the
+    brightest bin's, the pixels' worth in noise: the glow's rows above and below the disc
+    count, weakly. Clipped pixels (within 3 % of ``ceiling``, the integer dtype's maximum
+    by default) say only that the row was bright and are left out, like the marker's
+    pixels (grown by ``marker_margin``); ``saturated`` is their share of each row's lit
+    pixels. Optical blur stays in the brightness: it blurs the stripes across rows.
+    """
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        raise ValueError(f'image must be mono (H, W) or BGR (H, W, 3), got shape {image.shape}')
+    if not reach > 1.0:
+        raise ValueError(f'reach must exceed 1 semi-major axis, got {reach}')
+    cx, cy, a, b, theta = (float(v) for v in observation.ellipse)
+    height, width = image.shape[:2]
+    half = reach * a
+    y0, y1 = max(int(cy - half), 0), min(int(math.ceil(cy + half)) + 1, height)
+    x0, x1 = max(int(cx - half), 0), min(int(math.ceil(cx + half)) + 1, width)
+    if not (y0 < y1 and x0 < x1):
+        raise ValueError(f'lamp at ({cx:.1f}, {cy:.1f}) does not lie inside the {width}x{height} image')
+    if ceiling is None and image.dtype.kind in 'ui':
+        ceiling = _integer_ceiling(image.dtype)
+    pixels = image if image.ndim == 3 else image[..., None]
+    if observation.marker_mask is None:
+        marker, origin = np.zeros((1, 1), dtype=np.uint8), (0, 0)
+    else:
+        bx0, by0, bx1, by1 = (int(v) for v in observation.bbox)
+        marker, origin = _mask(observation.marker_mask, (by1 - by0, bx1 - bx0), 'marker_mask'), (bx0, by0)
+    stride = max(1, math.ceil((x1 - x0) / _MAX_COLUMNS))
+    values, weights, saturated = _separable_light(
+        pixels, y0, y1, x0, x1, stride, cx, cy, a, max(b, 1e-6), theta, reach, marker, origin, marker_margin,
+        np.inf if ceiling is None else _CLIPPED * float(ceiling))
+    return RowProfile(values, weights, saturated, y0)
+
+
+@kernel
+def _separable_light(pixels: np.ndarray, y0: int, y1: int, x0: int, x1: int, stride: int, cx: float, cy: float,
+                     a: float, b: float, theta: float, reach: float, marker: np.ndarray, origin: tuple[int, int],
+                     marker_margin: int, clipped: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """light_profile's fit: per row of [y0, y1), the brightness, the weight and the clipped share.
+
+    One pass sums the pixels per (row, radial bin), unclipped ones apart; the fits work on those sums.
+    """
+    rows = y1 - y0
+    total, count = np.zeros((rows, _RADIAL_BINS)), np.zeros((rows, _RADIAL_BINS))
+    clips = np.zeros((rows, _RADIAL_BINS))
+    cos_t, sin_t = math.cos(theta), math.sin(theta)
+    channels = pixels.shape[2]
+    # The blurred rim: how much light a pixel there gets depends on where exactly the edge passes it.
+    rim_low, rim_high = 1.0 - _RIM_MARGIN / b, 1.0 + _RIM_MARGIN / b
+    # The marker's box, grown by its margin, in frame coordinates.
+    mx0, my0 = origin[0] - marker_margin, origin[1] - marker_margin
+    mx1, my1 = origin[0] + marker.shape[1] + marker_margin, origin[1] + marker.shape[0] + marker_margin
+    outer = np.empty(rows * ((x1 - x0 + stride - 1) // stride))
+    outside = 0
+    for y in range(y0, y1):
+        for x in range(x0, x1, stride):
+            u = (x - cx) * cos_t + (y - cy) * sin_t
+            v = -(x - cx) * sin_t + (y - cy) * cos_t
+            rho = math.sqrt((u / a) ** 2 + (v / b) ** 2)
+            if rho >= reach or rim_low < rho < rim_high:
+                continue
+            if mx0 <= x < mx1 and my0 <= y < my1 and _near(marker, y - origin[1], x - origin[0], marker_margin):
+                continue
+            if channels == 3:
+                luma = 0.114 * pixels[y, x, 0] + 0.587 * pixels[y, x, 1] + 0.299 * pixels[y, x, 2]
+                top = max(pixels[y, x, 0], max(pixels[y, x, 1], pixels[y, x, 2]))
+            else:
+                luma = float(pixels[y, x, 0])
+                top = pixels[y, x, 0]
+            if rho >= _OUTSIDE:
+                outer[outside] = luma
+                outside += 1
+            k = min(int(rho / reach * _RADIAL_BINS), _RADIAL_BINS - 1)
+            if top >= clipped:
+                clips[y - y0, k] += 1.0
+            else:
+                total[y - y0, k] += luma
+                count[y - y0, k] += 1.0
+    # The darkest fifth of what lies beyond the disc: the ring's far corners, past any glow.
+    background = np.percentile(outer[:outside:max(outside // 512, 1)], 20.0) if outside else 0.0
+    total -= background * count
+    # Where the disc clips in its bright rows, only its dark rows see it: fitted together with the rest,
+    # its light and those rows' brightness trade off against each other and converge slowly. So the rows
+    # are first measured on the bins that never clip (glow, rim), and the clipping bins fitted to them.
+    free = np.ones(_RADIAL_BINS)
+    for k in range(_RADIAL_BINS):
+        if clips[:, k].sum() > 0.01 * (clips[:, k].sum() + count[:, k].sum()):
+            free[k] = 0.0
+    if not (free * count.sum(axis=0)).any():
+        free[:] = 1.0
+    brightness, weights = np.ones(rows), np.ones(rows)
+    light = np.zeros(_RADIAL_BINS)
+    for done in range(_ROUNDS + 2):
+        use = free if done < _ROUNDS else np.ones(_RADIAL_BINS)
+        light = _fit_light(total, count, use, brightness, weights)
+        brightness, weights = _fit_rows(total, count, light)
+    # The rows' weights in pixels of the brightest light, and their clipped share among lit pixels.
+    reference = max(light.max(), 1e-12)
+    weights /= reference * reference
+    lit, clipped_count = np.zeros(rows), np.zeros(rows)
+    for r in range(rows):
+        for k in range(_RADIAL_BINS):
+            if light[k] > 0.0:
+                lit[r] += count[r, k] + clips[r, k]
+                clipped_count[r] += clips[r, k]
+    # Rows outside the light altogether, or worth less than a thousandth of the best row, carry nothing.
+    weights[weights < 1e-3 * weights.max()] = 0.0
+    return brightness * reference, weights, clipped_count / np.maximum(lit, 1.0)
+
+
+@kernel
+def _fit_light(total: np.ndarray, count: np.ndarray, use: np.ndarray, brightness: np.ndarray,
+               measured: np.ndarray) -> np.ndarray:
+    """Each radial bin's light given the rows' brightness (least squares over the unclipped pixels of the
+    bins in ``use`` and the rows ``measured`` > 0); bins dimmer than _MIN_LIGHT of the brightest are
+    background (0)."""
+    rows, bins = total.shape
+    light = np.zeros(bins)
+    for k in range(bins):
+        if use[k] > 0.0:
+            top, bottom = 0.0, 0.0
+            for r in range(rows):
+                if measured[r] > 0.0:
+                    top += total[r, k] * brightness[r]
+                    bottom += count[r, k] * brightness[r] * brightness[r]
+            light[k] = top / max(bottom, 1e-12)
+    floor = _MIN_LIGHT * light.max()
+    for k in range(bins):
+        if light[k] < floor:
+            light[k] = 0.0
+    return light
+
+
+@kernel
+def _fit_rows(total: np.ndarray, count: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's brightness given the light's shape, and sum(light^2) over its unclipped pixels."""
+    rows, bins = total.shape
+    brightness, weights = np.ones(rows), np.zeros(rows)
+    for r in range(rows):
+        top = 0.0
+        for k in range(bins):
+            if light[k] > 0.0:
+                top += total[r, k] * light[k]
+                weights[r] += count[r, k] * light[k] * light[k]
+        if weights[r] > 0.0:
+            brightness[r] = top / weights[r]
+    return brightness, weights

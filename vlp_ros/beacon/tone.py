@@ -24,6 +24,9 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
                                     no_evidence, reading)
 from vlp_ros.compiled import kernel
 
+# How far off (relative) the row time may be: every frequency then reads off by as much, so each lamp's band
+# widens by that share of its frequency (issue 14: nominal row times are 0.3-2 % off).
+ROW_TIME_TOLERANCE = 0.02
 # Evidence (nats) by which the square wave must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
@@ -80,8 +83,11 @@ _MIXED_WEIGHT = 0.01
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
                 unmapped_weight: float = UNMAPPED_WEIGHT, min_confidence: float = MIN_CONFIDENCE,
-                min_periods: float = 2.8, exposure: float | None = None) -> BeaconReading:
-    """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within ``tolerance_hz``.
+                min_periods: float = 2.0, exposure: float | None = None,
+                row_time_tolerance: float = ROW_TIME_TOLERANCE) -> BeaconReading:
+    """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within its band: the frequency
+    +- (``tolerance_hz`` + ``row_time_tolerance`` x the frequency), since a row time off by 2 % reads every
+    frequency 2 % off. Where neighbouring bands overlap, a frequency in both gives neither (no ID).
 
     A frequency outside every band counts for the candidate ``UNMAPPED`` (prior
     ``unmapped_weight`` per hertz relative to the bands). Fewer than
@@ -100,10 +106,13 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
     centres, lowest, highest, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
+    if not 0.0 <= row_time_tolerance < 0.5:
+        raise ValueError(f'row_time_tolerance must lie in [0, 0.5), got {row_time_tolerance}')
+    low, high = _bands(tuple(centres.tolist()), tolerance_hz, row_time_tolerance)
     nyquist = 0.5 / row_time
-    if not highest + tolerance_hz < nyquist:
-        raise ValueError(f'lamp frequencies must lie in (0, {nyquist - tolerance_hz:.0f}) Hz '
-                         f'(row Nyquist minus tolerance), got {centres.tolist()}')
+    if not np.all(high < nyquist):
+        raise ValueError(f'lamp frequencies must lie in (0, Nyquist {nyquist:.0f} Hz minus their band) '
+                         f'got {centres.tolist()}')
 
     z, w, usable = relative_brightness(profile)
     if usable < 8:
@@ -141,8 +150,19 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if likelihood.other_peaks:
         return no_evidence(candidates, mapped, prior, 'the stripes fit frequencies apart about as well')
     grid, log_density = likelihood.grid, likelihood.log_density
-    log_mass = _log_band_masses(grid, duration, log_density, fit.dof, centres, tolerance_hz, search)
+    log_mass = _log_band_masses(grid, duration, log_density, fit.dof, low, high, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
+
+
+@lru_cache(maxsize=16)
+def _bands(centres: tuple[float, ...], tolerance_hz: float, row_time_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each lamp's band (Hz): its low and high edges."""
+    frequencies = np.array(centres)
+    low = frequencies * (1.0 - row_time_tolerance) - tolerance_hz
+    high = frequencies * (1.0 + row_time_tolerance) + tolerance_hz
+    for edges in (low, high):
+        edges.flags.writeable = False
+    return low, high
 
 
 @lru_cache(maxsize=16)
@@ -642,19 +662,19 @@ def _inverse(m: np.ndarray) -> tuple[bool, np.ndarray]:
     return np.isfinite(det) and abs(det) > 1e-12 * scale, cofactors / det
 
 
-def _log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray, dof: int, centres: np.ndarray,
-                     tolerance: float, search: tuple[float, float]) -> np.ndarray:
-    """log P(f in each band: ``centres`` +- ``tolerance``) and, last, log P(f in none), for f's density
+def _log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray, dof: int, low: np.ndarray,
+                     high: np.ndarray, search: tuple[float, float]) -> np.ndarray:
+    """log P(f in each band: [``low``, ``high``], per lamp) and, last, log P(f in none), for f's density
     given on an even ``grid`` of cycles per window of ``duration`` (exponential between grid points: a
     Gaussian's tails are integrated well from a coarse grid), continued beyond it by the Student's t
     (``dof`` degrees of freedom, centred on the grid's peak) whose density meets the grid's ends, all cut
     to the ``search`` range: a frequency outside it would have shown as another peak."""
-    frequency, edges, log_density, cdf, tails = _grid_cdf(grid, duration, log_density, centres, tolerance,
+    frequency, edges, log_density, cdf, tails = _grid_cdf(grid, duration, log_density, low, high,
                                                           search[0], search[1])
     for end, tailed in zip((0, -1), tails):
         if tailed:
             _add_t_tail(frequency, log_density, dof, edges, cdf, end)
-    return _band_log_masses(cdf, len(centres))
+    return _band_log_masses(cdf, edges, len(low))
 
 
 def _add_t_tail(frequency: np.ndarray, log_density: np.ndarray, dof: int, edges: np.ndarray, cdf: np.ndarray,
@@ -684,7 +704,7 @@ def _blurred(grid: np.ndarray, density: np.ndarray, quantum: float) -> np.ndarra
 
 
 @kernel
-def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centres: np.ndarray, tolerance: float,
+def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, low: np.ndarray, high: np.ndarray,
               search_low: float, search_high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                                               tuple[bool, bool]]:
     """The grid's frequencies (cycles per window of ``duration``); the edges (the bands' low edges, high
@@ -693,9 +713,9 @@ def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centre
     0 before the grid, the whole beyond it); and, for the grid's start and end, whether an edge lies
     beyond it where the density is not negligible (_add_t_tail adds mass there)."""
     frequency = grid / duration
-    bands = len(centres)
+    bands = len(low)
     edges = np.empty(2 * bands + 2)
-    edges[:bands], edges[bands:2 * bands] = centres - tolerance, centres + tolerance
+    edges[:bands], edges[bands:2 * bands] = low, high
     edges[-2], edges[-1] = search_low, search_high
     edges = np.minimum(np.maximum(edges, search_low), search_high)
     # Below _FLOOR there is nothing to count (and the exponentials stay finite).
@@ -718,15 +738,24 @@ def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, centre
 
 
 @kernel
-def _band_log_masses(cdf: np.ndarray, bands: int) -> np.ndarray:
-    """log of each band's share of the search range (``cdf`` at the bands' low edges, high edges and the
-    range's ends) and, last, of the rest's."""
+def _band_log_masses(cdf: np.ndarray, edges: np.ndarray, bands: int) -> np.ndarray:
+    """log of each band's share of the search range (``cdf`` at the ``edges``: the bands' low edges, high
+    edges and the range's ends) and, last, of the rest's: what lies in no band (overlapping bands share)."""
     whole = max(cdf[-1] - cdf[-2], 1e-300)
     out = np.empty(bands + 1)
-    total = 0.0
     for b in range(bands):
-        band = max(cdf[bands + b] - cdf[b], 1e-300) / whole
-        total += band
-        out[b] = np.log(band)
-    out[bands] = np.log(max(1.0 - total, 1e-300))
+        out[b] = np.log(max(cdf[bands + b] - cdf[b], 1e-300) / whole)
+    # The bands' union, merged in the order of their low edges.
+    union = 0.0
+    order = np.argsort(edges[:bands])
+    start, end = order[0], bands + order[0]
+    for b in order[1:]:
+        if edges[b] <= edges[end]:
+            if edges[bands + b] > edges[end]:
+                end = bands + b
+        else:
+            union += cdf[end] - cdf[start]
+            start, end = b, bands + b
+    union += cdf[end] - cdf[start]
+    out[bands] = np.log(max(1.0 - union / whole, 1e-300))
     return out
