@@ -96,7 +96,7 @@ def point_starts(points: list[PointLampMeasurement], up_directions: list[np.ndar
     positions = np.array([m.lamp.position for m in points])
     if len(points) >= 3:
         triple = max(((i, j, k) for i in range(len(points)) for j in range(i) for k in range(j)),
-                     key=lambda t: abs(np.cross(rays[t[1], :2] - rays[t[0], :2], rays[t[2], :2] - rays[t[0], :2])))
+                     key=lambda t: _triangle_area(rays[list(t), :2]))
         starts.extend(p3p_poses(positions[list(triple)], rays[list(triple), :2]))
     if len(points) >= 2:
         i, j = max(((i, j) for i in range(len(points)) for j in range(i)),
@@ -109,8 +109,9 @@ def point_starts(points: list[PointLampMeasurement], up_directions: list[np.ndar
 def p3p_poses(positions: np.ndarray, normalized: np.ndarray) -> list[Pose]:
     """Every solution of P3P for three map points (3, 3) seen at normalised coordinates (3, 2)."""
     try:
-        count, rvecs, tvecs = cv2.solveP3P(positions.reshape(3, 1, 3), normalized.reshape(3, 1, 2), np.eye(3), None,
-                                           flags=cv2.SOLVEPNP_P3P)
+        count, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(positions, dtype=float).reshape(3, 1, 3),
+                                           np.ascontiguousarray(normalized, dtype=float).reshape(3, 1, 2),
+                                           np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
     except cv2.error:
         return []
     poses = []
@@ -155,6 +156,11 @@ def two_points_with_up(positions: np.ndarray, rays: np.ndarray, up: np.ndarray) 
         rotation = turn @ levelling
         poses.append(Pose(rotation, positions[0] - depths[0] * (rotation @ rays[0])))
     return poses
+
+
+def _triangle_area(corners: np.ndarray) -> float:
+    (ax, ay), (bx, by) = corners[1] - corners[0], corners[2] - corners[0]
+    return abs(ax * by - ay * bx)
 
 
 def _levelling(up: np.ndarray) -> np.ndarray:
