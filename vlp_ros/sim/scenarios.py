@@ -18,7 +18,7 @@ from vlp_ros.gravity import STANDARD_GRAVITY
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.locator_config import LocatorSettings, default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.pose import Pose
-from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, SimLamp
+from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, RenderedFrame, SimLamp, render_frame
 from vlp_ros.sim.sensor import SensorModel
 
 # Nokia Lumia 1020: f = 7.25 mm, 1.12 um pixels, 7712 px wide; scaled to the output width.
@@ -70,6 +70,10 @@ class Scenario:
     def frame_times(self) -> np.ndarray:
         """When each frame's row 0 starts exposing (s since the recording start)."""
         return np.arange(len(self.poses)) / self.frame_rate
+
+    def render(self, pose: Pose, start_time: float, rng: np.random.Generator | None) -> RenderedFrame:
+        """The frame the camera records at ``pose``, its row 0 exposing from ``start_time``."""
+        return render_frame(self.camera, pose, self.lamps, self.sensor, start_time, rng)
 
     def truncated(self, frames: int) -> Scenario:
         if frames < 1:
