@@ -1,4 +1,4 @@
-"""Command line: python -m vlp_ros.sim --scenario paper|robot --out DIR [options].
+"""Command line: python -m vlp_ros.sim --scenario paper|robot|bare_leds --out DIR [options].
 
 Writes DIR/<scenario> (a rosbag2 recording) and DIR/params.yaml (the locator's
 parameters for it), shows a progress bar on stderr and prints a one-line summary.
@@ -13,12 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from vlp_ros.sim.bag_writer import STORAGES
+from vlp_ros.sim.point_lamps import BARE_LED_CAMERAS, PointLampLook, bare_led_scenario
 from vlp_ros.progress import progress_bar
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import PAPER_CAMERAS, Scenario, paper_scenario, robot_scenario
 from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
 
-PAPER_ONLY = ('points', 'postures', 'camera')
+PAPER_ONLY = ('points', 'postures')
+BARE_LEDS_ONLY = ('photos', 'led_core_radius', 'led_glow')
 
 
 class UsageError(Exception):
@@ -29,13 +31,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog='python -m vlp_ros.sim',
         description='Simulate a rolling-shutter VLP recording: DIR/<scenario> (rosbag2) and DIR/params.yaml.')
-    parser.add_argument('--scenario', required=True, choices=('paper', 'robot'))
+    parser.add_argument('--scenario', required=True, choices=('paper', 'robot', 'bare_leds'))
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--storage', default='sqlite3', choices=tuple(STORAGES))
     parser.add_argument('--frames', type=int, help='write only the first N frames')
     parser.add_argument('--points', type=int, help='paper: grid points per side (default 7)')
     parser.add_argument('--postures', type=int, help='paper: photos per grid point (default 3)')
-    parser.add_argument('--camera', choices=tuple(PAPER_CAMERAS), help='paper: output resolution (default 4k)')
+    parser.add_argument('--camera', choices=tuple(dict.fromkeys((*PAPER_CAMERAS, *BARE_LED_CAMERAS))),
+                        help='paper: output resolution (4k, 1080p; default 4k); bare_leds: the 7712x4352 sensor '
+                             'binned (full, 4k = 3856x2176, 1080p = 1928x1088; default 4k)')
+    parser.add_argument('--photos', type=int, help='bare_leds: hand-held photos of the five-LED rig (default 12)')
+    parser.add_argument('--led-core-radius', type=float,
+                        help='bare_leds: radius (m) of each LED\'s bright core (default 0.01: 46 px wide at 2.46 m)')
+    parser.add_argument('--led-glow', type=float, help="bare_leds: the glow's level next to the core (default 0.4)")
     parser.add_argument('--height', type=float, help='lamp height above the camera in m (paper 2.0, robot 2.15)')
     parser.add_argument('--depth', type=float, default=0.75, help='beacon modulation depth (0..1]')
     parser.add_argument('--seed', type=int, default=0)
@@ -59,16 +67,41 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
             for name in ('points', 'postures'):
                 if getattr(args, name) is not None and getattr(args, name) < 1:
                     raise UsageError(f'--{name} must be at least 1, got {getattr(args, name)}')
+            _reject_options(args, BARE_LEDS_ONLY, 'bare_leds')
             scenario = paper_scenario(camera_kind=args.camera or '4k', points=args.points or 7,
                                       postures=args.postures or 3, **common)
+        elif args.scenario == 'bare_leds':
+            _reject_options(args, PAPER_ONLY, 'paper')
+            if args.photos is not None and args.photos < 1:
+                raise UsageError(f'--photos must be at least 1, got {args.photos}')
+            if args.led_core_radius is not None and not args.led_core_radius > 0.0:
+                raise UsageError(f'--led-core-radius must be positive, got {args.led_core_radius}')
+            if args.led_glow is not None and not 0.0 <= args.led_glow < 1.0:
+                raise UsageError(f'--led-glow must be in [0, 1), got {args.led_glow}')
+            given = dict(core_radius=args.led_core_radius, glow_level=args.led_glow)
+            look = PointLampLook(**{name: value for name, value in given.items() if value is not None})
+            scenario = bare_led_scenario(camera_kind=args.camera or '4k', photos=args.photos or 12, look=look, **common)
         else:
-            given = [f'--{name}' for name in PAPER_ONLY if getattr(args, name) is not None]
-            if given:
-                raise UsageError(f'{", ".join(given)}: only valid with --scenario paper')
+            _reject_options(args, ('camera',), 'paper or bare_leds')
+            _reject_options(args, PAPER_ONLY, 'paper')
+            _reject_options(args, BARE_LEDS_ONLY, 'bare_leds')
             scenario = robot_scenario(**common)
     except ValueError as error:
         raise UsageError(str(error)) from error
     return scenario.truncated(args.frames) if args.frames is not None else scenario
+
+
+def _reject_options(args: argparse.Namespace, names: tuple[str, ...], scenario: str) -> None:
+    given = [f'--{name.replace("_", "-")}' for name in names if getattr(args, name) is not None]
+    if given:
+        raise UsageError(f'{", ".join(given)}: only valid with --scenario {scenario}')
+
+
+def _beacon_summary(scenario: Scenario) -> str:
+    beacon = scenario.locator_parameters(False)['beacon']
+    if beacon['mode'] == 'tone':
+        return 'tone beacons'
+    return f'chip rate {beacon["chip_rate"]:.0f} Hz, {beacon["id_bits"]} id bits'
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     write_params(params_path, scenario, args.imu)
     camera = scenario.camera
     print(f'wrote {bag_path} ({args.storage}): {frames} frames {camera.width}x{camera.height} '
-          f'{encoding(scenario.sensor.bayer)}, {len(scenario.lamps)} lamps, chip rate {scenario.beacon.chip_rate:.0f} Hz, '
-          f'{scenario.beacon.id_bits} id bits{", imu" if args.imu else ""}; params {params_path}; '
+          f'{encoding(scenario.sensor.bayer)}, {len(scenario.lamps)} lamps, {_beacon_summary(scenario)}'
+          f'{", imu" if args.imu else ""}; params {params_path}; '
           f'{time.perf_counter() - started:.1f} s')
     return 0
 
