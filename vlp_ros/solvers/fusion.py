@@ -33,7 +33,7 @@ from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, 
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp
-from vlp_ros.solvers.point_lamps import PointLampMeasurement, point_starts, seen_from_below
+from vlp_ros.solvers.point_lamps import PointLampMeasurement, point_starts, pose_from_opencv, seen_from_below
 from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_from, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
@@ -154,11 +154,7 @@ def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Po
                                                  flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:
         return []
-    poses = []
-    for rvec, tvec in zip(rvecs, tvecs):
-        map_to_camera, _ = cv2.Rodrigues(rvec)
-        poses.append(Pose(map_to_camera.T, -map_to_camera.T @ tvec.reshape(3)))
-    return poses
+    return [pose_from_opencv(rvec, tvec) for rvec, tvec in zip(rvecs, tvecs)]
 
 
 def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[tuple[Pose, float]]:

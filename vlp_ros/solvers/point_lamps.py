@@ -116,11 +116,13 @@ def p3p_poses(positions: np.ndarray, normalized: np.ndarray) -> list[Pose]:
                                            np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
     except cv2.error:
         return []
-    poses = []
-    for rvec, tvec in zip(rvecs[:count], tvecs[:count]):
-        map_to_camera, _ = cv2.Rodrigues(rvec)
-        poses.append(Pose(map_to_camera.T, -map_to_camera.T @ tvec.reshape(3)))
-    return poses
+    return [pose_from_opencv(rvec, tvec) for rvec, tvec in zip(rvecs[:count], tvecs[:count])]
+
+
+def pose_from_opencv(rvec: np.ndarray, tvec: np.ndarray) -> Pose:
+    """The camera pose of OpenCV's map-to-camera rotation vector and translation."""
+    map_to_camera, _ = cv2.Rodrigues(rvec)
+    return Pose(map_to_camera.T, -map_to_camera.T @ np.asarray(tvec, dtype=float).reshape(3))
 
 
 def two_points_with_up(positions: np.ndarray, rays: np.ndarray, up: np.ndarray) -> list[Pose]:
