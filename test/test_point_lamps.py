@@ -25,18 +25,16 @@ SIGMA_PX = 0.5
 
 def point_observation(lamp: Lamp, pose: Pose, camera, rng: np.random.Generator | None,
                       sigma: float = SIGMA_PX) -> LampObservation:
-    """A round blob centred on the lamp's projection plus N(0, sigma) per axis, whose rim
-    states that centre sigma."""
+    """A round blob centred on the lamp's projection plus N(0, sigma) per axis, its centre's
+    sigma measured by the detector."""
     centre = camera.project(pose.map_to_camera(lamp.position))[0]
     if rng is not None:
         centre = centre + rng.normal(0.0, sigma, 2)
     phi = np.linspace(0.0, 2.0 * np.pi, 40, endpoint=False)
     rim = centre + 20.0 * np.column_stack([np.cos(phi), np.sin(phi)])
-    observation = LampObservation(ellipse=np.array([*centre, 20.0, 20.0, 0.0]), rim_points=rim, rim_sigma=1.0,
-                                  marker=None, marker_sigma=np.inf, bbox=(0, 0, 1, 1),
-                                  disc_mask=np.ones((1, 1), dtype=bool))
-    observation.rim_sigma = sigma / center_sigma(observation)
-    return observation
+    return LampObservation(ellipse=np.array([*centre, 20.0, 20.0, 0.0]), rim_points=rim, rim_sigma=np.inf,
+                           marker=None, marker_sigma=np.inf, bbox=(0, 0, 1, 1),
+                           disc_mask=np.ones((1, 1), dtype=bool), center_sigma=sigma)
 
 
 def pairs_of(lamps, pose=TRUTH, camera=None, rng=None):
@@ -129,3 +127,12 @@ def test_covariance_is_honest(count: int, with_imu: bool) -> None:
         wrong += choice.pose.position_error(TRUTH) > 0.3
     assert wrong == 0 and len(nees) >= 270
     assert 4.0 <= np.mean(nees) <= 8.0
+
+
+def test_the_centre_sigma_is_the_detectors_or_else_the_rims() -> None:
+    measured = point_observation(RIG[0], TRUTH, camera_4k(), None, sigma=0.7)
+    assert center_sigma(measured) == 0.7
+    disc = observe(Lamp('disc', 9, np.array([0.0, 0.0, 2.46]), 0.075), TRUTH, camera_4k(), rim_count=120,
+                   rim_sigma=0.3)
+    # 120 points of 0.3 px: 0.039 px for independent points, 1.5 times that for their correlation.
+    assert center_sigma(disc) == pytest.approx(1.5 * 0.3 * np.sqrt(2.0 / 120))

@@ -38,7 +38,10 @@ CENTER_SIGMA_FLOOR = 0.01
 
 
 def center_sigma(observation: LampObservation) -> float:
-    """Standard deviation (px, per axis) of the observation's centre as a point lamp's image."""
+    """Standard deviation (px, per axis) of the observation's centre as a point lamp's image:
+    the detector's own when it measured the centre, else from the rim's fit."""
+    if observation.center_sigma is not None:
+        return float(observation.center_sigma)
     count = max(len(observation.rim_points), 1)
     return max(_RIM_CORRELATION * float(observation.rim_sigma) * math.sqrt(2.0 / count), CENTER_SIGMA_FLOOR)
 
