@@ -17,8 +17,7 @@ def full_resolution_photo():
     for the profile and a second one striped."""
     flat = bare_led_scenario('full', photos=1, seed=2, depth=1e-6)
     striped = bare_led_scenario('full', photos=1, seed=2, depth=0.75)
-    pose = flat.poses[0]
-    return flat.render(pose, 0.0, None), striped.render(pose, 0.0, None)
+    return flat.render(0, None), striped.render(0, None)
 
 
 def test_the_core_is_where_the_led_projects_and_the_glow_is_at_the_measured_level(full_resolution_photo) -> None:

@@ -52,12 +52,12 @@ def run_setup(look: PointLampLook, imu: bool, camera: str, photos: int, seed: in
     rng = np.random.default_rng([seed, 1])
     tally = Tally()
     for index, pose in enumerate(scenario.poses):
-        frame = scenario.render(pose, float(index), rng)
+        frame = scenario.render(index, rng)
         up = None
         if imu:
             force = specific_force(pose, None, scenario.imu_noise, rng)
             up = force / np.linalg.norm(force)
-        result = pipeline.process(frame.image, frame.camera, float(index), up)
+        result = pipeline.process(frame.image, frame.camera, frame.start_time, up)
         truths = [t for t in frame.lamps if t.fully_inside]
         observations = detect_lamps(frame.image)
         tally.in_view += len(truths)

@@ -18,7 +18,7 @@ exposure stays.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -146,14 +146,9 @@ class BareLedScenario(Scenario):
     look: PointLampLook = PointLampLook()
     scale: float = 1.0
 
-    def render(self, pose: Pose, start_time: float, rng: np.random.Generator | None) -> RenderedFrame:
-        return render_point_lamps(self.camera, pose, self.lamps, self.sensor, start_time, rng, self.look,
-                                  self.scale)
-
-    def truncated(self, frames: int) -> BareLedScenario:
-        if frames < 1:
-            raise ValueError(f'frames must be at least 1, got {frames}')
-        return replace(self, poses=self.poses[:frames], accelerations=self.accelerations[:frames])
+    def render(self, index: int, rng: np.random.Generator | None) -> RenderedFrame:
+        return render_point_lamps(self.camera, self.poses[index], self.lamps, self.sensor,
+                                  float(self.frame_times()[index]), rng, self.look, self.scale)
 
     def locator_parameters(self, imu: bool) -> dict[str, Any]:
         params = super().locator_parameters(imu)

@@ -28,7 +28,7 @@ def record(scenario: Scenario, bag_path: Path | str, storage: str, imu: bool, rn
     times = scenario.frame_times()
     with SimBagWriter(bag_path, storage, imu) as writer:
         for index, (pose, t) in enumerate(zip(scenario.poses, times)):
-            frame = scenario.render(pose, float(t), rng)
+            frame = scenario.render(index, rng)
             force = None
             if imu:
                 force = specific_force(pose, scenario.accelerations[index], scenario.imu_noise, rng)

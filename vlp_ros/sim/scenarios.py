@@ -6,7 +6,7 @@ wide-angle camera driving under a row of ceiling lamps.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -71,16 +71,15 @@ class Scenario:
         """When each frame's row 0 starts exposing (s since the recording start)."""
         return np.arange(len(self.poses)) / self.frame_rate
 
-    def render(self, pose: Pose, start_time: float, rng: np.random.Generator | None) -> RenderedFrame:
-        """The frame the camera records at ``pose``, its row 0 exposing from ``start_time``."""
-        return render_frame(self.camera, pose, self.lamps, self.sensor, start_time, rng)
-
     def truncated(self, frames: int) -> Scenario:
         if frames < 1:
             raise ValueError(f'frames must be at least 1, got {frames}')
-        return Scenario(self.name, self.camera, self.sensor, self.lamps, self.poses[:frames],
-                        self.accelerations[:frames], self.beacon, self.frame_rate, self.prior_up,
-                        self.prior_tolerance, self.prior_sigma, self.imu_noise, self.independent_frames)
+        return replace(self, poses=self.poses[:frames], accelerations=self.accelerations[:frames])
+
+    def render(self, index: int, rng: np.random.Generator | None) -> RenderedFrame:
+        """Frame ``index`` as the camera records it."""
+        return render_frame(self.camera, self.poses[index], self.lamps, self.sensor,
+                            float(self.frame_times()[index]), rng)
 
     def locator_parameters(self, imu: bool) -> dict[str, Any]:
         """The locator's ``ros__parameters`` (nested as in a params file) for this scenario."""
