@@ -7,6 +7,7 @@ import pytest
 import yaml
 
 from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.pipeline import Pipeline
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim.point_lamps import RIG_FREQUENCIES, PointLampLook, bare_led_scenario
 
@@ -75,3 +76,23 @@ def test_bad_bare_led_options_are_refused_in_one_line(tmp_path, capsys, argument
 def test_a_look_refuses_impossible_values() -> None:
     with pytest.raises(ValueError):
         PointLampLook(glow_level=1.0)
+
+
+@pytest.mark.parametrize('look, poses', [(PointLampLook(core_radius=0.02, glow_level=0.1), 3),
+                                         (PointLampLook(), 0)])
+def test_bare_led_photos_through_the_pipeline_give_right_ids_and_poses_or_none(look, poses) -> None:
+    """The soft-glow look is read today: a pose from the five LEDs on each photo. The rig's
+    measured look is not yet (its glow hides the cores from this detector): no ID and no pose,
+    and never a wrong one."""
+    scenario = bare_led_scenario('4k', photos=3, seed=4, look=look)
+    pipeline = Pipeline(scenario.locator_settings(imu=False))
+    rng = np.random.default_rng(9)
+    located = 0
+    for index, truth in enumerate(scenario.poses):
+        frame = scenario.render(index, rng)
+        result = pipeline.process(frame.image, frame.camera, frame.start_time)
+        assert set(result.decoded_ids) <= {t.lamp_id for t in frame.lamps if t.fully_inside}
+        if result.pose is not None:
+            assert result.pose.position_error(truth) < 0.05
+            located += 1
+    assert located >= poses
