@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from vlp_ros.evaluation.demo import PoseListener, outcomes_from_answers, play_through_nodes
+from conftest import spin_until
+
+from vlp_ros.evaluation.demo import TOPICS, PoseListener, outcomes_from_answers
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
@@ -15,7 +17,7 @@ FRAMES = 4
 TARGET_M = 0.05
 
 
-def test_bare_led_photos_are_located_from_point_lamps(test_node, tmp_path) -> None:
+def test_bare_led_photos_are_located_from_point_lamps(test_node, start_process, tmp_path) -> None:
     # Cores 2 cm across and a 10 % glow: a look today's detector and tone decoder read (the
     # rig's measured look, 1 cm cores and a 40 % glow, waits for the glow-aware detector).
     look = PointLampLook(core_radius=0.02, glow_level=0.1)
@@ -26,7 +28,13 @@ def test_bare_led_photos_are_located_from_point_lamps(test_node, tmp_path) -> No
     truth = ground_truth(bag, RecordingTopics().ground_truth)
 
     listener = PoseListener(test_node)
-    play_through_nodes(bag, params, FRAMES, listener, tmp_path)
+    locator = start_process('locator', '--ros-args', '--params-file', params)
+    assert spin_until(test_node, lambda: test_node.count_publishers('vlp/processed') > 0, 60.0), locator.output()
+    # Each photo waits for the locator's answer; a 4K frame takes ~0.1 s alone, longer on a busy machine.
+    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '30', '--topics', TOPICS.image,
+                           TOPICS.camera_info)
+    assert spin_until(test_node, lambda: len(listener.outcomes) == FRAMES, 180.0), (locator.output(), replay.output())
+    assert replay.wait(30.0) == 0, replay.output()
     outcomes = outcomes_from_answers(truth, listener, scenario.name)
 
     assert set(listener.outcomes) == set(truth), 'every photo answered once'
