@@ -15,6 +15,7 @@ from vlp_ros.sim.recording import record, write_params
 FRAMES = 4
 # The issue's target for photos of the bare-LED rig with three or more LEDs identified.
 TARGET_M = 0.05
+NEES_BOUND = 22.46
 
 
 def test_bare_led_photos_are_located_from_point_lamps(test_node, start_process, tmp_path) -> None:
@@ -42,3 +43,7 @@ def test_bare_led_photos_are_located_from_point_lamps(test_node, start_process, 
     assert len(located) >= FRAMES // 2, [o.reason for o in outcomes]
     errors = [o.estimate.position_error(o.truth) for o in located]
     assert max(errors) < TARGET_M < WRONG_FIX_M, errors
+    # The published covariance covers the error: each NEES within chi-square(6)'s 99.9 % bound.
+    nees = [float(e @ np.linalg.solve(o.estimate.covariance, e))
+            for o in located for e in [o.estimate.error_vector(o.truth)]]
+    assert max(nees) < NEES_BOUND, nees
