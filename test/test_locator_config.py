@@ -35,7 +35,7 @@ def test_valid_map_accepts_integers_for_doubles_and_fills_defaults() -> None:
     ({'leds.hall.id': None}, 'leds.hall.id'),
     ({'leds.hall.position': [1.0, 2.0]}, 'leds.hall.position'),
     ({'leds.hall.position': None}, 'leds.hall.position'),
-    ({'leds.hall.radius': 0.0}, 'leds.hall.radius'),
+    ({'leds.hall.radius': 0, 'leds.hall.marker_distance': 0.01}, 'leds.hall.marker_distance'),
     ({'leds.hall.radius': -1}, 'leds.hall.radius'),
     ({'leds.door.id': 5}, 'leds.door.id'),
     ({'leds.door.id': 300}, 'leds.door.id'),

@@ -8,7 +8,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Lamp:
-    """A flat luminous disc facing down (-z) with a red marker just inside its rim.
+    """A flat luminous disc facing down (-z) with a red marker just inside its rim, or, with
+    ``radius`` 0, a point lamp (a bare LED, or a lamp too small or soft for an ellipse): the
+    solvers see only the centre of its light, and it shines down, so it is seen from below.
 
     ``marker_angle`` is measured in the map from +x toward +y; ``marker_distance``
     defaults to the radius. ``frequency`` (Hz) identifies the lamp in tone mode.
@@ -26,6 +28,10 @@ class Lamp:
         object.__setattr__(self, 'position', np.asarray(self.position, dtype=float).reshape(3))
         if self.marker_distance is None:
             object.__setattr__(self, 'marker_distance', float(self.radius))
+
+    @property
+    def is_point(self) -> bool:
+        return self.radius == 0.0
 
     def marker_position(self) -> np.ndarray:
         a = self.marker_angle
@@ -49,8 +55,8 @@ class LampMap:
                 raise ValueError(f'lamps {self._by_id[lamp.id].name!r} and {lamp.name!r} share id {lamp.id}')
             if lamp.name in names:
                 raise ValueError(f'lamp name {lamp.name!r} appears twice')
-            if not lamp.radius > 0.0:
-                raise ValueError(f'lamp {lamp.name!r} has non-positive radius {lamp.radius}')
+            if not lamp.radius >= 0.0:
+                raise ValueError(f'lamp {lamp.name!r} has negative radius {lamp.radius}')
             self._by_id[lamp.id] = lamp
             names.add(lamp.name)
 

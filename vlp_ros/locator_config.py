@@ -68,7 +68,7 @@ PARAMETERS = (
 LAMP_PARAMETERS = (
     ParameterSpec('id', 'integer', None, 'beacon ID of the lamp'),
     ParameterSpec('position', 'number_array', None, 'centre of the luminous disc in the map (x, y, z) (m)'),
-    ParameterSpec('radius', 'number', None, 'radius of the luminous disc (m)'),
+    ParameterSpec('radius', 'number', None, 'radius of the luminous disc (m); 0 = a point lamp (bare LED)'),
     ParameterSpec('marker_angle', 'number', 0.0, 'map direction of the red marker from the centre (rad, +x toward +y)'),
     ParameterSpec('marker_distance', 'number', None, "marker centroid's distance from the centre (m); default the radius"),
     ParameterSpec('frequency', 'number', None, 'tone mode: the lamp\'s square-wave frequency (Hz)'),
@@ -177,8 +177,10 @@ def lamp_from_parameters(values: Mapping[str, Any], name: str, tone_mode: bool) 
     for field in ('id', 'position', 'radius'):
         if values.get(prefix + field) is None:
             raise ConfigError(prefix + field, f'missing: every lamp in leds.names needs {field}')
-    radius = _number(values, prefix + 'radius', positive=True)
+    radius = _number(values, prefix + 'radius', minimum=0.0)
     marker_distance = None
+    if radius == 0.0 and values.get(prefix + 'marker_distance') is not None:
+        raise ConfigError(prefix + 'marker_distance', 'a point lamp (radius 0) has no marker')
     if values.get(prefix + 'marker_distance') is not None:
         marker_distance = _number(values, prefix + 'marker_distance', positive=True)
     frequency = None

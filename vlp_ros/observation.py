@@ -15,7 +15,9 @@ class LampObservation:
     ``rim_points``. ``rim_sigma`` is the measured standard deviation (px) of rim
     points across the edge; ``marker_sigma`` that of the marker centroid per axis.
     ``bbox`` = (x0, y0, x1, y1), x1 and y1 exclusive; ``disc_mask`` and
-    ``marker_mask`` are boolean arrays over that box.
+    ``marker_mask`` are boolean arrays over that box. ``center_sigma`` is the standard
+    deviation (px, per axis) of ``center`` when the detector measures the centre itself
+    (the light of a bare LED, whose rim is no ellipse); None: the rim points carry it.
     """
 
     ellipse: np.ndarray
@@ -26,6 +28,7 @@ class LampObservation:
     bbox: tuple[int, int, int, int]
     disc_mask: np.ndarray
     marker_mask: np.ndarray | None = None
+    center_sigma: float | None = None
 
     @property
     def center(self) -> np.ndarray:

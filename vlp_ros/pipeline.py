@@ -113,7 +113,10 @@ class Pipeline:
     def _solve(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None) -> Choice:
         if self.settings.solver == 'paper':
-            observation, lamp = max(pairs, key=lambda pair: pair[0].ellipse[2])
+            discs = [pair for pair in pairs if not pair[1].is_point]
+            if not discs:
+                return Choice(None, Reason.NO_CANDIDATES, "the paper's solver needs a disc lamp; all are point lamps")
+            observation, lamp = max(discs, key=lambda pair: pair[0].ellipse[2])
             try:
                 candidates = solve_lamp_paper(observation, lamp, camera)
             except ValueError as err:  # e.g. no marker: the paper's method cannot fix the yaw

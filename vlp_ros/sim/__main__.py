@@ -1,4 +1,4 @@
-"""Command line: python -m vlp_ros.sim --scenario paper|robot|drive|tone --out DIR [--look NAME] [options].
+"""Command line: python -m vlp_ros.sim --scenario paper|robot|drive|tone|bare_leds --out DIR [--look NAME] [options].
 
 Writes DIR/<scenario> (a rosbag2 recording) and DIR/params.yaml (the locator's
 parameters for it), shows a progress bar on stderr and prints a one-line summary.
@@ -15,13 +15,15 @@ import numpy as np
 
 from vlp_ros.sim.bag_writer import STORAGES
 from vlp_ros.progress import progress_bar
+from vlp_ros.sim.point_lamps import BARE_LED_CAMERAS, PointLampLook, bare_led_scenario
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.looks import LOOKS, Look, apply_look
 from vlp_ros.sim.scenarios import (PAPER_CAMERAS, Scenario, as_stills, paper_scenario, robot_drive_scenario,
                                    robot_scenario, robot_tone_scenario, with_rim_markers)
 from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
 
-PAPER_ONLY = ('points', 'postures', 'camera', 'still_interval')
+PAPER_ONLY = ('points', 'postures', 'still_interval')
+BARE_LEDS_ONLY = ('photos', 'led_core_radius', 'led_glow')
 # Options that change one effect of the chosen --look: (option, Look field, type, help).
 LOOK_OPTIONS = (
     ('--blur', 'blur_sigma', float, 'optics blur sigma in px (up to 2 px is ordinary; realistic 1.6)'),
@@ -45,15 +47,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog='python -m vlp_ros.sim',
         description='Simulate a rolling-shutter VLP recording: DIR/<scenario> (rosbag2) and DIR/params.yaml.')
-    parser.add_argument('--scenario', required=True, choices=('paper', 'robot', 'drive', 'tone'),
+    parser.add_argument('--scenario', required=True, choices=('paper', 'robot', 'drive', 'tone', 'bare_leds'),
                         help='paper: hand-held stills of one lamp; robot: under a row of lamps; drive: a robot '
-                             'driving and turning under packet lamps 2.4 m apart; tone: robot stills under 12 tone lamps')
+                             'driving and turning under packet lamps 2.4 m apart; tone: robot stills under 12 tone lamps; '
+                             'bare_leds: hand-held photos of the five-LED rig')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--storage', default='sqlite3', choices=tuple(STORAGES))
     parser.add_argument('--frames', type=int, help='write only the first N frames')
     parser.add_argument('--points', type=int, help='paper: grid points per side (default 7)')
     parser.add_argument('--postures', type=int, help='paper: photos per grid point (default 3)')
-    parser.add_argument('--camera', choices=tuple(PAPER_CAMERAS), help='paper: output resolution (default 4k)')
+    parser.add_argument('--camera', choices=tuple(dict.fromkeys((*PAPER_CAMERAS, *BARE_LED_CAMERAS))),
+                        help='paper: output resolution (4k, 1080p; default 4k); bare_leds: the 7712x4352 sensor '
+                             'binned (full, 4k = 3856x2176, 1080p = 1928x1088; default 4k)')
+    parser.add_argument('--photos', type=int, help='bare_leds: hand-held photos of the five-LED rig (default 12)')
+    parser.add_argument('--led-core-radius', type=float,
+                        help='bare_leds: radius (m) of each LED\'s bright core (default 0.01: 46 px wide at 2.46 m)')
+    parser.add_argument('--led-glow', type=float, help="bare_leds: the glow's level next to the core (default 0.4)")
     parser.add_argument('--height', type=float, help='lamp height above the camera in m (paper 2.0, robot 2.15)')
     parser.add_argument('--depth', type=float, default=0.75, help='beacon modulation depth (0..1]')
     parser.add_argument('--seed', type=int, default=0)
@@ -87,14 +96,18 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
             for name in ('points', 'postures'):
                 if getattr(args, name) is not None and getattr(args, name) < 1:
                     raise UsageError(f'--{name} must be at least 1, got {getattr(args, name)}')
+            _reject_options(args, BARE_LEDS_ONLY, 'bare_leds')
             scenario = paper_scenario(camera_kind=args.camera or '4k', points=args.points or 7,
                                       postures=args.postures or 3, **common)
             if args.still_interval is not None:
                 scenario = as_stills(scenario, args.still_interval)
+        elif args.scenario == 'bare_leds':
+            _reject_options(args, PAPER_ONLY, 'paper')
+            return bare_leds_scenario(args, common)
         else:
-            given = [f'--{name.replace("_", "-")}' for name in PAPER_ONLY if getattr(args, name) is not None]
-            if given:
-                raise UsageError(f'{", ".join(given)}: only valid with --scenario paper')
+            _reject_options(args, ('camera',), 'paper or bare_leds')
+            _reject_options(args, PAPER_ONLY, 'paper')
+            _reject_options(args, BARE_LEDS_ONLY, 'bare_leds')
             makers = {'robot': robot_scenario, 'drive': robot_drive_scenario, 'tone': robot_tone_scenario}
             scenario = makers[args.scenario](**common)
         marker = {name: getattr(args, f'marker_{name}') for name in ('distance', 'radius')
@@ -107,6 +120,26 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
     return scenario.truncated(args.frames) if args.frames is not None else scenario
 
 
+def bare_leds_scenario(args: argparse.Namespace, common: dict) -> Scenario:
+    """The five-LED rig's photos; the looks of disc lamps do not apply to its bare LEDs."""
+    if args.photos is not None and args.photos < 1:
+        raise UsageError(f'--photos must be at least 1, got {args.photos}')
+    if args.led_core_radius is not None and not args.led_core_radius > 0.0:
+        raise UsageError(f'--led-core-radius must be positive, got {args.led_core_radius}')
+    if args.led_glow is not None and not 0.0 <= args.led_glow < 1.0:
+        raise UsageError(f'--led-glow must be in [0, 1), got {args.led_glow}')
+    given = dict(core_radius=args.led_core_radius, glow_level=args.led_glow)
+    look = PointLampLook(**{name: value for name, value in given.items() if value is not None})
+    scenario = bare_led_scenario(camera_kind=args.camera or '4k', photos=args.photos or 12, look=look, **common)
+    return scenario.truncated(args.frames) if args.frames is not None else scenario
+
+
+def _reject_options(args: argparse.Namespace, names: tuple[str, ...], scenario: str) -> None:
+    given = [f'--{name.replace("_", "-")}' for name in names if getattr(args, name) is not None]
+    if given:
+        raise UsageError(f'{", ".join(given)}: only valid with --scenario {scenario}')
+
+
 def chosen_look(args: argparse.Namespace) -> Look:
     """The --look with every effect option given on the command line put in."""
     changes = {field: getattr(args, option[2:].replace('-', '_')) for option, field, _, _ in LOOK_OPTIONS
@@ -115,9 +148,10 @@ def chosen_look(args: argparse.Namespace) -> Look:
 
 
 def beacon_summary(scenario: Scenario) -> str:
-    if scenario.beacon.mode == 'tone':
+    beacon = scenario.locator_parameters(False)['beacon']
+    if beacon['mode'] == 'tone':
         return 'tone lamps'
-    return f'chip rate {scenario.beacon.chip_rate:.0f} Hz, {scenario.beacon.id_bits} id bits'
+    return f'chip rate {beacon["chip_rate"]:.0f} Hz, {beacon["id_bits"]} id bits'
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -75,7 +75,7 @@ _KINDS = (('rays', 'lens', 'rim_sigma', 'lamp_of_point', 'centres', 'radii_squar
 
 def joined(parts: Sequence[Terms]) -> Terms:
     """All ``parts`` as one: each kind's entries in the order of the parts (lamps renumbered),
-    seen through the first camera that has lamps."""
+    seen through the first camera that has lamps or projected points."""
     if len(parts) == 1:
         return parts[0]
     fields = {}
@@ -89,7 +89,7 @@ def joined(parts: Sequence[Terms]) -> Terms:
             if kind[0] == 'rays':
                 offsets = np.cumsum([0] + [len(t.centres) for t in having[:-1]])
                 fields['lamp_of_point'] = np.concatenate([t.lamp_of_point + o for t, o in zip(having, offsets)])
-    camera = next((t for t in parts if len(t.centres)), parts[0])
+    camera = next((t for t in parts if len(t.centres) or len(t.marker_maps)), parts[0])
     return Terms(intrinsics=camera.intrinsics, distortion=camera.distortion, **fields)
 
 

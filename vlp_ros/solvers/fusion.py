@@ -11,6 +11,10 @@ minimum costs far more than the true one: ``ambiguity.choose_candidate`` then
 decides on the (statistically bounded) cost gap and reports MULTI_LAMP, still
 subject to every hint. Lamps that cannot be explained by one pose at all (a
 misidentified lamp, a wrong map entry) give INCONSISTENT_LAMPS.
+
+Point lamps (map radius 0, ``point_lamps``) join the same fit as projected points: they
+give disc lamps their heading like any lamp centre, and start poses of their own (P3P,
+or two points and an up direction); a pose above a point lamp is not one it was seen from.
 """
 from __future__ import annotations
 
@@ -30,6 +34,7 @@ from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, 
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp, widened_where_up_disagrees
+from vlp_ros.solvers.point_lamps import PointLampMeasurement, point_starts, pose_from_opencv, seen_from_below
 from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_from, linearize, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
@@ -59,6 +64,10 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
     if len(set(ids)) != len(ids):
         return Choice(None, Reason.INCONSISTENT_LAMPS, f'one lamp identified twice in the frame: {sorted(ids)}')
     up = hints.up_measurements()
+    points = sum(lamp.is_point for _, lamp in pairs)
+    if points == len(pairs) and 2 * points + 2 * len(up) < 6:
+        return Choice(None, Reason.NO_CANDIDATES, f'{points} point lamp(s) leave the pose free: it takes three, '
+                                                  'or two and an up direction with a sigma')
     if len(pairs) == 1:
         observation, lamp = pairs[0]
         if observation.marker is None:
@@ -69,7 +78,8 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
             return Choice(None, Reason.POOR_FIT, f'best single-lamp chi-square {candidates[0].cost:.0f} for '
                                                  f'{candidates[0].residual_count - 6} degrees of freedom')
         return choose_candidate(explaining, hints)
-    candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing), up)
+    directions = [hint.vector for hint in hints.up_in_camera]
+    candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing, directions), up)
     candidates = widened_where_up_disagrees(candidates, up, np.mean([lamp.position for _, lamp in pairs], axis=0))
     if not candidates:
         return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
@@ -83,10 +93,16 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
 
 
 def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
-                     up: Sequence[UpMeasurement] = ()) -> list[PoseCandidate]:
+                     up: Sequence[UpMeasurement] = (), up_directions: Sequence[np.ndarray] = ()) -> list[PoseCandidate]:
     """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps
-    and any measured up directions."""
-    measurements = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs]
+    and any measured up directions; ``up_directions`` (camera frame, measured or not) start
+    poses from two point lamps."""
+    discs = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if not lamp.is_point]
+    points = [PointLampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if lamp.is_point]
+    measurements = [*discs, *points]
+    if sum(m.residual_count for m in (*measurements, *up)) < 6:
+        return []
+    starts = _starts(discs, points) + point_starts(points, list(up_directions))
     # Joined once: every start is scored and probed on it.
     coarse = [LampMeasurements((*(m.thinned(_PROBE_RIM_POINTS) for m in measurements), *up))]
     reached: list[tuple[Pose, float]] = []
@@ -95,7 +111,7 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
         return any(_near(pose, minimum) for minimum, _ in reached) or \
             cost > _HOPELESS_FACTOR * min((c for _, c in reached), default=np.inf)
 
-    for start, forecast in _distinct_poses(_starts(measurements), coarse):
+    for start, forecast in _distinct_poses(starts, coarse):
         best = min((c for _, c in reached), default=np.inf)
         if forecast > FORECAST_MARGIN * _HOPELESS_FACTOR * best:
             continue
@@ -103,15 +119,19 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
         if probe is not None and not any(_near(probe[0], minimum) for minimum, _ in reached):
             reached.append(probe)
     refined = (refine_pose(pose, measurements, up) for pose, _ in reached)
-    return distinct([candidate for candidate in refined if candidate is not None])
+    return distinct([candidate for candidate in refined
+                     if candidate is not None and seen_from_below(candidate.pose, points)])
 
 
-def _starts(measurements: list[LampMeasurement]) -> list[Pose]:
-    conics = [normalized_conic(m.rim_rays[:, :2]) for m in measurements]
-    centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics])
+def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement] = ()) -> list[Pose]:
+    """Each disc lamp's circle poses, headed by its marker or the farthest other lamp, and
+    SQPnP on all lamp centres when there are enough of them."""
+    conics = [normalized_conic(m.rim_rays[:, :2]) for m in discs]
+    centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics] + [m.ray[:2] for m in points])
     rays = np.column_stack([centres, np.ones(len(centres))])
+    measurements = [*discs, *points]
     starts = []
-    for i, (measurement, conic) in enumerate(zip(measurements, conics)):
+    for i, (measurement, conic) in enumerate(zip(discs, conics)):
         lamp = measurement.lamp
         if measurement.marker_ray is not None:
             ray, target = measurement.marker_ray, lamp.marker_position()
@@ -136,11 +156,7 @@ def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Po
                                                  flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:
         return []
-    poses = []
-    for rvec, tvec in zip(rvecs, tvecs):
-        map_to_camera, _ = cv2.Rodrigues(rvec)
-        poses.append(Pose(map_to_camera.T, -map_to_camera.T @ tvec.reshape(3)))
-    return poses
+    return [pose_from_opencv(rvec, tvec) for rvec, tvec in zip(rvecs, tvecs)]
 
 
 def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[tuple[Pose, float]]:

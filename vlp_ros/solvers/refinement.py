@@ -58,7 +58,7 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
     or if ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations."""
     terms = [*measurements, *up]
     count = sum(m.residual_count for m in terms)
-    if count <= 6:
+    if count < 6:
         raise ValueError(f'{count} residuals cannot determine a 6-DoF pose')
     try:
         pose, residuals, jacobian, converged = _levenberg_marquardt(initial, terms, _MAX_ITERATIONS, give_up)

@@ -1,0 +1,207 @@
+"""The bare-LED look: point lamps as a bright core with a glow, striped row by row by their tone.
+
+Set from the photographs of the published five-LED rig (issue 14): Lumia 1020, 7712x4352,
+focal length 5620 px, row time 21.03 us, exposure 60 us, LEDs from 2000 to 4000 Hz 500 Hz
+apart, 2.46 m above the camera. There each LED is a bright core 31-64 px wide at half level
+with a glow still at 10 % about 120 px out, and the stripes (12-24 rows per period) run
+across core and glow alike. Here the core is a round emitter of ``core_radius`` (m; 1 cm
+is 46 px wide at half level from 2.46 m), its edge softened by the lens (``edge_sigma``,
+px), over a glow ``glow_level`` x exp(-r / ``glow_scale``) (relative to the core; 0.4 and
+87 px put it at 10 % 120 px out), scaled with the output width. Every row's light is the
+tone averaged over that row's exposure, so the glow carries the stripes as a real one does.
+There is no marker. Lower output resolutions bin the sensor: rows take longer, the
+exposure stays.
+
+``bare_led_scenario`` renders that rig for hand-held photos (``python -m vlp_ros.sim
+--scenario bare_leds``), with the locator's parameters for it: tone mode, point lamps
+(``radius: 0``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.special import erfc
+from scipy.spatial.transform import Rotation
+
+from vlp_ros.beacon.encoding import Waveform, tone_waveform
+from vlp_ros.camera import CameraModel
+from vlp_ros.lamp_map import Lamp
+from vlp_ros.pose import Pose
+from vlp_ros.sim.render import LampTruth, RenderedFrame
+from vlp_ros.sim.scenarios import BeaconDesign, Scenario
+from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern
+
+RIG_WIDTH, RIG_HEIGHT, RIG_FOCAL_PX = 7712, 4352, 5620.0
+RIG_ROW_TIME = 21.03e-6
+RIG_EXPOSURE = 60e-6
+RIG_HEIGHT_M = 2.46
+RIG_FREQUENCIES = (2000.0, 2500.0, 3000.0, 3500.0, 4000.0)
+# The five LEDs' layout on the ceiling (m): within the photos' field at 2.46 m (+-1.7 m x +-0.95 m).
+RIG_LAYOUT = ((0.0, 0.0), (0.45, 0.3), (-0.45, 0.3), (-0.45, -0.3), (0.45, -0.3))
+# Output width over the sensor's: each step bins 2x2 sensor pixels.
+BARE_LED_CAMERAS = {'full': 1, '4k': 2, '1080p': 4}
+# The glow is drawn out to where it falls below this fraction of the core's level.
+_GLOW_CUTOFF = 2e-3
+
+
+@dataclass(frozen=True)
+class PointLampLook:
+    """How a bare LED's light spreads in the image (see the module docstring); pixel lengths
+    are at the rig's full 7712 px width and scale with the output."""
+
+    core_radius: float = 0.01
+    edge_sigma: float = 2.0
+    glow_level: float = 0.4
+    glow_scale: float = 87.0
+
+    def __post_init__(self) -> None:
+        if not (self.core_radius > 0.0 and self.edge_sigma > 0.0 and self.glow_scale > 0.0):
+            raise ValueError('core_radius, edge_sigma and glow_scale must be positive')
+        if not 0.0 <= self.glow_level < 1.0:
+            raise ValueError(f'glow_level must be in [0, 1), got {self.glow_level}')
+
+    def profile(self, r: np.ndarray, core_px: float, scale: float) -> np.ndarray:
+        """Light at ``r`` px from the centre (1 = the core's level) for a core of ``core_px``
+        px radius, pixel lengths of the look multiplied by ``scale``."""
+        core = 0.5 * erfc((r - core_px) / (np.sqrt(2.0) * self.edge_sigma * scale))
+        glow = self.glow_level * np.exp(-r / (self.glow_scale * scale))
+        return np.maximum(core, glow)
+
+    def reach(self, core_px: float, scale: float) -> float:
+        """Radius (px) beyond which the light is below ``_GLOW_CUTOFF``."""
+        glow = self.glow_scale * scale * np.log(max(self.glow_level, _GLOW_CUTOFF) / _GLOW_CUTOFF)
+        return max(core_px + 4.0 * self.edge_sigma * scale, glow)
+
+
+@dataclass(frozen=True)
+class PointSimLamp:
+    """A point lamp (``lamp.radius`` 0) and the light it emits; ``peak_dn`` as ``SimLamp``'s."""
+
+    lamp: Lamp
+    waveform: Waveform
+    peak_dn: float = 320.0
+    color_bgr: tuple[float, float, float] = (1.0, 0.97, 0.92)
+
+
+def render_point_lamps(camera: CameraModel, pose: Pose, lamps: list[PointSimLamp], sensor: SensorModel,
+                       start_time: float, rng: np.random.Generator | None, look: PointLampLook,
+                       scale: float) -> RenderedFrame:
+    """What ``camera`` at ``pose`` records of bare LEDs when its row 0 starts exposing at
+    ``start_time``; ``scale`` = output width over the rig's."""
+    image = flat_field(camera.height, camera.width, sensor, rng)
+    pattern = None if sensor.bayer is None else sensor.bayer
+    truths = []
+    for sim in lamps:
+        truth, box = _project(camera, pose, sim, look, scale)
+        truths.append(truth)
+        if box is None:
+            continue
+        x0, y0, x1, y1 = box
+        core_px = camera.focal * look.core_radius / truth.center_camera[2]
+        ys, xs = np.mgrid[y0:y1, x0:x1]
+        r = np.hypot(xs - truth.center_pixel[0], ys - truth.center_pixel[1])
+        rows = sensor.row_start_times(start_time, y0, y1 - y0)
+        level = sim.waveform.mean_brightness(rows, sensor.exposure)
+        light = (look.profile(r, core_px, scale) * level[:, None] * sim.peak_dn).astype(np.float32)
+        canvas = np.asarray(sensor.ambient_bgr, dtype=np.float32) + light[..., None] * np.asarray(
+            sim.color_bgr, dtype=np.float32)
+        if pattern is not None:
+            canvas = mosaic(canvas, shifted_pattern(pattern, x0, y0))
+        # Lamps' boxes may overlap: the brighter read-out stands (their glows do not add up).
+        image[y0:y1, x0:x1] = np.maximum(image[y0:y1, x0:x1], read_out(canvas, sensor, rng))
+    return RenderedFrame(image, encoding(pattern), camera, pose, start_time, (0, 0, camera.width, camera.height),
+                         truths)
+
+
+def _project(camera: CameraModel, pose: Pose, sim: PointSimLamp, look: PointLampLook,
+             scale: float) -> tuple[LampTruth, tuple[int, int, int, int] | None]:
+    lamp = sim.lamp
+    centre = pose.map_to_camera(lamp.position)[0]
+    nan2 = np.full(2, np.nan)
+    truth = LampTruth(lamp.id, lamp.name, False, False, centre, nan2, nan2.copy(), None, np.empty((0, 2)), None)
+    # A bare LED shines down: seen only from below, in front of the camera.
+    if pose.position[2] >= lamp.position[2] or centre[2] <= 0.0:
+        return truth, None
+    pixel = camera.project(centre)[0]
+    truth.center_pixel = pixel
+    core_px = camera.focal * look.core_radius / centre[2]
+    reach = look.reach(core_px, scale)
+    x0, y0 = max(int(np.floor(pixel[0] - reach)), 0), max(int(np.floor(pixel[1] - reach)), 0)
+    x1, y1 = min(int(np.ceil(pixel[0] + reach)) + 1, camera.width), min(int(np.ceil(pixel[1] + reach)) + 1, camera.height)
+    if x0 >= x1 or y0 >= y1:
+        return truth, None
+    edge = core_px + 3.0 * look.edge_sigma * scale
+    truth.visible = True
+    truth.fully_inside = bool(edge <= pixel[0] <= camera.width - 1 - edge and edge <= pixel[1] <= camera.height - 1 - edge)
+    truth.bbox = (x0, y0, x1, y1)
+    return truth, (x0, y0, x1, y1)
+
+
+@dataclass
+class BareLedScenario(Scenario):
+    """A ``Scenario`` whose ``lamps`` are ``PointSimLamp``, in tone mode, rendered with ``render_point_lamps``."""
+
+    look: PointLampLook = PointLampLook()
+    scale: float = 1.0
+
+    def render(self, index: int, rng: np.random.Generator | None) -> RenderedFrame:
+        return render_point_lamps(self.camera, self.poses[index], self.lamps, self.sensor,
+                                  float(self.frame_times()[index]), rng, self.look, self.scale)
+
+    def locator_parameters(self, imu: bool) -> dict[str, Any]:
+        params = super().locator_parameters(imu)
+        leds: dict[str, Any] = {'names': [s.lamp.name for s in self.lamps]}
+        for sim in self.lamps:
+            lamp = sim.lamp
+            leds[lamp.name] = {'id': int(lamp.id), 'position': [round(float(v), 9) for v in lamp.position],
+                               'radius': 0.0, 'frequency': float(lamp.frequency)}
+        params['leds'] = leds
+        params['beacon'] = {'mode': 'tone', 'row_time': float(self.sensor.row_time),
+                            'exposure': float(self.sensor.exposure)}
+        return params
+
+
+def bare_led_camera(kind: str) -> tuple[CameraModel, int]:
+    """The rig's camera at output ``kind`` (``BARE_LED_CAMERAS``) and its binning factor."""
+    if kind not in BARE_LED_CAMERAS:
+        raise ValueError(f'camera must be one of {", ".join(BARE_LED_CAMERAS)}, got {kind!r}')
+    binning = BARE_LED_CAMERAS[kind]
+    width, height, f = RIG_WIDTH // binning, RIG_HEIGHT // binning, RIG_FOCAL_PX / binning
+    return CameraModel(width, height, [[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]]), binning
+
+
+def bare_led_scenario(camera_kind: str = '4k', height: float = RIG_HEIGHT_M, photos: int = 12, seed: int = 0,
+                      depth: float = 0.75, max_tilt_deg: float = 8.0, area: float = 0.6,
+                      bayer: str | None = None, look: PointLampLook = PointLampLook()) -> Scenario:
+    """Hand-held photos of the five-LED rig ``height`` m above: the camera anywhere in an
+    ``area`` x ``area`` m square below its centre, its axis within ``max_tilt_deg`` of straight
+    up, any roll; kept only when every LED's core is inside the frame."""
+    if not height > 0.0:
+        raise ValueError(f'height must be positive, got {height}')
+    if photos < 1:
+        raise ValueError(f'photos must be at least 1, got {photos}')
+    rng = np.random.default_rng(seed)
+    camera, binning = bare_led_camera(camera_kind)
+    sensor = SensorModel(row_time=RIG_ROW_TIME * binning, exposure=RIG_EXPOSURE, blur_sigma=0.0, bayer=bayer)
+    lamps = []
+    for k, ((x, y), frequency) in enumerate(zip(RIG_LAYOUT, RIG_FREQUENCIES), start=1):
+        lamp = Lamp(f'led_{k}', k, np.array([x, y, height]), 0.0, frequency=frequency)
+        lamps.append(PointSimLamp(lamp, tone_waveform(frequency, depth, float(rng.uniform(0.0, 1.0 / frequency)))))
+    scale = 1.0 / binning
+    poses = [_photo_pose(camera, lamps, look, scale, area, max_tilt_deg, rng) for _ in range(photos)]
+    return BareLedScenario(f'bare_leds_{camera_kind}', camera, sensor, lamps, poses, [np.zeros(3)] * photos,
+                           BeaconDesign(0.0, 0, depth), independent_frames=True, look=look, scale=scale)
+
+
+def _photo_pose(camera: CameraModel, lamps: list[PointSimLamp], look: PointLampLook, scale: float, area: float,
+                max_tilt_deg: float, rng: np.random.Generator) -> Pose:
+    for _ in range(10000):
+        position = np.array([*rng.uniform(-area / 2, area / 2, 2), 0.0])
+        tilt = np.arccos(rng.uniform(np.cos(np.radians(max_tilt_deg)), 1.0))
+        rotation = Rotation.from_euler('zyz', [rng.uniform(0, 2 * np.pi), tilt, rng.uniform(0, 2 * np.pi)])
+        pose = Pose(rotation.as_matrix(), position)
+        if all(_project(camera, pose, sim, look, scale)[0].fully_inside for sim in lamps):
+            return pose
+    raise ValueError('no posture sees every LED')
