@@ -54,12 +54,18 @@ def deserialized(data: list[bytes], msg_type) -> list:
 
 @pytest.mark.parametrize('name', ['talker_sqlite3', 'talker_mcap'])
 def test_real_recordings_arrive_complete_in_order_and_byte_exact(start_process, test_node, name: str) -> None:
+    from rcl_interfaces.msg import Log
     from std_msgs.msg import String
-    expected = deserialized(sqlite3_topic_data(TALKER_DB, '/topic'), String)
-    received = subscribe(test_node, '/topic', String)
-    replay = start_process('replay', SHARED_BAGS / name, '--rate', '5')
-    assert run_to_end(test_node, replay, lambda: len(received) >= len(expected)) == 0
-    assert received.messages() == expected
+    expected = {'/topic': deserialized(sqlite3_topic_data(TALKER_DB, '/topic'), String),
+                '/recorded_rosout': deserialized(sqlite3_topic_data(TALKER_DB, '/rosout'), Log)}
+    # The recorded /rosout goes elsewhere: the live one carries the logs of the nodes running now.
+    received = {'/topic': subscribe(test_node, '/topic', String),
+                '/recorded_rosout': subscribe(test_node, '/recorded_rosout', Log)}
+    replay = start_process('replay', SHARED_BAGS / name, '--rate', '5', '--remap', '/rosout:=/recorded_rosout')
+    assert run_to_end(test_node, replay,
+                      lambda: all(len(received[t]) >= len(expected[t]) for t in expected)) == 0
+    assert {topic: messages.messages() for topic, messages in received.items()} == expected
+    assert all(len(messages) == 10 for messages in expected.values())
     assert 'replay: done: published 20 messages' in replay.stderr()
 
 
