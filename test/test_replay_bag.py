@@ -6,6 +6,7 @@ import struct
 from pathlib import Path
 
 import pytest
+import yaml
 from replay_bags import (IMAGE, SHARED_BAGS, STRING, T0_NS, Recorded, chatter, copy_bag, edit_metadata, image_data,
                          offer, overlapping_recording, set_metadata_version, sqlite3_topic_data, storage_file,
                          write_bag, write_overlapping_split_bag, write_split_bag)
@@ -13,7 +14,7 @@ from rosbags.interfaces import QosDurability, QosReliability
 
 from vlp_ros.playback_plan import (PlaybackOptions, PlaybackTally, Timeline, parse_remaps, playback_origin,
                                    progress_line, select_topics)
-from vlp_ros.rosbag_reader import Bag, BagError, OfferedQos, adapt_offers, header_stamp
+from vlp_ros.rosbag_reader import Bag, BagError, BagMessage, OfferedQos, adapt_offers, header_stamp
 
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 
@@ -257,3 +258,29 @@ def test_schedule_scales_bag_time_by_rate_from_the_start_offset() -> None:
 
 def test_progress_line_counts_messages_and_bag_time() -> None:
     assert progress_line(5, 20, T0_NS + 10**9, T0_NS, T0_NS + 4 * 10**9) == 'replay: 5/20 messages, 1.0/4.0 s (25%)'
+
+
+def test_tally_compares_what_was_played_with_what_metadata_promises_from_the_start_offset() -> None:
+    messages = [BagMessage(topic, STRING, T0_NS + k, b'') for k in range(6) for topic in ('/a', '/b', '/x')]
+    tally = PlaybackTally({'/a': 6, '/b': 8, '/x': 6}, {'/x': 'foo_msgs/msg/Bar not installed'})
+    for message in tally.from_origin(messages, T0_NS + 2):
+        tally.published[message.topic] += 1
+    assert tally.before_start == {'/a': 2, '/b': 2, '/x': 2} and tally.published == {'/a': 4, '/b': 4}
+    assert tally.shortfall() == {'/b': (4, 6)}
+    assert tally.shortfall_line() == ('replay: error: incomplete: 4 of the 6 messages that metadata.yaml '
+                                      'promises for the selection were played on /b 4 of 6')
+    assert tally.skipped_text() == 'skipped 4 messages: /x 4 (foo_msgs/msg/Bar not installed)'
+    surplus = PlaybackTally({'/a': 3})
+    list(surplus.from_origin(messages[::3], T0_NS))
+    assert surplus.surplus() == {'/a': (6, 3)} and PlaybackTally({'/a': 1}).skipped_text() == ''
+
+
+def test_several_connections_of_a_topic_are_summed_and_their_offers_adapted(tmp_path: Path) -> None:
+    recorded = [Recorded('/c', STRING, T0_NS + k, m.data, connection=k % 2) for k, m in enumerate(chatter(6, 0.1))]
+    bag = write_bag(tmp_path / 'bag', recorded, version=8)
+    listed = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert len(listed['topics_with_message_count']) == 2  # /c once per connection
+    with Bag(bag) as opened:
+        assert opened.topics['/c'].message_count == opened.topics['/c'].stored_count == 6
+        assert opened.topics['/c'].qos_consistent
+        assert [m.data for m in opened.messages(['/c'])] == [m.data for m in recorded]

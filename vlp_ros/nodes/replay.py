@@ -130,6 +130,7 @@ class Replay(Node):
         self._unanswered = 0
         self._pending_stamp: tuple[int, int] | None = None
         self._last_bag_ns = 0
+        self._latest_bag_ns = 0  # the bag's last message: bag time never runs past it
         self._timeline: Timeline | None = None
         self._loop_start = 0.0
 
@@ -169,6 +170,7 @@ class Replay(Node):
             self._total = sum(bag.topics[name].message_count for name in names)
             promised = {topic.name: topic.message_count for topic in selected}
             self._last_bag_ns = origin
+            self._latest_bag_ns = bag.end_ns - 1
             mode = 'deterministic' if self.options.deterministic else f'rate {self.options.rate:g}'
             self._print(f'replay: playing {bag.path}: {self._total} messages on {len(names)} topics, '
                         f'{(bag.end_ns - origin) / 1e9:.1f} s of bag time, {mode}')
@@ -309,7 +311,8 @@ class Replay(Node):
         """Bag time being played: the clock in timed playback, the last message in deterministic mode."""
         if self.options.deterministic or self._timeline is None:
             return self._last_bag_ns
-        return max(self._last_bag_ns, self._timeline.bag_time_ns(time.monotonic() - self._loop_start))
+        scheduled = self._timeline.bag_time_ns(time.monotonic() - self._loop_start)
+        return max(self._last_bag_ns, min(scheduled, self._latest_bag_ns))
 
     def _wait_for_acknowledgements(self) -> None:
         deadline = time.monotonic() + ACK_WAIT_S
