@@ -33,14 +33,14 @@ def subscribe(node, topic: str, msg_type, reliable: bool = True) -> Received:
     return received
 
 
-def run_to_end(node, replay, done: Callable[[], bool] = lambda: True, timeout: float = 20.0) -> int:
+def run_to_end(node, replay, done: Callable[[], bool] = lambda: True, timeout: float = 60.0) -> int:
     """Spin until the replay exits and ``done()`` holds; the replay's exit status."""
     assert spin_until(node, lambda: replay.popen.poll() is not None and done(), timeout), replay.output()
     assert 'Traceback' not in replay.output()
     return replay.popen.returncode
 
 
-def play_until(node, replay, done: Callable[[], bool], timeout: float = 20.0) -> None:
+def play_until(node, replay, done: Callable[[], bool], timeout: float = 60.0) -> None:
     """Spin until ``done()``, then stop the replay: its final wait for acknowledgements would only cost time."""
     assert spin_until(node, done, timeout), replay.output()
     assert replay.interrupt() == 0
@@ -130,7 +130,7 @@ def test_loop_plays_the_bag_again_after_each_delay_until_interrupted(start_proce
     received = subscribe(test_node, '/chatter', String)
     launched = time.monotonic()
     replay = start_process('replay', bag, '--loop', '--delay', '1.0')
-    play_until(test_node, replay, lambda: len(received) >= 7, timeout=20.0)
+    play_until(test_node, replay, lambda: len(received) >= 7)
     assert [m.data for m in received.messages()[:7]] == [f'hello {k % 3}' for k in range(7)]
     # Each pass waits its delay first, then plays 0.1 s: pass k's first message is no earlier than
     # (k + 1) delays and k passes after the start, however fast the machine is.
@@ -200,7 +200,7 @@ def test_unplayable_bags_end_with_one_clear_line_and_status_1(start_process, tmp
         (tmp_path / str(index)).mkdir()
         replays[case] = start_process('replay', make(tmp_path / str(index)))
     for case, replay in replays.items():
-        assert replay.wait(timeout=30.0) == 1, case
+        assert replay.wait(timeout=60.0) == 1, case
         errors = [line for line in replay.stderr().splitlines() if line.startswith('replay: error:')]
         assert len(errors) == 1 and UNPLAYABLE[case][1] in errors[0], (case, replay.stderr())
         assert 'Traceback' not in replay.output(), case
@@ -215,7 +215,7 @@ BAD_OPTIONS = [
 def test_bad_options_are_usage_errors_with_status_2(start_process) -> None:
     replays = [start_process('replay', *args) for args, _ in BAD_OPTIONS]
     for replay, (args, message) in zip(replays, BAD_OPTIONS):
-        assert replay.wait(timeout=30.0) == 2, args
+        assert replay.wait(timeout=60.0) == 2, args
         assert message in replay.stderr() and 'usage: replay' in replay.stderr(), (args, replay.stderr())
         assert 'Traceback' not in replay.output(), args
 
