@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 import sqlite3
 from contextlib import closing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,12 +29,13 @@ class Recorded:
     msgtype: str
     timestamp_ns: int
     data: bytes
+    connection: int = field(default=0, compare=False)  # which of the topic's recorded publishers
 
 
 def offer(reliability: QosReliability = QosReliability.RELIABLE,
-          durability: QosDurability = QosDurability.VOLATILE) -> Qos:
+          durability: QosDurability = QosDurability.VOLATILE, depth: int = 10) -> Qos:
     infinite = QosTime(2147483647, 4294967295)
-    return Qos(QosHistory.KEEP_LAST, 10, reliability, durability, infinite, infinite,
+    return Qos(QosHistory.KEEP_LAST, depth, reliability, durability, infinite, infinite,
                QosLiveliness.AUTOMATIC, infinite, False)
 
 
@@ -81,43 +83,61 @@ def write_bag(path: Path, messages: list[Recorded], *, storage: str = 'sqlite3',
     with writer:
         connections = {}
         for message in messages:
-            if message.topic not in connections:
-                offers = (qos or {}).get(message.topic, [offer()])
+            key = (message.topic, message.msgtype, message.connection)
+            if key not in connections:
+                # A topic's further connections differ in their offered depth, as rosbags wants them distinct.
+                offers = (qos or {}).get(message.topic, [offer(depth=10 + message.connection)])
                 # Types rosbags does not know (no Python module anywhere) get a made-up String-like definition.
                 known = message.msgtype in TYPESTORE.fielddefs
-                connections[message.topic] = writer.add_connection(
+                connections[key] = writer.add_connection(
                     message.topic, message.msgtype, typestore=TYPESTORE, offered_qos_profiles=offers,
                     msgdef=None if known else 'string data', rihs01=None if known else 'RIHS01_' + '0' * 64)
-            writer.write(connections[message.topic], message.timestamp_ns, message.data)
+            writer.write(connections[key], message.timestamp_ns, message.data)
     return path
 
 
 def write_split_bag(path: Path, messages: list[Recorded], parts: int, *, storage: str = 'sqlite3') -> Path:
     """One bag split over ``parts`` storage files, as `ros2 bag record --max-bag-size` leaves it."""
     chunks = [list(chunk) for chunk in np.array_split(np.array(messages, dtype=object), parts)]
+    return _join_files(path, chunks, storage)
+
+
+def write_overlapping_split_bag(path: Path, files: list[list[Recorded]], *, storage: str = 'sqlite3') -> Path:
+    """One bag of several files that overlap in time, as several writers leave it.
+
+    Its metadata.yaml takes starting_time from the first file, which need not
+    hold the earliest message (rosbag2's own multi-file test recordings do so).
+    """
+    return _join_files(path, files, storage)
+
+
+def _join_files(path: Path, files: list[list[Recorded]], storage: str) -> Path:
     pieces = [write_bag(path.parent / f'{path.name}_part{k}', chunk, storage=storage)
-              for k, chunk in enumerate(chunks)]
+              for k, chunk in enumerate(files)]
     path.mkdir()
     metadata = [_metadata(piece) for piece in pieces]
-    files = []
+    names = []
     for k, (piece, info) in enumerate(zip(pieces, metadata)):
         source = piece / info['relative_file_paths'][0]
         target = path / f'{path.name}_{k}{source.suffix}'
         shutil.move(source, target)
-        files.append(target.name)
+        names.append(target.name)
         shutil.rmtree(piece)
+    messages = [message for chunk in files for message in chunk]
+    stamps = [message.timestamp_ns for message in messages]
     merged = metadata[0]
-    merged['relative_file_paths'] = files
+    merged['relative_file_paths'] = names
     merged['message_count'] = len(messages)
-    merged['duration']['nanoseconds'] = messages[-1].timestamp_ns - messages[0].timestamp_ns
-    counts: dict[str, int] = {}
-    for message in messages:
-        counts[message.topic] = counts.get(message.topic, 0) + 1
-    merged['topics_with_message_count'] = [
-        {**entry, 'message_count': counts[entry['topic_metadata']['name']]}
-        for entry in merged['topics_with_message_count']]
+    merged['duration']['nanoseconds'] = max(stamps) - merged['starting_time']['nanoseconds_since_epoch']
+    # One entry per recorded connection, as rosbags writes them, with the counts of all files.
+    entries: dict[str, dict] = {}
+    for info in metadata:
+        for entry in info['topics_with_message_count']:
+            key = yaml.safe_dump(entry['topic_metadata'])
+            entries.setdefault(key, {**entry, 'message_count': 0})['message_count'] += entry['message_count']
+    merged['topics_with_message_count'] = list(entries.values())
     merged['files'] = [{**file_info, 'path': name}
-                       for info, name in zip(metadata, files) for file_info in info['files']]
+                       for info, name in zip(metadata, names) for file_info in info['files']]
     _write_metadata(path, merged)
     return path
 
@@ -145,6 +165,13 @@ def copy_bag(source: Path, target: Path) -> Path:
     return target
 
 
+def edit_metadata(path: Path, edit: Callable[[dict], None]) -> Path:
+    info = _metadata(path)
+    edit(info)
+    _write_metadata(path, info)
+    return path
+
+
 def storage_file(path: Path) -> Path:
     return path / _metadata(path)['relative_file_paths'][0]
 
@@ -157,3 +184,29 @@ def sqlite3_topic_data(database: Path, topic: str, start_ns: int = 0) -> list[by
             'SELECT data FROM messages JOIN topics ON messages.topic_id = topics.id '
             'WHERE topics.name = ? AND timestamp >= ? ORDER BY timestamp', (topic, start_ns))
         return [bytes(data) for (data,) in rows]
+
+
+def overlapping_recording() -> list[list[Recorded]]:
+    """Three files of one recording that overlap in time, the first starting last: /a in files 0 and 2,
+    /b in file 1, and /c from two connections, one in file 1 and one in file 2 (160 messages)."""
+
+    def strings(topic: str, steps: range, connection: int = 0) -> list[Recorded]:
+        # Topics a nanosecond apart, so that the recorded order is the timestamp order.
+        offset = ord(topic[-1]) - ord('a')
+        return [Recorded(topic, STRING, T0_NS + j * 10**7 + offset, string_data(f'{topic} {j}'), connection)
+                for j in steps]
+
+    def by_time(messages: list[Recorded]) -> list[Recorded]:
+        return sorted(messages, key=lambda m: m.timestamp_ns)
+
+    return [strings('/a', range(20, 60)),
+            by_time(strings('/b', range(0, 40)) + strings('/c', range(0, 60, 2))),
+            by_time(strings('/a', range(0, 20)) + strings('/c', range(1, 60, 2), connection=1))]
+
+
+def by_topic(messages: list[Recorded]) -> dict[str, list[bytes]]:
+    """{topic: its messages' bytes in timestamp order}: what a subscriber of each topic must receive."""
+    topics: dict[str, list[bytes]] = {}
+    for message in sorted(messages, key=lambda m: m.timestamp_ns):
+        topics.setdefault(message.topic, []).append(message.data)
+    return topics

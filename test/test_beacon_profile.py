@@ -89,7 +89,7 @@ def test_profile_equals_whole_mask_morphology(seed):
         profile = row_profile(image, observation, edge_margin=margin, marker_margin=margin)
         values, counts, saturated = opencv_profile(image, observation, margin, 255)
         np.testing.assert_array_equal(profile.weights, counts)
-        np.testing.assert_allclose(profile.values, values, rtol=1e-12)
+        np.testing.assert_allclose(profile.values, values, rtol=0.0, atol=1e-6)  # grey levels
         np.testing.assert_array_equal(profile.saturated, saturated)
 
 
@@ -110,7 +110,7 @@ def test_relative_brightness_spans_the_usable_rows_around_their_weighted_mean():
     mean = (values @ weights) / weights.sum()
     used = w > 0
     np.testing.assert_allclose(z[used], values[2:7][used] / mean - 1.0)
-    assert abs(z[used] @ w[used]) < 1e-12
+    assert abs(z[used] @ w[used]) / w[used].sum() < 1e-9  # a weighted mean of relative brightness
 
 
 def test_a_profile_without_usable_rows_is_empty():

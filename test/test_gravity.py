@@ -12,8 +12,9 @@ def test_nearest_recent_sample_gives_unit_up_in_camera_frame() -> None:
     buffer = GravityBuffer(imu_to_camera.as_quat(), max_age=0.05)
     buffer.add(1_000_000_000, [0.0, 0.0, 9.81])
     buffer.add(1_040_000_000, [0.0, 9.81, 0.0])
-    np.testing.assert_allclose(buffer.up_at(1_005_000_000), imu_to_camera.apply([0, 0, 1]), atol=1e-12)
-    np.testing.assert_allclose(buffer.up_at(1_038_000_000), imu_to_camera.apply([0, 1, 0]), atol=1e-12)
+    # Unit vectors: a nanoradian.
+    np.testing.assert_allclose(buffer.up_at(1_005_000_000), imu_to_camera.apply([0, 0, 1]), atol=1e-9)
+    np.testing.assert_allclose(buffer.up_at(1_038_000_000), imu_to_camera.apply([0, 1, 0]), atol=1e-9)
     assert buffer.newest_stamp_ns == 1_040_000_000
 
 

@@ -6,21 +6,22 @@ import struct
 from pathlib import Path
 
 import pytest
-from replay_bags import (IMAGE, SHARED_BAGS, STRING, T0_NS, Recorded, chatter, copy_bag, image_data, offer,
-                         set_metadata_version, sqlite3_topic_data, storage_file, write_bag, write_split_bag)
+import yaml
+from replay_bags import (IMAGE, SHARED_BAGS, STRING, T0_NS, Recorded, chatter, copy_bag, edit_metadata, image_data,
+                         offer, overlapping_recording, set_metadata_version, sqlite3_topic_data, storage_file,
+                         write_bag, write_overlapping_split_bag, write_split_bag)
 from rosbags.interfaces import QosDurability, QosReliability
 
-from vlp_ros.playback_plan import (PlaybackOptions, Timeline, parse_remaps, playback_origin, progress_line,
-                                   select_topics)
-from vlp_ros.rosbag_reader import Bag, BagError, OfferedQos, adapt_offers, header_stamp
+from vlp_ros.playback_plan import (PlaybackOptions, PlaybackTally, Timeline, parse_remaps, playback_origin,
+                                   progress_line, select_topics)
+from vlp_ros.rosbag_reader import Bag, BagError, BagMessage, OfferedQos, adapt_offers, header_stamp
 
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 
 
-def played(path: Path, topics: list[str] | None = None, start_ns: int | None = None) -> list[Recorded]:
+def played(path: Path, topics: list[str] | None = None) -> list[Recorded]:
     with Bag(path) as bag:
-        return [Recorded(m.topic, m.msgtype, m.timestamp_ns, m.data)
-                for m in bag.messages(topics or list(bag.topics), start_ns)]
+        return [Recorded(m.topic, m.msgtype, m.timestamp_ns, m.data) for m in bag.messages(topics or list(bag.topics))]
 
 
 @pytest.mark.parametrize('name', ['talker_sqlite3', 'talker_mcap'])
@@ -73,7 +74,50 @@ def test_topic_subset_and_start_time_filter_messages(tmp_path: Path) -> None:
     messages = sorted(chatter(4, 0.1) + images, key=lambda m: m.timestamp_ns)
     bag = write_bag(tmp_path / 'bag', messages)
     assert played(bag, ['/image']) == images
-    assert played(bag, start_ns=T0_NS + 2 * 10**8) == messages[4:]
+    tally = PlaybackTally({'/chatter': 4, '/image': 4})
+    with Bag(bag) as opened:
+        from_origin = list(tally.from_origin(opened.messages(tally.promised), T0_NS + 2 * 10**8))
+    assert [(m.topic, m.timestamp_ns, m.data) for m in from_origin] == [
+        (m.topic, m.timestamp_ns, m.data) for m in messages[4:]]
+    assert tally.before_start == {'/chatter': 2, '/image': 2} and tally.read == {'/chatter': 2, '/image': 2}
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_files_overlapping_in_time_yield_every_message_in_timestamp_order(tmp_path: Path, storage: str) -> None:
+    files = overlapping_recording()
+    bag = write_overlapping_split_bag(tmp_path / 'bag', files, storage=storage)
+    recorded = [message for chunk in files for message in chunk]
+    with Bag(bag) as opened:
+        # The first file starts 0.2 s after the earliest message, which metadata.yaml's starting_time misses.
+        assert opened.start_ns == T0_NS
+        assert {t.name: (t.message_count, t.stored_count) for t in opened.topics.values()} == {
+            '/a': (60, 60), '/b': (40, 40), '/c': (60, 60)}
+        messages = list(opened.messages(list(opened.topics)))
+    assert [(m.topic, m.timestamp_ns, m.data) for m in messages] == [
+        (m.topic, m.timestamp_ns, m.data) for m in sorted(recorded, key=lambda m: m.timestamp_ns)]
+
+
+def test_topics_without_leading_slash_and_empty_qos_strings_are_read_as_ros2_bag_writes_them(tmp_path: Path) -> None:
+    bag = write_bag(tmp_path / 'bag', chatter(3, 0.1, topic='chatter'),
+                    qos={'chatter': [offer(QosReliability.BEST_EFFORT)]})
+
+    def empty_qos(info: dict) -> None:
+        for entry in info['topics_with_message_count']:
+            entry['topic_metadata']['offered_qos_profiles'] = ''
+
+    edit_metadata(bag, empty_qos)
+    with Bag(bag) as opened:
+        assert list(opened.topics) == ['/chatter']
+        # metadata.yaml has no offer left: the storage's is used.
+        assert opened.topics['/chatter'].qos == OfferedQos('BEST_EFFORT', 'VOLATILE')
+        assert [m.data for m in opened.messages(['/chatter'])] == [m.data for m in chatter(3, 0.1)]
+
+
+def test_a_topic_recorded_with_two_types_is_refused_by_name(tmp_path: Path) -> None:
+    bag = write_bag(tmp_path / 'bag', chatter(2, 0.1, '/x') + [Recorded('/x', IMAGE, T0_NS + 10**9, image_data(T0_NS))])
+    with Bag(bag) as opened:
+        with pytest.raises(ValueError, match=r'topic /x was recorded with several message types'):
+            select_topics(opened.topics, [])
 
 
 BROKEN_BAGS = {
@@ -214,3 +258,29 @@ def test_schedule_scales_bag_time_by_rate_from_the_start_offset() -> None:
 
 def test_progress_line_counts_messages_and_bag_time() -> None:
     assert progress_line(5, 20, T0_NS + 10**9, T0_NS, T0_NS + 4 * 10**9) == 'replay: 5/20 messages, 1.0/4.0 s (25%)'
+
+
+def test_tally_compares_what_was_played_with_what_metadata_promises_from_the_start_offset() -> None:
+    messages = [BagMessage(topic, STRING, T0_NS + k, b'') for k in range(6) for topic in ('/a', '/b', '/x')]
+    tally = PlaybackTally({'/a': 6, '/b': 8, '/x': 6}, {'/x': 'foo_msgs/msg/Bar not installed'})
+    for message in tally.from_origin(messages, T0_NS + 2):
+        tally.published[message.topic] += 1
+    assert tally.before_start == {'/a': 2, '/b': 2, '/x': 2} and tally.published == {'/a': 4, '/b': 4}
+    assert tally.shortfall() == {'/b': (4, 6)}
+    assert tally.shortfall_line() == ('replay: error: incomplete: 4 of the 6 messages that metadata.yaml '
+                                      'promises for the selection were played on /b 4 of 6')
+    assert tally.skipped_text() == 'skipped 4 messages: /x 4 (foo_msgs/msg/Bar not installed)'
+    surplus = PlaybackTally({'/a': 3})
+    list(surplus.from_origin(messages[::3], T0_NS))
+    assert surplus.surplus() == {'/a': (6, 3)} and PlaybackTally({'/a': 1}).skipped_text() == ''
+
+
+def test_several_connections_of_a_topic_are_summed_and_their_offers_adapted(tmp_path: Path) -> None:
+    recorded = [Recorded('/c', STRING, T0_NS + k, m.data, connection=k % 2) for k, m in enumerate(chatter(6, 0.1))]
+    bag = write_bag(tmp_path / 'bag', recorded, version=8)
+    listed = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert len(listed['topics_with_message_count']) == 2  # /c once per connection
+    with Bag(bag) as opened:
+        assert opened.topics['/c'].message_count == opened.topics['/c'].stored_count == 6
+        assert opened.topics['/c'].qos_consistent
+        assert [m.data for m in opened.messages(['/c'])] == [m.data for m in recorded]

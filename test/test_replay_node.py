@@ -33,14 +33,14 @@ def subscribe(node, topic: str, msg_type, reliable: bool = True) -> Received:
     return received
 
 
-def run_to_end(node, replay, done: Callable[[], bool] = lambda: True, timeout: float = 20.0) -> int:
+def run_to_end(node, replay, done: Callable[[], bool] = lambda: True, timeout: float = 60.0) -> int:
     """Spin until the replay exits and ``done()`` holds; the replay's exit status."""
     assert spin_until(node, lambda: replay.popen.poll() is not None and done(), timeout), replay.output()
     assert 'Traceback' not in replay.output()
     return replay.popen.returncode
 
 
-def play_until(node, replay, done: Callable[[], bool], timeout: float = 20.0) -> None:
+def play_until(node, replay, done: Callable[[], bool], timeout: float = 60.0) -> None:
     """Spin until ``done()``, then stop the replay: its final wait for acknowledgements would only cost time."""
     assert spin_until(node, done, timeout), replay.output()
     assert replay.interrupt() == 0
@@ -54,12 +54,18 @@ def deserialized(data: list[bytes], msg_type) -> list:
 
 @pytest.mark.parametrize('name', ['talker_sqlite3', 'talker_mcap'])
 def test_real_recordings_arrive_complete_in_order_and_byte_exact(start_process, test_node, name: str) -> None:
+    from rcl_interfaces.msg import Log
     from std_msgs.msg import String
-    expected = deserialized(sqlite3_topic_data(TALKER_DB, '/topic'), String)
-    received = subscribe(test_node, '/topic', String)
-    replay = start_process('replay', SHARED_BAGS / name, '--rate', '5')
-    assert run_to_end(test_node, replay, lambda: len(received) >= len(expected)) == 0
-    assert received.messages() == expected
+    expected = {'/topic': deserialized(sqlite3_topic_data(TALKER_DB, '/topic'), String),
+                '/recorded_rosout': deserialized(sqlite3_topic_data(TALKER_DB, '/rosout'), Log)}
+    # The recorded /rosout goes elsewhere: the live one carries the logs of the nodes running now.
+    received = {'/topic': subscribe(test_node, '/topic', String),
+                '/recorded_rosout': subscribe(test_node, '/recorded_rosout', Log)}
+    replay = start_process('replay', SHARED_BAGS / name, '--rate', '5', '--remap', '/rosout:=/recorded_rosout')
+    assert run_to_end(test_node, replay,
+                      lambda: all(len(received[t]) >= len(expected[t]) for t in expected)) == 0
+    assert {topic: messages.messages() for topic, messages in received.items()} == expected
+    assert all(len(messages) == 10 for messages in expected.values())
     assert 'replay: done: published 20 messages' in replay.stderr()
 
 
@@ -84,23 +90,23 @@ def test_topic_selection_remapping_and_start_offset_by_options_or_parameters(sta
 
 
 def test_rate_scales_playback_time(start_process, test_node, tmp_path: Path) -> None:
+    """A message never arrives before the replay's schedule allows, whatever the machine's speed:
+    message k no earlier than (its bag time - the first's) / rate after the replay was started.
+    (How late it comes depends on the machine, so no upper bound is asserted.)"""
     bag = write_bag(tmp_path / 'bag', chatter(10, 0.1))  # 0.9 s of messages
     from std_msgs.msg import String
     fast = subscribe(test_node, '/fast', String)
     slow = subscribe(test_node, '/slow', String)
+    launched = time.monotonic()  # the system-wide monotonic clock, which the replay's schedule runs on too
     fast_replay = start_process('replay', bag, '--rate', '2', '--remap', '/chatter:=/fast')
-    slow_replay = start_process('replay', bag, '--rate', '0.5', '--remap', '/chatter:=/slow')
+    slow_replay = start_process('replay', bag, '--rate', '0.25', '--remap', '/chatter:=/slow')
     play_until(test_node, slow_replay, lambda: len(slow) >= 10)
     play_until(test_node, fast_replay, lambda: len(fast) >= 10)
     expected = [f'hello {k}' for k in range(10)]
     assert [m.data for m in fast.messages()] == expected and [m.data for m in slow.messages()] == expected
-
-    def span(received: Received) -> float:
-        return received.arrivals()[-1] - received.arrivals()[0]
-
-    # Not ahead of the schedule (0.45 s and 1.8 s, less the first message's delivery jitter).
-    assert span(fast) >= 0.8 * 0.45 and span(slow) >= 0.8 * 1.8
-    assert span(slow) > 2 * span(fast)
+    for received, rate in ((fast, 2.0), (slow, 0.25)):
+        for k, arrival in enumerate(received.arrivals()):
+            assert arrival - launched >= k * 0.1 / rate, (rate, k)
 
 
 def test_clock_follows_bag_time(start_process, test_node, tmp_path: Path) -> None:
@@ -110,11 +116,11 @@ def test_clock_follows_bag_time(start_process, test_node, tmp_path: Path) -> Non
     clock = subscribe(test_node, '/clock', Clock, reliable=False)
     played = subscribe(test_node, '/chatter', String)
     replay = start_process('replay', bag, '--clock', '20')
-    play_until(test_node, replay, lambda: len(played) >= 10)
+    play_until(test_node, replay, lambda: len(played) >= 10 and len(clock) >= 2)
     times = [m.clock.sec * 10**9 + m.clock.nanosec for m in clock.messages()]
-    assert len(times) >= 5
     assert times == sorted(times)
-    assert T0_NS <= times[0] and times[-1] <= T0_NS + 2 * 10**9  # a 0.9 s bag
+    # Within the bag's time however late the replay runs: 0.9 s of messages.
+    assert T0_NS <= times[0] and times[-1] <= T0_NS + 900_000_000
 
 
 def test_loop_plays_the_bag_again_after_each_delay_until_interrupted(start_process, test_node,
@@ -122,11 +128,15 @@ def test_loop_plays_the_bag_again_after_each_delay_until_interrupted(start_proce
     from std_msgs.msg import String
     bag = write_bag(tmp_path / 'bag', chatter(3, 0.05))
     received = subscribe(test_node, '/chatter', String)
-    replay = start_process('replay', bag, '--loop', '--delay', '0.5')
-    play_until(test_node, replay, lambda: len(received) >= 7, timeout=15.0)
+    launched = time.monotonic()
+    replay = start_process('replay', bag, '--loop', '--delay', '1.0')
+    play_until(test_node, replay, lambda: len(received) >= 7)
     assert [m.data for m in received.messages()[:7]] == [f'hello {k % 3}' for k in range(7)]
+    # Each pass waits its delay first, then plays 0.1 s: pass k's first message is no earlier than
+    # (k + 1) delays and k passes after the start, however fast the machine is.
     arrivals = received.arrivals()
-    assert arrivals[3] - arrivals[2] >= 0.45 and arrivals[6] - arrivals[5] >= 0.45
+    for first_of_pass, passes in ((0, 0), (3, 1), (6, 2)):
+        assert arrivals[first_of_pass] - launched >= (passes + 1) * 1.0 + passes * 0.1, first_of_pass
 
 
 def test_split_and_compressed_bags_play_every_message(start_process, test_node, tmp_path: Path) -> None:
@@ -190,7 +200,7 @@ def test_unplayable_bags_end_with_one_clear_line_and_status_1(start_process, tmp
         (tmp_path / str(index)).mkdir()
         replays[case] = start_process('replay', make(tmp_path / str(index)))
     for case, replay in replays.items():
-        assert replay.wait(timeout=30.0) == 1, case
+        assert replay.wait(timeout=60.0) == 1, case
         errors = [line for line in replay.stderr().splitlines() if line.startswith('replay: error:')]
         assert len(errors) == 1 and UNPLAYABLE[case][1] in errors[0], (case, replay.stderr())
         assert 'Traceback' not in replay.output(), case
@@ -205,7 +215,7 @@ BAD_OPTIONS = [
 def test_bad_options_are_usage_errors_with_status_2(start_process) -> None:
     replays = [start_process('replay', *args) for args, _ in BAD_OPTIONS]
     for replay, (args, message) in zip(replays, BAD_OPTIONS):
-        assert replay.wait(timeout=30.0) == 2, args
+        assert replay.wait(timeout=60.0) == 2, args
         assert message in replay.stderr() and 'usage: replay' in replay.stderr(), (args, replay.stderr())
         assert 'Traceback' not in replay.output(), args
 
@@ -222,7 +232,8 @@ def test_deterministic_mode_publishes_each_frame_after_the_previous_answer(start
         recorded += [Recorded('/camera/camera_info', CAMERA_INFO, stamp, camera_info_data(stamp)),
                      Recorded('/camera/image_raw', IMAGE, stamp + 1, image_data(stamp))]
     bag = write_bag(tmp_path / 'bag', recorded)
-    silent_frame, answer_delay, timeout = 3, 0.2, 0.6
+    # Answers come 0.2 s after a frame; the timeout leaves a slow machine 2.8 s more to send them.
+    silent_frame, answer_delay, timeout = 3, 0.2, 3.0
     replay = start_process('replay', bag, '--deterministic', '--answer-timeout', str(timeout))
     processed = test_node.create_publisher(Header, 'vlp/processed', 10)
     poses = test_node.create_publisher(PoseStamped, 'vlp/pose', 10)
@@ -243,7 +254,7 @@ def test_deterministic_mode_publishes_each_frame_after_the_previous_answer(start
                 processed.publish(Header(stamp=image.header.stamp, frame_id='ok'))
         return replay.popen.poll() is not None
 
-    assert spin_until(test_node, echo, 30.0), replay.output()
+    assert spin_until(test_node, echo, 40.0), replay.output()
     assert replay.popen.returncode == 0 and 'Traceback' not in replay.output()
     assert [(f.header.stamp.sec, f.header.stamp.nanosec) for f in frames.messages()] == [
         (s // 10**9, s % 10**9) for s in stamps]
@@ -251,7 +262,8 @@ def test_deterministic_mode_publishes_each_frame_after_the_previous_answer(start
     arrivals = frames.arrivals()
     for index in range(1, len(stamps)):
         if index - 1 == silent_frame:
-            assert arrivals[index] >= arrivals[index - 1] + 0.9 * timeout
+            # The silent frame went out after the answer before it, and waited the whole timeout.
+            assert arrivals[index] >= answered_at[index - 2] + timeout
         else:
             assert arrivals[index] >= answered_at[index - 1]
     assert 'frames answered: 5, unanswered: 1' in replay.stderr()

@@ -1,4 +1,9 @@
-"""The pose fit's kernels equal the direct numpy/OpenCV formulations they compute."""
+"""The pose fit's kernels equal the direct numpy/OpenCV formulations they compute.
+
+Tolerances say what a fit could notice, far above rounding (which differs from one
+CPU, BLAS or compiler to the next): a micro-pixel, a nanometre or nanoradian, a
+millionth of a sigma, six digits of a chi-square, step or covariance.
+"""
 import cv2
 import numpy as np
 import pytest
@@ -27,9 +32,9 @@ def test_projection_and_its_jacobian_are_opencvs(distortion: np.ndarray) -> None
     jacobians = np.empty((len(points), 2, 3))
     pixels = np.array([project_point(point, intrinsics, distortion, out) for point, out in zip(points, jacobians)])
     expected, lens = cv2.projectPoints(points, np.zeros(3), np.zeros(3), intrinsics, distortion)
-    np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0.0, atol=1e-6)
     # With zero rvec and tvec, the tvec columns of OpenCV's Jacobian are d pixel / d point.
-    np.testing.assert_allclose(jacobians, lens[:, 3:6].reshape(-1, 2, 3), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(jacobians, lens[:, 3:6].reshape(-1, 2, 3), rtol=1e-6, atol=1e-6)
 
 
 def test_perturbation_is_the_rodrigues_rotation_on_the_left() -> None:
@@ -37,8 +42,8 @@ def test_perturbation_is_the_rodrigues_rotation_on_the_left() -> None:
     for delta in [*rng.normal(scale=0.3, size=(20, 6)), np.zeros(6), np.array([0.1, 0.2, 0.3, 1e-17, 0.0, 0.0])]:
         rotation, position = perturbed(WIDE_TRUTH, delta)
         left, _ = cv2.Rodrigues(delta[3:])
-        np.testing.assert_allclose(rotation, left @ WIDE_TRUTH.rotation, rtol=0.0, atol=1e-15)
-        np.testing.assert_array_equal(position, WIDE_TRUTH.position + delta[:3])
+        np.testing.assert_allclose(rotation, left @ WIDE_TRUTH.rotation, rtol=0.0, atol=1e-9)
+        np.testing.assert_allclose(position, WIDE_TRUTH.position + delta[:3], rtol=0.0, atol=1e-9)
 
 
 def _direct_residuals(measurement: LampMeasurement, pose: Pose) -> np.ndarray:
@@ -62,7 +67,7 @@ def test_lamp_residuals_are_the_direct_formulation(pose: Pose) -> None:
     measurement = LampMeasurement.from_observation(observation, lamp, camera_wide())
     residuals, _ = measurement.linearize(pose.rotation, pose.position)
     expected = _direct_residuals(measurement, pose)
-    np.testing.assert_allclose(residuals, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+    np.testing.assert_allclose(residuals, expected, rtol=1e-6, atol=1e-6)  # in sigmas
 
 
 def test_rim_pixel_jacobian_is_the_undistortions() -> None:
@@ -106,7 +111,7 @@ def test_pseudo_inverse_form_is_numpys() -> None:
     for matrix in matrices:
         vector = rng.normal(size=2)
         expected = vector @ np.linalg.pinv(matrix, rcond=1e-9, hermitian=True) @ vector
-        assert _pseudo_inverse_form(matrix, vector, 1e-9) == pytest.approx(expected, rel=1e-9, abs=1e-12)
+        assert _pseudo_inverse_form(matrix, vector, 1e-9) == pytest.approx(expected, rel=1e-6, abs=1e-9)
 
 
 def test_rotation_curvature_is_the_direct_formula() -> None:
@@ -120,7 +125,8 @@ def test_rotation_curvature_is_the_direct_formula() -> None:
     mean = 0.5 * np.trace(b_p, axis1=1, axis2=2)
     expected = covariance.copy()
     expected[:3, :3] += 0.5 * np.einsum('ijk,lkj->il', b_p, b_p) + np.outer(mean, mean)
-    np.testing.assert_allclose(with_rotation_curvature(covariance, lever), expected, rtol=1e-12, atol=1e-15)
+    # Six digits, or a square micrometre (micro-radian) of covariance.
+    np.testing.assert_allclose(with_rotation_curvature(covariance, lever), expected, rtol=1e-6, atol=1e-12)
 
 
 def test_pinhole_normalization_is_k_inverted() -> None:
@@ -128,8 +134,9 @@ def test_pinhole_normalization_is_k_inverted() -> None:
     camera = CameraModel(1920, 1080, np.array([[900.0, 2.5, 955.5], [0.0, 905.0, 539.5], [0.0, 0.0, 1.0]]))
     pixels = rng.uniform(-100.0, 2000.0, (50, 2))
     expected = np.linalg.solve(camera.K, np.column_stack([pixels, np.ones(len(pixels))]).T).T[:, :2]
-    np.testing.assert_allclose(camera.normalize(pixels), expected, rtol=1e-13, atol=1e-15)
-    np.testing.assert_allclose(camera.normalize(pixels[0]), expected[:1], rtol=1e-13, atol=1e-15)
+    # A micro-pixel at this focal length of 900 px.
+    np.testing.assert_allclose(camera.normalize(pixels), expected, rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(camera.normalize(pixels[0]), expected[:1], rtol=0.0, atol=1e-9)
 
 
 def test_rim_terms_without_distortion_are_k_inverted() -> None:
@@ -139,7 +146,7 @@ def test_rim_terms_without_distortion_are_k_inverted() -> None:
     np.testing.assert_array_equal(measurement.rim_rays[:, 2], 1.0)
     np.testing.assert_allclose(measurement.rim_pixel_jacobian,
                                np.broadcast_to(np.linalg.inv(camera.K[:2, :2]), measurement.rim_pixel_jacobian.shape),
-                               rtol=1e-15, atol=0.0)
+                               rtol=1e-9, atol=0.0)
 
 
 def test_circle_poses_of_the_negated_conic_are_the_same() -> None:
@@ -149,8 +156,8 @@ def test_circle_poses_of_the_negated_conic_are_the_same() -> None:
         axes, _ = cv2.Rodrigues(rng.normal(scale=0.2, size=3))
         conic = axes @ np.diag([rng.uniform(1.0, 2.0), rng.uniform(0.5, 1.0), -rng.uniform(0.1, 1.0)]) @ axes.T
         for kept, negated in zip(circle_poses(conic, 0.05), circle_poses(-conic, 0.05), strict=True):
-            np.testing.assert_allclose(negated.normal, kept.normal, rtol=0.0, atol=1e-12)
-            np.testing.assert_allclose(negated.center, kept.center, rtol=0.0, atol=1e-12)
+            np.testing.assert_allclose(negated.normal, kept.normal, rtol=0.0, atol=1e-9)
+            np.testing.assert_allclose(negated.center, kept.center, rtol=0.0, atol=1e-9)
 
 
 def test_inverse_form_and_forecast_are_numpys() -> None:
@@ -158,11 +165,12 @@ def test_inverse_form_and_forecast_are_numpys() -> None:
     for _ in range(20):
         jacobian, residuals = rng.normal(size=(30, 6)) * rng.uniform(0.01, 100.0, 6), rng.normal(size=30)
         information, vector = jacobian.T @ jacobian, rng.normal(size=6)
+        # Columns scaled 0.01 to 100 condition these up to 1e8, which lifts rounding towards 1e-8.
         assert inverse_form(information, vector) == pytest.approx(vector @ np.linalg.solve(information, vector),
-                                                                  rel=1e-10)
+                                                                  rel=1e-6)
         gradient = jacobian.T @ residuals
         expected = residuals @ residuals - gradient @ np.linalg.solve(information, gradient)
-        assert forecast(residuals, jacobian) == pytest.approx(expected, rel=1e-10, abs=1e-10)
+        assert forecast(residuals, jacobian) == pytest.approx(expected, rel=1e-6, abs=1e-9)
     with pytest.raises(np.linalg.LinAlgError):
         inverse_form(np.zeros((6, 6)), np.ones(6))
     assert forecast(np.ones(30), np.zeros((30, 6))) == 0.0
@@ -177,7 +185,7 @@ def test_up_innovation_is_the_direct_formula() -> None:
         residual, jacobian = measurement.linearize(pose.rotation, pose.position)
         left = np.eye(2) - jacobian @ pose.covariance @ jacobian.T
         expected = residual @ np.linalg.pinv(left, rcond=1e-9, hermitian=True) @ residual
-        assert measurement.innovation(pose) == pytest.approx(expected, rel=1e-9)
+        assert measurement.innovation(pose) == pytest.approx(expected, rel=1e-6)
 
 
 def test_up_tangent_axes_are_the_crosses_with_the_least_aligned_axis() -> None:
@@ -187,7 +195,7 @@ def test_up_tangent_axes_are_the_crosses_with_the_least_aligned_axis() -> None:
         first = np.cross(direction, np.eye(3)[np.argmin(np.abs(direction))])
         first /= np.linalg.norm(first)
         expected = np.array([[first, np.cross(direction, first)]])
-        np.testing.assert_allclose(_tangent_axes(direction), expected, rtol=0.0, atol=1e-15)
+        np.testing.assert_allclose(_tangent_axes(direction), expected, rtol=0.0, atol=1e-9)
 
 
 @pytest.mark.parametrize('count', [2, 4])
@@ -200,6 +208,6 @@ def test_kalman_update_is_the_direct_formula(count: int) -> None:
         gain = np.linalg.solve(innovation, jacobian @ covariance).T
         step, after = np.empty(6), np.empty((6, 6))
         chi_square = _kalman_update(residuals, jacobian, covariance, step, after)
-        np.testing.assert_allclose(step, -gain @ residuals, rtol=1e-9, atol=1e-14)
-        np.testing.assert_allclose(after, covariance - gain @ jacobian @ covariance, rtol=1e-9, atol=1e-14)
-        assert chi_square == pytest.approx(residuals @ np.linalg.solve(innovation, residuals), rel=1e-10)
+        np.testing.assert_allclose(step, -gain @ residuals, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(after, covariance - gain @ jacobian @ covariance, rtol=1e-6, atol=1e-12)
+        assert chi_square == pytest.approx(residuals @ np.linalg.solve(innovation, residuals), rel=1e-6)

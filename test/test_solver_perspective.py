@@ -72,7 +72,7 @@ def test_exact_4k_views_give_the_true_pose_and_its_twin(scene: str) -> None:
     _assert_truth_among(candidates, truth)
     right = min(candidates, key=lambda c: c.pose.position_error(truth))
     twin = max(candidates, key=lambda c: c.pose.position_error(truth))
-    assert right.cost < 1e-12
+    assert right.cost < 1e-6  # in sigmas squared: noise-free data, explained to its rounding and the fit's stop
     assert twin.pose.position_error(truth) > 0.1
     # The twin explains the image nearly as well: only the marker's inset from the rim differs.
     assert twin.cost < 10.0
@@ -83,7 +83,7 @@ def test_twin_is_exact_when_the_marker_sits_on_the_rim() -> None:
     truth = looking_up(*SCENES_4K['oblique'])
     candidates = solve_lamp(observe(lamp, truth, camera_4k()), lamp, camera_4k())
     assert len(candidates) == 2
-    assert max(c.cost for c in candidates) < 1e-9
+    assert max(c.cost for c in candidates) < 1e-6
 
 
 @pytest.mark.parametrize('lamp_index', range(6))

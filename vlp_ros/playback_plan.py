@@ -1,10 +1,11 @@
 """What a replay plays and when: options, topic selection, remapping, the time schedule."""
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 
-from vlp_ros.rosbag_reader import BagTopic
+from vlp_ros.rosbag_reader import BagMessage, BagTopic, absolute_topic
 
 DEFAULT_CLOCK_HZ = 40.0  # as `ros2 bag play --clock` without a rate
 
@@ -40,11 +41,6 @@ class PlaybackOptions:
         return parse_remaps(self.remap)
 
 
-def absolute_topic(name: str) -> str:
-    """Bag topics are absolute; users may leave out the leading slash."""
-    return name if name.startswith('/') else '/' + name
-
-
 def parse_remaps(rules: Sequence[str]) -> dict[str, str]:
     """{bag topic: published topic} from FROM:=TO rules."""
     remaps: dict[str, str] = {}
@@ -71,8 +67,13 @@ def select_topics(bag_topics: Mapping[str, BagTopic],
         missing = [name for name in names if name not in bag_topics]
         if not selected:
             raise ValueError(f'none of the topics {list(names)} is in the bag; it has {sorted(bag_topics)}')
-    if sum(topic.message_count for topic in selected) == 0:
+    if sum(max(topic.message_count, topic.stored_count) for topic in selected) == 0:
         raise ValueError(f'the selected topics {[topic.name for topic in selected]} hold no messages')
+    for topic in selected:
+        if topic.other_msgtypes:
+            raise ValueError(f'topic {topic.name} was recorded with several message types '
+                             f'{[topic.msgtype, *topic.other_msgtypes]}, which one topic cannot carry; '
+                             'leave it out with --topics')
     return selected, missing
 
 
@@ -105,3 +106,59 @@ def progress_line(published: int, total: int, bag_time_ns: int, origin_ns: int, 
     played = min(max(0, bag_time_ns - origin_ns), span)
     return (f'replay: {published}/{total} messages, {played / 1e9:.1f}/{span / 1e9:.1f} s '
             f'({100.0 * played / span:.0f}%)')
+
+
+@dataclass
+class PlaybackTally:
+    """One pass's books, per topic: what metadata.yaml promises, what was read, published or skipped.
+
+    The promise for the selection is the metadata's count less what was read
+    before the start offset: the metadata counts whole topics only.
+    """
+
+    promised: Mapping[str, int]  # metadata.yaml's count of each topic read (played or skipped)
+    skip_reasons: Mapping[str, str] = field(default_factory=dict)  # topics read but deliberately not played
+    before_start: Counter = field(default_factory=Counter)
+    read: Counter = field(default_factory=Counter)
+    published: Counter = field(default_factory=Counter)
+
+    def from_origin(self, messages: Iterable[BagMessage], origin_ns: int) -> Iterator[BagMessage]:
+        """The messages at or after ``origin_ns`` that are to be published; counts all of them."""
+        for message in messages:
+            if message.timestamp_ns < origin_ns:
+                self.before_start[message.topic] += 1
+                continue
+            self.read[message.topic] += 1
+            if message.topic not in self.skip_reasons:
+                yield message
+
+    def promised_from_origin(self, topic: str) -> int:
+        return max(0, self.promised[topic] - self.before_start[topic])
+
+    def shortfall(self) -> dict[str, tuple[int, int]]:
+        """{topic: (published or skipped, promised)} for every topic that fell short of its promise."""
+        short = {}
+        for topic in self.promised:
+            delivered = self.read[topic] if topic in self.skip_reasons else self.published[topic]
+            if delivered < self.promised_from_origin(topic):
+                short[topic] = (delivered, self.promised_from_origin(topic))
+        return short
+
+    def surplus(self) -> dict[str, tuple[int, int]]:
+        """{topic: (read, promised)} where the storage held more than metadata.yaml announces."""
+        return {topic: (self.read[topic], self.promised_from_origin(topic)) for topic in self.promised
+                if self.read[topic] > self.promised_from_origin(topic)}
+
+    def shortfall_line(self) -> str:
+        short = self.shortfall()
+        delivered, promised = (sum(counts) for counts in zip(*short.values()))
+        topics = ', '.join(f'{topic} {got} of {want}' for topic, (got, want) in short.items())
+        return (f'replay: error: incomplete: {delivered} of the {promised} messages that metadata.yaml '
+                f'promises for the selection were played on {topics}')
+
+    def skipped_text(self) -> str:
+        """'' when nothing was skipped, else how many messages of which topics, and why."""
+        if not self.skip_reasons:
+            return ''
+        topics = ', '.join(f'{topic} {self.read[topic]} ({reason})' for topic, reason in self.skip_reasons.items())
+        return f'skipped {sum(self.read[topic] for topic in self.skip_reasons)} messages: {topics}'

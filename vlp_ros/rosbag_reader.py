@@ -6,6 +6,7 @@ a user can act on.
 """
 from __future__ import annotations
 
+import heapq
 import struct
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
@@ -14,6 +15,11 @@ from typing import TypeVar
 
 from rosbags.interfaces import Connection, ConnectionExtRosbag2, Qos
 from rosbags.rosbag2 import Reader
+
+try:
+    from compression import zstd  # Python 3.14, as rosbags uses it
+except ImportError:
+    from backports import zstd
 
 FRAME_TYPES = frozenset({'sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage'})
 # rosbag2's own playback default: a publisher matching every subscriber kind.
@@ -41,12 +47,14 @@ class OfferedQos:
 
 @dataclass(frozen=True)
 class BagTopic:
-    name: str
+    name: str  # absolute, whatever the bag spells
     msgtype: str
-    message_count: int
+    message_count: int  # as metadata.yaml announces it, summed over the topic's connections
     qos: OfferedQos
     # False when the recorded publishers offered different QoS (then ``qos`` is the default).
     qos_consistent: bool = True
+    stored_count: int = 0  # as the storage files' indexes count it
+    other_msgtypes: tuple[str, ...] = ()  # further types recorded on this name: unplayable on one topic
 
 
 @dataclass(frozen=True)
@@ -76,6 +84,26 @@ def _policy(name: str, default: str) -> str:
     return default if name in _UNSET_POLICIES else name
 
 
+def absolute_topic(name: str) -> str:
+    """Topics as the graph names them; bags and users may leave out the leading slash."""
+    return name if name.startswith('/') else '/' + name
+
+
+def _group_by_topic(connections: Sequence[Connection]) -> dict[str, list[Connection]]:
+    groups: dict[str, list[Connection]] = {}
+    for connection in connections:
+        groups.setdefault(absolute_topic(connection.topic), []).append(connection)
+    return groups
+
+
+def _offers(connections: Sequence[Connection]) -> list[Qos]:
+    offers = []
+    for connection in connections:
+        assert isinstance(connection.ext, ConnectionExtRosbag2)
+        offers += connection.ext.offered_qos_profiles
+    return offers
+
+
 def header_stamp(data: bytes) -> tuple[int, int]:
     """(sec, nanosec) of a CDR message whose first field is a std_msgs/Header (images are)."""
     if len(data) < 12:
@@ -88,7 +116,14 @@ def header_stamp(data: bytes) -> tuple[int, int]:
 
 
 class Bag:
-    """An open rosbag2 directory (sqlite3 or mcap, split, zstd-compressed; metadata v4 to v9)."""
+    """An open rosbag2 directory (sqlite3 or mcap, split, zstd-compressed; metadata v4 to v9).
+
+    Topics are keyed by absolute name and gather every connection recorded on
+    them, in metadata.yaml and in the storage files: real bags list a topic once
+    per writer, leave out leading slashes, and may hold what metadata.yaml lacks.
+    Times and counts of the storage stand beside the metadata's promises, which
+    a split bag whose files overlap in time can get wrong.
+    """
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
@@ -100,47 +135,68 @@ class Bag:
             raise BagError(f'bag {self.path} has no metadata.yaml: not a rosbag2 directory')
         self._reader = self._guarded('cannot be opened', Reader, self.path)
         self._guarded('cannot be opened', self._reader.open)
-        self.start_ns: int = self._reader.start_time
-        self.end_ns: int = self._reader.end_time
-        self.message_count: int = self._reader.message_count
-        self.topics: dict[str, BagTopic] = {}
-        for connection in self._reader.connections:
-            self._add_topic(connection)
+        storages = [storage for storage in self._reader.storage.storages if storage.metadata.message_count]
+        # From the storage, not metadata.yaml: a split bag's starting_time may be that of one file only.
+        self.start_ns: int = min((s.metadata.start_time for s in storages), default=self._reader.start_time)
+        self.end_ns: int = max((s.metadata.end_time for s in storages), default=self._reader.end_time)
+        self.message_count: int = sum(storage.metadata.message_count for storage in storages)
+        self.topics: dict[str, BagTopic] = self._gather_topics()
         if self.message_count == 0:
             self.close()
             raise BagError(f'bag {self.path} is empty: it holds no messages')
 
-    def _add_topic(self, connection: Connection) -> None:
-        # The metadata.yaml of rosbag2 lists each topic once; its QoS is what `ros2 bag play` offers.
-        assert isinstance(connection.ext, ConnectionExtRosbag2)
-        qos, consistent = adapt_offers(connection.ext.offered_qos_profiles)
-        self.topics[connection.topic] = BagTopic(connection.topic, connection.msgtype,
-                                                 connection.msgcount, qos, consistent)
+    def _storage_connections(self) -> list[Connection]:
+        return [c for storage in self._reader.storage.storages for c in storage.connections]
+
+    def _gather_topics(self) -> dict[str, BagTopic]:
+        announced = _group_by_topic(self._reader.connections)
+        stored = _group_by_topic(self._storage_connections())
+        topics = {}
+        for name in dict.fromkeys([*announced, *stored]):
+            listed, held = announced.get(name, []), stored.get(name, [])
+            msgtypes = tuple(dict.fromkeys(c.msgtype for c in listed + held))
+            # metadata.yaml's offers are what `ros2 bag play` uses; real bags may leave them '' there.
+            offers = _offers(listed) or _offers(held)
+            qos, consistent = adapt_offers(offers)
+            topics[name] = BagTopic(name, msgtypes[0], sum(c.msgcount for c in listed), qos, consistent,
+                                    sum(c.msgcount for c in held), msgtypes[1:])
+        return topics
 
     @property
     def duration_ns(self) -> int:
         return max(0, self.end_ns - self.start_ns)
 
-    def messages(self, topics: Collection[str], start_ns: int | None = None) -> Iterator[BagMessage]:
-        """Raw messages of ``topics`` in recorded order, from ``start_ns`` on.
+    def messages(self, topics: Collection[str]) -> Iterator[BagMessage]:
+        """Every raw message of ``topics`` (absolute names) in timestamp order, over all files and connections.
 
-        Raises BagError when the storage turns out unreadable, or yields nothing at all.
+        The storage reads are not given a start time: callers skip what they do
+        not want, and can count it. Raises BagError when the storage turns out
+        unreadable, or yields nothing at all.
         """
-        wanted = {(name, self.topics[name].msgtype) for name in topics}
+        wanted = set(topics)
+        # Each file on its own, merged by time: files of one bag overlap when several writers split.
+        streams = [self._storage_messages(storage, [c for c in storage.connections
+                                                    if absolute_topic(c.topic) in wanted])
+                   for storage in self._reader.storage.storages]
+        stream = heapq.merge(*streams, key=lambda message: message.timestamp_ns)
+        count = 0
+        while (message := self._guarded(f'became unreadable after {count} messages', next, stream, None)) is not None:
+            count += 1
+            yield message
+        if count == 0:
+            raise BagError(f'bag {self.path} holds no readable messages on {sorted(topics)} '
+                           f'(its metadata.yaml announces {sum(self.topics[t].message_count for t in topics)})')
+
+    def _storage_messages(self, storage: object, connections: list[Connection]) -> Iterator[BagMessage]:
         # Storage connections, not metadata ones: rosbags matches the two by QoS
         # equality, which real bags break (metadata.yaml and the database spell
         # "infinite" durations differently) and which then silently yields nothing.
-        connections = [c for storage in self._reader.storage.storages for c in storage.connections
-                       if (c.topic, c.msgtype) in wanted]
-        stream = self._reader.storage.messages(connections, start_ns)
-        count = 0
-        while (item := self._guarded(f'became unreadable after {count} messages', next, stream, None)) is not None:
-            connection, timestamp, data = item
-            count += 1
-            yield BagMessage(connection.topic, connection.msgtype, timestamp, bytes(data))
-        if count == 0:
-            raise BagError(f'bag {self.path} holds no readable messages on {sorted(topics)} '
-                           f'(its metadata.yaml announces {self.message_count} in all)')
+        if not connections:
+            return
+        compressed = self._reader.compression_mode == 'message'
+        for connection, timestamp, data in storage.messages(connections):
+            yield BagMessage(absolute_topic(connection.topic), connection.msgtype, timestamp,
+                             zstd.decompress(data) if compressed else bytes(data))
 
     def _guarded(self, what: str, function: Callable[..., T], *args: object) -> T:
         # rosbags lets its parsers' errors through unwrapped (apsw, zstd, struct,

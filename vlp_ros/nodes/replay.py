@@ -34,8 +34,8 @@ from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
-from vlp_ros.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, Timeline, playback_origin,
-                                   progress_line, select_topics)
+from vlp_ros.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, PlaybackTally, Timeline,
+                                   playback_origin, progress_line, select_topics)
 from vlp_ros.rosbag_reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
 
 DISCOVERY_WAIT_S = 5.0  # at most, for subscribers to match first (a lost announcement costs 3 s)
@@ -122,12 +122,15 @@ class Replay(Node):
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self)
         self._bag_publishers: dict[str, Publisher] = {}
+        self._skip_reasons: dict[str, str] = {}  # selected topics read and counted, not published
+        self._tally = PlaybackTally({})
         self._published = 0
         self._total = 0
         self._answered = 0
         self._unanswered = 0
         self._pending_stamp: tuple[int, int] | None = None
         self._last_bag_ns = 0
+        self._latest_bag_ns = 0  # the bag's last message: bag time never runs past it
         self._timeline: Timeline | None = None
         self._loop_start = 0.0
 
@@ -165,7 +168,9 @@ class Replay(Node):
             self._create_publishers(selected)
             names = list(self._bag_publishers)
             self._total = sum(bag.topics[name].message_count for name in names)
+            promised = {topic.name: topic.message_count for topic in selected}
             self._last_bag_ns = origin
+            self._latest_bag_ns = bag.end_ns - 1
             mode = 'deterministic' if self.options.deterministic else f'rate {self.options.rate:g}'
             self._print(f'replay: playing {bag.path}: {self._total} messages on {len(names)} topics, '
                         f'{(bag.end_ns - origin) / 1e9:.1f} s of bag time, {mode}')
@@ -181,11 +186,18 @@ class Replay(Node):
             self._wait_for_subscribers()
             started = time.monotonic()
             while True:
-                self._play_pass(bag, names, origin)
-                if not self.options.loop:
+                self._tally = PlaybackTally(promised, self._skip_reasons)
+                self._play_pass(bag, origin)
+                if self._tally.shortfall() or not self.options.loop:
                     break
             self._wait_for_acknowledgements()
         self._print(self._summary(time.monotonic() - started))
+        for topic, (read, announced) in self._tally.surplus().items():
+            self.get_logger().warning(f'{topic}: the storage held {read} messages where metadata.yaml '
+                                      f'announces {announced}; all were played')
+        if self._tally.shortfall():
+            self._print(self._tally.shortfall_line())
+            return 1
         return 0
 
     def _create_publishers(self, topics: Sequence[BagTopic]) -> None:
@@ -195,6 +207,7 @@ class Replay(Node):
             cls = message_class(topic.msgtype)
             if cls is None:
                 unavailable.setdefault(topic.msgtype, []).append(topic.name)
+                self._skip_reasons[topic.name] = f'{topic.msgtype} not installed'
                 continue
             if not topic.qos_consistent:
                 self.get_logger().warning(f'{topic.name} was recorded from publishers with different QoS; '
@@ -246,11 +259,12 @@ class Replay(Node):
         if matched:
             self._spin_for(MATCH_SETTLE_S)
 
-    def _play_pass(self, bag: Bag, names: Sequence[str], origin: int) -> None:
+    def _play_pass(self, bag: Bag, origin: int) -> None:
+        """Every message of the selection from ``origin`` on, counted in ``self._tally``."""
         self._timeline = None
         self._last_bag_ns = origin
         self._spin_for(self.options.delay)
-        for message in bag.messages(names, origin):
+        for message in self._tally.from_origin(bag.messages(self._tally.promised), origin):
             if self._timeline is None:
                 # The schedule starts when the first message has been read, so that
                 # opening (or decompressing) the storage does not squeeze its first gaps.
@@ -263,6 +277,7 @@ class Replay(Node):
             publisher = self._bag_publishers[message.topic]
             publisher.publish(message.data)
             self._published += 1
+            self._tally.published[message.topic] += 1
             self._last_bag_ns = message.timestamp_ns
             if self.options.deterministic and message.msgtype in FRAME_TYPES:
                 self._await_answer(message, publisher)
@@ -296,7 +311,8 @@ class Replay(Node):
         """Bag time being played: the clock in timed playback, the last message in deterministic mode."""
         if self.options.deterministic or self._timeline is None:
             return self._last_bag_ns
-        return max(self._last_bag_ns, self._timeline.bag_time_ns(time.monotonic() - self._loop_start))
+        scheduled = self._timeline.bag_time_ns(time.monotonic() - self._loop_start)
+        return max(self._last_bag_ns, min(scheduled, self._latest_bag_ns))
 
     def _wait_for_acknowledgements(self) -> None:
         deadline = time.monotonic() + ACK_WAIT_S
@@ -305,6 +321,8 @@ class Replay(Node):
 
     def _summary(self, elapsed_s: float) -> str:
         line = f'replay: done: published {self._published} messages in {elapsed_s:.1f} s'
+        if skipped := self._tally.skipped_text():
+            line += f'; {skipped}'
         if self.options.deterministic:
             line += f'; frames answered: {self._answered}, unanswered: {self._unanswered}'
         return line
