@@ -33,7 +33,7 @@ from vlp_ros.evaluation import figures
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, summarize
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
-from vlp_ros.evaluation.tiebreak import PAPER_TIEBREAKS, mirror_picks
+from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, mirror_summary
 from vlp_ros.locator_config import settings_from_params_file
 from vlp_ros.pose import Pose
 from vlp_ros.progress import progress_bar
@@ -152,10 +152,7 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--points', type=int, default=4, help='grid points per side of the 3 m x 3 m area')
     parser.add_argument('--postures', type=int, default=6, help="aimed postures per grid point (the paper's six)")
     parser.add_argument('--anywhere-postures', type=int, default=2, help='anywhere postures per grid point')
-    parser.add_argument('--paper-tiebreak', choices=PAPER_TIEBREAKS, default='hints',
-                        help="how the paper's solver picks between its mirror poses: the locator's hints "
-                             '(gravity, prior, continuity) or its own Appendix B rule (camera faces up, '
-                             'user looks at the screen)')
+    add_paper_tiebreak_argument(parser)
     parser.add_argument('--camera', choices=('4k', '1080p'), default='4k')
     parser.add_argument('--seed', type=int, default=2017)
     parser.add_argument('--keep-bags', action='store_true', help='keep the rendered recordings (about 25 MB per 4K frame)')
@@ -212,16 +209,6 @@ def comparison_notes(evaluation: Evaluation) -> list[str]:
                      f'{100 * (theirs.point_mean_m / published - 1):+.0f} %')
         notes.append(line)
     return notes
-
-
-def mirror_note(model: str, outcomes: list[FrameOutcome]) -> str:
-    parts = []
-    for group in sorted({o.group for o in outcomes}):
-        mirrors, decided = mirror_picks([o for o in outcomes if o.group == group])
-        share = f' ({100 * mirrors / decided:.0f} %)' if decided else ''
-        parts.append(f'{group} {mirrors} of {decided}{share}')
-    return (f'{model}: Appendix B\'s tie-break (camera faces up, user looks at the screen) picks the paper\'s '
-            f'mirror pose in {", ".join(parts)} frames with two candidates')
 
 
 def off_axis_series(played: dict[str, list[Played]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -281,7 +268,7 @@ def posture_evaluation(model: str, runs: list[Played], args: argparse.Namespace)
                             {PERSPECTIVE: [o for run in runs for o in run.ours],
                              PAPER: [o for run in runs for o in run.theirs]},
                             published=model == 'aimed', name=model)
-    evaluation.notes += comparison_notes(evaluation) + [mirror_note(model, evaluation.series[PAPER])]
+    evaluation.notes += comparison_notes(evaluation) + [mirror_summary(model, evaluation.series[PAPER])]
     for height, run in zip(args.heights, runs):
         frames = len(run.ours)
         evaluation.notes.append(f'{height:g} m: {frames} frames through replay -> locator in {run.seconds:.1f} s '

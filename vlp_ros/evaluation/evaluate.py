@@ -17,7 +17,7 @@ from pathlib import Path
 from vlp_ros.evaluation.metrics import FrameOutcome
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
 from vlp_ros.evaluation.report import Evaluation, write_report
-from vlp_ros.evaluation.tiebreak import PAPER_TIEBREAKS, CandidateRecorder
+from vlp_ros.evaluation.tiebreak import CandidateRecorder, add_paper_tiebreak_argument, mirror_summary
 from vlp_ros.gravity import GravityBuffer
 from vlp_ros.locator_config import ConfigError, LocatorSettings, settings_from_params_file
 from vlp_ros.pipeline import Pipeline
@@ -62,10 +62,7 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--out', type=Path, default=Path('evaluation_report'), help='report folder')
     parser.add_argument('--solver', choices=('perspective', 'paper', 'both'), default='both')
     parser.add_argument('--group', default='', help='label for this recording in the table (e.g. 2 m)')
-    parser.add_argument('--paper-tiebreak', choices=PAPER_TIEBREAKS, default='hints',
-                        help="how the paper's solver picks between its mirror poses: the locator's hints "
-                             '(gravity, prior, continuity) or its own Appendix B rule (camera faces up, '
-                             'user looks at the screen)')
+    add_paper_tiebreak_argument(parser)
     defaults = RecordingTopics()
     for name in ('image', 'camera_info', 'imu', 'ground_truth'):
         parser.add_argument(f'--{name.replace("_", "-")}-topic', default=getattr(defaults, name))
@@ -86,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     evaluation = Evaluation(f'vlp_ros on {args.bag.name}', series)
     print(evaluation.table())
+    if 'paper' in series:
+        print(mirror_summary("paper's solver", series['paper']))
     print(f'report: {write_report(evaluation, args.out)}')
     return 0
 

@@ -9,12 +9,21 @@ and continuity instead (``vlp_ros.solvers.ambiguity``).
 """
 from __future__ import annotations
 
+import argparse
+
 from vlp_ros.evaluation.metrics import FrameOutcome
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
 
 PAPER_TIEBREAKS = ('hints', 'appendix-b')
+
+
+def add_paper_tiebreak_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--paper-tiebreak', choices=PAPER_TIEBREAKS, default='hints',
+                        help="how the paper's solver picks between its mirror poses: the locator's hints "
+                             '(gravity, prior, continuity) or its own Appendix B rule (camera faces up, '
+                             'user looks at the screen)')
 
 
 def faces_up_toward_user(pose: Pose) -> bool:
@@ -75,3 +84,14 @@ def mirror_picks(outcomes: list[FrameOutcome]) -> tuple[int, int]:
     verdicts = [picks_mirror(o.candidates, o.truth) for o in outcomes]
     decided = [v for v in verdicts if v is not None]
     return sum(decided), len(decided)
+
+
+def mirror_summary(label: str, outcomes: list[FrameOutcome]) -> str:
+    """One line: per group, how often Appendix B picks the mirror pose."""
+    parts = []
+    for group in sorted({o.group for o in outcomes}):
+        mirrors, decided = mirror_picks([o for o in outcomes if o.group == group])
+        share = f' ({100 * mirrors / decided:.0f} %)' if decided else ''
+        parts.append(f'{group} {mirrors} of {decided}{share}'.strip())
+    return (f"{label}: Appendix B's tie-break (camera faces up, user looks at the screen) picks the paper's "
+            f'mirror pose in {", ".join(parts)} frames with two candidates')
