@@ -210,19 +210,20 @@ def _hand_held_pose(camera: CameraModel, position: np.ndarray, lamp: Lamp, max_t
 def _aimed_pose(position: np.ndarray, lamp: Lamp, rng: np.random.Generator,
                 off_axis_deg: float = AIMED_OFF_AXIS_DEG, twist_deg: float = AIMED_TWIST_DEG) -> Pose:
     """The phone pointed at the lamp by hand: its optical axis uniformly within
-    ``off_axis_deg`` of the lamp's centre, held with the image's top edge toward the
-    lamp (the holder faces it and looks at the screen; any way round below it),
-    twisted about the axis by up to ``twist_deg``. The lamp stays near the image
-    centre, so the whole of it is in view with any camera of the paper's field of view.
+    ``off_axis_deg`` of the lamp's centre, the phone held upright (portrait: the
+    sensor's long side, image x, along the phone) with its top, the image's left
+    edge, toward the lamp (any way round below it), twisted about the axis by up to
+    ``twist_deg``. The lamp stays near the image centre, so the whole of it is in
+    view with any camera of the paper's field of view.
     """
     to_lamp = lamp.position - position
     axis = to_lamp / np.linalg.norm(to_lamp)
     horizontal = np.hypot(to_lamp[0], to_lamp[1])
     heading = np.arctan2(to_lamp[1], to_lamp[0]) if horizontal > 1e-3 else rng.uniform(-np.pi, np.pi)
     toward = np.array([np.cos(heading), np.sin(heading), 0.0])
-    top = toward - (toward @ axis) * axis
-    down = -top / np.linalg.norm(top)
-    aimed = np.column_stack([np.cross(down, axis), down, axis])
+    left = toward - (toward @ axis) * axis
+    right = -left / np.linalg.norm(left)
+    aimed = np.column_stack([right, np.cross(axis, right), axis])
     off_axis = np.arccos(rng.uniform(np.cos(np.radians(off_axis_deg)), 1.0))
     off_direction = rng.uniform(-np.pi, np.pi)
     hand = Rotation.from_euler('z', rng.uniform(-1.0, 1.0) * np.radians(twist_deg)) * Rotation.from_rotvec(
