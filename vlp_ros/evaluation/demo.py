@@ -245,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         print()
         print(evaluation.title)
         print(evaluation.table())
-        for line in evaluation.published_rows() + evaluation.notes:
+        for line in (evaluation.published_rows() if evaluation.published else []) + evaluation.notes:
             print(line)
     report = args.out / 'report'
     report.mkdir(parents=True, exist_ok=True)
