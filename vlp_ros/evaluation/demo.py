@@ -28,8 +28,8 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 
 from vlp_ros.dds_environment import claim_domain_id, installed_executable, loopback_profile, use_loopback_dds
-from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
 from vlp_ros.evaluation import figures
+from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, summarize
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
@@ -38,13 +38,14 @@ from vlp_ros.locator_config import settings_from_params_file
 from vlp_ros.pose import Pose
 from vlp_ros.progress import progress_bar
 from vlp_ros.sim.recording import record, write_params
-from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, paper_scenario
+from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, AIMED_TWIST_DEG, paper_scenario
 
 TOPICS = RecordingTopics()
 PERSPECTIVE = 'vlp_ros (perspective, over DDS)'
 PAPER = "paper's solver (same frames, ungated)"
 POSTURE_TITLES = {
-    'aimed': f"Aimed (the paper's photos: optical axis within {AIMED_OFF_AXIS_DEG:g} deg of the lamp, natural roll)",
+    'aimed': (f"Aimed (the paper's photos: optical axis within {AIMED_OFF_AXIS_DEG:g} deg of the lamp, phone upright "
+              f'with its top toward the lamp, twisted by up to {AIMED_TWIST_DEG:g} deg)'),
     'anywhere': 'Anywhere (the lamp anywhere in view: tilt up to 30 deg, or more to keep it in view; any roll)',
 }
 
