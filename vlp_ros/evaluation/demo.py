@@ -41,6 +41,7 @@ from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, AIMED_TWIST_DEG, paper_scenario
 
 TOPICS = RecordingTopics()
+PLAYED_TOPICS = (TOPICS.image, TOPICS.camera_info, TOPICS.imu)
 PERSPECTIVE = 'vlp_ros (perspective, over DDS)'
 PAPER = "paper's solver (same frames, ungated)"
 POSTURE_TITLES = {
@@ -113,13 +114,14 @@ def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListe
     locator = _start('locator', '--ros-args', '--params-file', params, log=logs / f'{bag.name}_locator.log')
     replay = None
     try:
-        while not listener.node.count_publishers('vlp/processed'):
+        # The locator loads its kernels (a minute when their cache is cold) before it subscribes
+        # (to the IMU only when its params enable it).
+        while not all(listener.node.count_subscribers(topic) for topic in PLAYED_TOPICS[:2]):
             if locator.poll() is not None:
                 raise RuntimeError(f'locator exited: see {logs / (bag.name + "_locator.log")}')
             listener.spin_for(0.1)
         started = time.monotonic()
-        replay = _start('replay', bag, '--deterministic', '--topics', TOPICS.image, TOPICS.camera_info, TOPICS.imu,
-                        log=logs / f'{bag.name}_replay.log')
+        replay = _start('replay', bag, '--deterministic', '--topics', *PLAYED_TOPICS, log=logs / f'{bag.name}_replay.log')
         answered = -1
         while replay.poll() is None:
             listener.spin_for(0.1)
