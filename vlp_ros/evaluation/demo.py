@@ -121,7 +121,8 @@ def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListe
                 raise RuntimeError(f'locator exited: see {logs / (bag.name + "_locator.log")}')
             listener.spin_for(0.1)
         started = time.monotonic()
-        replay = _start('replay', bag, '--deterministic', '--topics', *PLAYED_TOPICS, log=logs / f'{bag.name}_replay.log')
+        replay = _start('replay', bag, '--deterministic', '--topics', *PLAYED_TOPICS,
+                        log=logs / f'{bag.name}_replay.log')
         answered = -1
         while replay.poll() is None:
             listener.spin_for(0.1)

@@ -1,4 +1,5 @@
-"""Figures in the style of the seed paper's Figs. 4-6 (per-point error, error CDF, X-Y view), and error against off-axis angle."""
+"""Figures in the style of the seed paper's Figs. 4-6 (per-point error, error CDF, X-Y view),
+and the 3D error against the lamp's angle off the optical axis."""
 from __future__ import annotations
 
 from pathlib import Path
