@@ -5,6 +5,7 @@ publishing; the evaluation tools call it the same way.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,7 +19,7 @@ from vlp_ros.locator_config import LocatorSettings
 from vlp_ros.observation import LampObservation
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
-from vlp_ros.solvers.candidates import Choice, Reason, explains_the_image
+from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, explains_the_image
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.paper import solve_lamp_paper
 
@@ -42,11 +43,14 @@ class FrameResult:
 class Pipeline:
     """Stateful across frames: beacon evidence per tracked lamp, and the last pose for continuity."""
 
-    def __init__(self, settings: LocatorSettings, gate_fit: bool = True) -> None:
+    def __init__(self, settings: LocatorSettings, gate_fit: bool = True,
+                 paper_choice: Callable[[list[PoseCandidate], DisambiguationHints], Choice] = choose_candidate) -> None:
         """``gate_fit=False`` lets the paper's solver publish poses that do not explain the
-        image: only for measuring that solver as published, never in the locator."""
+        image, and ``paper_choice`` replaces how its mirror poses are told apart: both only
+        for measuring that solver as published, never in the locator."""
         self.settings = settings
         self.gate_fit = gate_fit
+        self.paper_choice = paper_choice
         # Per-frame decoding needs these for every lamp: derive them once.
         self._known_ids = settings.lamps.ids
         self._frequencies = settings.lamps.frequencies()
@@ -127,6 +131,6 @@ class Pipeline:
                 candidates = [c for c in candidates if explains_the_image(c)]
                 if not candidates:
                     return Choice(None, Reason.POOR_FIT, "the paper's pose does not explain the image")
-            # The paper's two mirror solutions are told apart by the same hints as ours.
-            return choose_candidate(candidates, self._hints(stamp, gravity_up))
+            # The paper's two mirror solutions are told apart by the same hints as ours (by default).
+            return self.paper_choice(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))

@@ -17,6 +17,7 @@ from pathlib import Path
 from vlp_ros.evaluation.metrics import FrameOutcome
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
 from vlp_ros.evaluation.report import Evaluation, write_report
+from vlp_ros.evaluation.tiebreak import CandidateRecorder, add_paper_tiebreak_argument, mirror_summary
 from vlp_ros.gravity import GravityBuffer
 from vlp_ros.locator_config import ConfigError, LocatorSettings, settings_from_params_file
 from vlp_ros.pipeline import Pipeline
@@ -29,21 +30,26 @@ def grid_point(outcome_truth_xy) -> tuple[float, float]:
 
 
 def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopics, group: str = '',
-                     progress: Callable[[int], None] | None = None, gate_fit: bool = True) -> list[FrameOutcome]:
+                     progress: Callable[[int], None] | None = None, gate_fit: bool = True,
+                     paper_tiebreak: str = 'hints') -> list[FrameOutcome]:
     """Run every frame of ``bag`` through the pipeline and pair each with its true pose.
 
-    ``gate_fit=False`` measures the paper's solver as published (see ``Pipeline``).
+    ``gate_fit=False`` measures the paper's solver as published (see ``Pipeline``);
+    ``paper_tiebreak`` is how its mirror poses are told apart (``tiebreak.CandidateRecorder``),
+    and each outcome keeps its candidates.
     """
     truth = ground_truth(bag, topics.ground_truth)
     gravity = GravityBuffer(settings.imu_rotation, settings.imu_max_age) if settings.imu_enabled else None
-    pipeline = Pipeline(settings, gate_fit)
+    recorder = CandidateRecorder(paper_tiebreak)
+    pipeline = Pipeline(settings, gate_fit, recorder)
     outcomes = []
     for frame in recorded_frames(bag, topics, gravity):
         if frame.stamp_ns not in truth:
             continue
         result = pipeline.process(frame.image, frame.camera, frame.stamp_ns * 1e-9, frame.up)
         pose = truth[frame.stamp_ns]
-        outcomes.append(FrameOutcome(pose, result.pose, group, grid_point(pose.position[:2]), result.outcome))
+        outcomes.append(FrameOutcome(pose, result.pose, group, grid_point(pose.position[:2]), result.outcome,
+                                     recorder.take()))
         if progress is not None:
             progress(1)
     return outcomes
@@ -56,6 +62,7 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--out', type=Path, default=Path('evaluation_report'), help='report folder')
     parser.add_argument('--solver', choices=('perspective', 'paper', 'both'), default='both')
     parser.add_argument('--group', default='', help='label for this recording in the table (e.g. 2 m)')
+    add_paper_tiebreak_argument(parser)
     defaults = RecordingTopics()
     for name in ('image', 'camera_info', 'imu', 'ground_truth'):
         parser.add_argument(f'--{name.replace("_", "-")}-topic', default=getattr(defaults, name))
@@ -69,13 +76,15 @@ def main(argv: list[str] | None = None) -> int:
         settings = settings_from_params_file(args.params)
         solvers = ['perspective', 'paper'] if args.solver == 'both' else [args.solver]
         series = {solver: evaluate_offline(args.bag, replace(settings, solver=solver), topics, args.group,
-                                           gate_fit=solver != 'paper')
+                                           gate_fit=solver != 'paper', paper_tiebreak=args.paper_tiebreak)
                   for solver in solvers}
     except (ConfigError, BagError, ValueError, OSError) as err:
         print(f'evaluate: {err}', file=sys.stderr)
         return 1
     evaluation = Evaluation(f'vlp_ros on {args.bag.name}', series)
     print(evaluation.table())
+    if 'paper' in series:
+        print(mirror_summary("paper's solver", series['paper']))
     print(f'report: {write_report(evaluation, args.out)}')
     return 0
 

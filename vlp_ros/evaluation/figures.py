@@ -1,4 +1,5 @@
-"""Figures in the style of the seed paper's Figs. 4-6: per-point error, error CDF, X-Y view."""
+"""Figures in the style of the seed paper's Figs. 4-6 (per-point error, error CDF, X-Y view),
+and the 3D error against the lamp's angle off the optical axis."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -75,6 +76,33 @@ def xy_view(outcomes: list[FrameOutcome], path: Path, title: str) -> Path:
     ax.set_aspect('equal')
     ax.set_title(title)
     ax.legend(loc='upper right')
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def error_vs_off_axis(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str,
+                      reference_distance_m: float | None = None) -> Path:
+    """3D error against the lamp's angle off the optical axis, one marker set per series
+    (label -> (angles in deg, errors in m)); with ``reference_distance_m``, the weak-perspective
+    rule of thumb error = distance x tan(angle) as a dashed line."""
+    fig, ax = plt.subplots(figsize=(7.2, 4.8))
+    largest = 1.0
+    for label, (angles, errors) in series.items():
+        if len(angles):
+            ax.scatter(angles, 100 * np.asarray(errors), s=10, alpha=0.6, label=label)
+            largest = max(largest, float(np.max(angles)))
+    if reference_distance_m is not None:
+        angle = np.linspace(0.5, largest, 100)
+        ax.plot(angle, 100 * reference_distance_m * np.tan(np.radians(angle)), 'k--', lw=1,
+                label=f'{reference_distance_m:g} m x tan(angle)')
+    ax.set_yscale('log')
+    ax.set_xlabel("lamp's angle off the optical axis (deg)")
+    ax.set_ylabel('3D position error (cm)')
+    ax.set_title(title)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -30,6 +30,10 @@ FRAME_RATE = 30.0
 PAPER_DESIGN_DISTANCE = 2.0
 # The marker disc sits just inside the rim: this much of the radius stays between them.
 MARKER_RIM_GAP_FRACTION = 0.03
+# Aimed postures (the paper's photos): how far the optical axis strays from the lamp, and
+# how far the hand turns the phone about it.
+AIMED_OFF_AXIS_DEG = 5.5
+AIMED_TWIST_DEG = 30.0
 # Camera axes in the robot base frame (x forward, y left, z up): image x to the left, looking up.
 ROBOT_CAMERA_MOUNT = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
@@ -174,19 +178,23 @@ def make_lamp(name: str, lamp_id: int, position: np.ndarray, radius: float, mark
 
 def paper_scenario(camera_kind: str = '4k', height: float = 2.0, points: int = 7, postures: int = 3,
                    seed: int = 0, depth: float = 0.75, max_tilt_deg: float = 30.0,
-                   area: float = 3.0, bayer: str | None = None) -> Scenario:
+                   area: float = 3.0, bayer: str | None = None, posture: str = 'anywhere') -> Scenario:
     """One 11 cm lamp ``height`` m above a ``points`` x ``points`` grid over ``area`` x ``area`` m.
 
-    At each grid point the phone takes ``postures`` photos: optical axis uniformly
-    random within ``max_tilt_deg`` of straight up (widened to reach the lamp at
-    grid points from where it is farther off), random roll about the axis, kept
-    only if the whole lamp is at least 20 px inside the image. The beacon is
-    designed for >= 1.3 packets at >= 4 rows per chip with the lamp 2 m away.
+    At each grid point the phone takes ``postures`` photos. ``posture='anywhere'``:
+    optical axis uniformly random within ``max_tilt_deg`` of straight up (widened to
+    reach the lamp at grid points from where it is farther off), random roll about
+    the axis, kept only if the whole lamp is at least 20 px inside the image.
+    ``posture='aimed'`` (the paper's photos): the phone points at the lamp
+    (``_aimed_pose``). The beacon is designed for >= 1.3 packets at >= 4 rows per
+    chip with the lamp 2 m away.
     """
     if not height > 0.0:
         raise ValueError(f'height must be positive, got {height}')
     if points < 1 or postures < 1:
         raise ValueError('points and postures must be at least 1')
+    if posture not in ('anywhere', 'aimed'):
+        raise ValueError(f"posture must be 'anywhere' or 'aimed', got {posture!r}")
     rng = np.random.default_rng(seed)
     camera = paper_camera(camera_kind)
     sensor = SensorModel(row_time=1.0 / (FRAME_RATE * camera.height), exposure=50e-6, bayer=bayer)
@@ -198,7 +206,8 @@ def paper_scenario(camera_kind: str = '4k', height: float = 2.0, points: int = 7
     for x in grid:
         for y in grid:
             position = np.array([x, y, 0.0])
-            poses.extend(_hand_held_pose(camera, position, sim.lamp, max_tilt_deg, rng) for _ in range(postures))
+            poses.extend(_aimed_pose(position, sim.lamp, rng) if posture == 'aimed'
+                         else _hand_held_pose(camera, position, sim.lamp, max_tilt_deg, rng) for _ in range(postures))
     return Scenario(f'paper_{camera_kind}', camera, sensor, [sim], poses, [np.zeros(3)] * len(poses), beacon,
                     independent_frames=True)
 
@@ -220,6 +229,30 @@ def _hand_held_pose(camera: CameraModel, position: np.ndarray, lamp: Lamp, max_t
                     and np.all(pixels[:, 1] <= camera.height - 1 - margin)):
                 return pose
     raise ValueError(f'no posture at {position[:2]} sees the whole lamp')
+
+
+def _aimed_pose(position: np.ndarray, lamp: Lamp, rng: np.random.Generator,
+                off_axis_deg: float = AIMED_OFF_AXIS_DEG, twist_deg: float = AIMED_TWIST_DEG) -> Pose:
+    """The phone pointed at the lamp by hand: its optical axis uniformly within
+    ``off_axis_deg`` of the lamp's centre, the phone held upright (portrait: the
+    sensor's long side, image x, along the phone) with its top, the image's left
+    edge, toward the lamp (any way round below it), twisted about the axis by up to
+    ``twist_deg``. The lamp stays near the image centre, so the whole of it is in
+    view with any camera of the paper's field of view.
+    """
+    to_lamp = lamp.position - position
+    axis = to_lamp / np.linalg.norm(to_lamp)
+    horizontal = np.hypot(to_lamp[0], to_lamp[1])
+    heading = np.arctan2(to_lamp[1], to_lamp[0]) if horizontal > 1e-3 else rng.uniform(-np.pi, np.pi)
+    toward = np.array([np.cos(heading), np.sin(heading), 0.0])
+    left = toward - (toward @ axis) * axis
+    right = -left / np.linalg.norm(left)
+    aimed = np.column_stack([right, np.cross(axis, right), axis])
+    off_axis = np.arccos(rng.uniform(np.cos(np.radians(off_axis_deg)), 1.0))
+    off_direction = rng.uniform(-np.pi, np.pi)
+    hand = Rotation.from_euler('z', rng.uniform(-1.0, 1.0) * np.radians(twist_deg)) * Rotation.from_rotvec(
+        off_axis * np.array([np.cos(off_direction), np.sin(off_direction), 0.0]))
+    return Pose(aimed @ hand.as_matrix(), position)
 
 
 def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.15, camera_height: float = 0.45,
