@@ -6,7 +6,7 @@ compiled kernels (``vlp_ros.compiled``) in the modules they belong to, and here.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,6 +18,7 @@ from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_e
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
+from vlp_ros.small_arrays import median
 
 # A lamp's rim must have this many kept points on each side of its centre.
 _MIN_SIDE_FRACTION = 0.2
@@ -36,6 +37,12 @@ _STEADY_TOLERANCE = 0.04
 _STEADY_FLOOR = 0.01
 # Rows dimmer than this (of the brightest row) carry too little marker signal to use.
 _MIN_MARKER_ROW_FRACTION = 0.1
+# In clipped rows the marker's red channel clips with the lamp while its green and blue do not: its
+# edge moves in by up to about this many blurs where white surrounds it and out where the dark
+# ceiling does, so a marker at the rim seems shifted outward (0.3-1.0 px at blur 0.9-1.7 px on the
+# foreign frames, of whose rows most were clipped). Its uncertainty per axis is counted as this
+# many blurs times the share of clipped rows through the marker (z of the foreign frames near 1).
+_CLIPPED_MARKER_SHIFT = 0.4
 
 
 @dataclass(frozen=True)
@@ -333,39 +340,103 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
-    """The marker, fitted on lit, unclipped rows that share their level with a neighbour.
+    """The marker, fitted on lit rows that share their level with a neighbour: unclipped rows, and
+    rows inside a clipped stripe at the level that makes them agree with the unclipped ones.
 
-    A row whose level differs from both neighbours' has been mixed with them by blur.
+    A row whose level differs from both neighbours' has been mixed with them by blur. A
+    marker at the rim of a saturated lamp often lies mostly in clipped rows, where the
+    lamp's level is unknown but the marker's redness is nearly one value (its red
+    channel clips with the lamp's): those rows carry it as well as unclipped ones.
     """
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    lit, rows = _marker_rows(profile, box.background, float(options.saturation_level))
+    lit, unclipped, clipped = _marker_rows(profile, box.background, float(options.saturation_level))
     if not lit:
         return None
+    level, rows = _marker_levels(box.red, box.seed, profile, unclipped, clipped)
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
-                     profile, rows, shape_spread(box.rim.ellipse, focal_length))
-    if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > 0.0:
+                     level, rows, shape_spread(box.rim.ellipse, focal_length))
+    # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
+    if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
-    return fit
+    crossing = np.abs(np.arange(rows.size) - fit.center[1]) < fit.radius
+    clipped_share = np.count_nonzero(rows & clipped & crossing) / max(np.count_nonzero(rows & crossing), 1)
+    return replace(fit, sigma=math.hypot(fit.sigma, _CLIPPED_MARKER_SHIFT * clipped_share * fit.blur))
 
 
 @kernel
-def _marker_rows(profile: np.ndarray, background: float, saturation_level: float) -> tuple[bool, np.ndarray]:
-    """(whether any row is lit, the rows ``_marker`` fits on) of a row profile (NaN: unknown)."""
+def _marker_rows(profile: np.ndarray, background: float,
+                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray]:
+    """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on) of a row
+    profile (NaN: unknown). Clipped rows count only inside a clipped stripe (both neighbours clipped),
+    where blur mixes in no unclipped light."""
     lit, brightest = False, -np.inf
     for level in profile:
         if level > 0.0:
             lit = True
         if level > brightest:
             brightest = level
-    # Dim rows still show the marker: anything clearly above the noise takes part. In
-    # clipped rows the marker's redness is no longer proportional to the row's level.
-    rows = steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
+    # Dim rows still show the marker: anything clearly above the noise takes part.
+    steady = steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
+    unclipped = np.zeros(profile.size, np.bool_)
+    clipped = np.zeros(profile.size, np.bool_)
     for i in range(profile.size):
-        rows[i] &= profile[i] > _MIN_MARKER_ROW_FRACTION * brightest and profile[i] + background < saturation_level
-    return lit, rows
+        bright = profile[i] > _MIN_MARKER_ROW_FRACTION * brightest
+        at_clip = profile[i] + background >= saturation_level
+        unclipped[i] = steady[i] and bright and not at_clip
+        if 0 < i < profile.size - 1:
+            clipped[i] = (at_clip and profile[i - 1] + background >= saturation_level
+                          and profile[i + 1] + background >= saturation_level)
+    return lit, unclipped, clipped
+
+
+def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,
+                   clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row levels, rows used) for the marker fit.
+
+    In unclipped rows the marker's redness is one ratio times the row's level. In clipped
+    rows it is nearly one value, which the ratio turns into an equivalent level: both are
+    read on the marker's core (the seed's middle half), where blur leaves the marker whole.
+    When only one kind of row crosses the core, only rows of that kind are used.
+    """
+    unclipped_core, clipped_core = _core_redness(red, seed.center, seed.radius, profile, unclipped, clipped)
+    if clipped_core.size == 0 or not clipped.any():
+        return profile, unclipped
+    if unclipped_core.size == 0:
+        return profile, clipped
+    level = profile.copy()
+    level[clipped] = median(clipped_core) / median(unclipped_core)
+    return level, unclipped | clipped
+
+
+@kernel
+def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: np.ndarray, unclipped: np.ndarray,
+                  clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean redness over the seed's middle half in each unclipped row crossing it (over the row's
+    level) and in each clipped one."""
+    half = 0.5 * radius
+    y0, y1 = max(math.ceil(centre[1] - half), 0), min(math.floor(centre[1] + half), red.shape[0] - 1)
+    x0, x1 = max(math.ceil(centre[0] - half), 0), min(math.floor(centre[0] + half), red.shape[1] - 1)
+    ratios, values = np.empty(max(y1 - y0 + 1, 0)), np.empty(max(y1 - y0 + 1, 0))
+    ratio_count = value_count = 0
+    if x1 < x0:
+        return ratios[:0], values[:0]
+    for y in range(y0, y1 + 1):
+        if not (unclipped[y] or clipped[y]):
+            continue
+        total = 0.0
+        for x in range(x0, x1 + 1):
+            total += red[y, x]
+        mean = total / (x1 - x0 + 1)
+        if unclipped[y]:
+            ratios[ratio_count] = mean / profile[y]
+            ratio_count += 1
+        else:
+            values[value_count] = mean
+            value_count += 1
+    return ratios[:ratio_count], values[:value_count]
 
 
 def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],
