@@ -243,8 +243,8 @@ def test_tone_waveform_renders_periodic_stripes():
 
 
 def test_bad_inputs_are_rejected():
-    lamp = Lamp('l', 1, [0.0, 0.0, 1.0], 0.1)
-    with pytest.raises(ValueError, match='sticks out of the rim'):
+    lamp = Lamp('l', 1, [0.0, 0.0, 1.0], 0.1, marker_distance=0.11)
+    with pytest.raises(ValueError, match='outside the rim'):
         SimLamp(lamp, tone_waveform(1000.0, 0.5))
     with pytest.raises(ValueError, match='does not lie on'):
         crop_camera(small_camera(), (300, 0, 50, 50))

@@ -1,4 +1,4 @@
-"""Command line: python -m vlp_ros.sim --scenario paper|robot --out DIR [options].
+"""Command line: python -m vlp_ros.sim --scenario paper|robot|drive|tone --out DIR [--look NAME] [options].
 
 Writes DIR/<scenario> (a rosbag2 recording) and DIR/params.yaml (the locator's
 parameters for it), shows a progress bar on stderr and prints a one-line summary.
@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +16,25 @@ import numpy as np
 from vlp_ros.sim.bag_writer import STORAGES
 from vlp_ros.progress import progress_bar
 from vlp_ros.sim.recording import record, write_params
-from vlp_ros.sim.scenarios import PAPER_CAMERAS, Scenario, paper_scenario, robot_scenario
+from vlp_ros.sim.looks import LOOKS, Look, apply_look
+from vlp_ros.sim.scenarios import (PAPER_CAMERAS, Scenario, as_stills, paper_scenario, robot_drive_scenario,
+                                   robot_scenario, robot_tone_scenario, with_rim_markers)
 from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
 
-PAPER_ONLY = ('points', 'postures', 'camera')
+PAPER_ONLY = ('points', 'postures', 'camera', 'still_interval')
+# Options that change one effect of the chosen --look: (option, Look field, type, help).
+LOOK_OPTIONS = (
+    ('--blur', 'blur_sigma', float, 'optics blur sigma in px (up to 2 px is ordinary; realistic 1.6)'),
+    ('--glare', 'glare', float, "lens-glare halo peak as a fraction of the disc's level (realistic 0.2)"),
+    ('--glare-width', 'glare_width', float, "halo sigma as a fraction of the lamp's image diameter (0.35)"),
+    ('--falloff', 'falloff', float, 'diffuser emission 1 - a (r/R)^2: a (realistic 0.3)'),
+    ('--brightness', 'brightness', float, 'scale of the lamps\' light; above 1 saturates them'),
+    ('--bloom', 'bloom', float, 'fraction of the charge beyond the full well that spills to neighbours'),
+    ('--clutter', 'clutter', int, 'unmodulated lamps, not in the map, among the mapped ones (realistic 2)'),
+    ('--jpeg', 'jpeg_quality', int, 'send the images as JPEG of this quality on /image_raw/compressed'),
+    ('--row-time-error', 'row_time_error', float,
+     'true row time = (1 + this) x the nominal one written to params.yaml (e.g. 0.02)'),
+)
 
 
 class UsageError(Exception):
@@ -29,7 +45,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog='python -m vlp_ros.sim',
         description='Simulate a rolling-shutter VLP recording: DIR/<scenario> (rosbag2) and DIR/params.yaml.')
-    parser.add_argument('--scenario', required=True, choices=('paper', 'robot'))
+    parser.add_argument('--scenario', required=True, choices=('paper', 'robot', 'drive', 'tone'),
+                        help='paper: hand-held stills of one lamp; robot: under a row of lamps; drive: a robot '
+                             'driving and turning under packet lamps 2.4 m apart; tone: robot stills under 12 tone lamps')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--storage', default='sqlite3', choices=tuple(STORAGES))
     parser.add_argument('--frames', type=int, help='write only the first N frames')
@@ -41,6 +59,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--bayer', choices=BAYER_PATTERNS, help='record a raw Bayer mosaic instead of bgr8')
     parser.add_argument('--imu', action='store_true', help='record /imu and enable it in params.yaml')
+    parser.add_argument('--still-interval', type=float,
+                        help='paper: stamp the photos this many s apart with continuity on (e.g. 0.1 or 2)')
+    parser.add_argument('--marker-distance', type=float,
+                        help="marker centre as a fraction of the lamp radius, 0.5-1 (given alone or with "
+                             "--marker-radius: the paper's marginal point, 0.9 and 0.1, for the other)")
+    parser.add_argument('--marker-radius', type=float, help='marker radius as a fraction of the lamp radius')
+    looks = parser.add_argument_group('looks', 'how real lamps and cameras look (docs/simulator.md)')
+    looks.add_argument('--look', default='clean', choices=tuple(LOOKS), help='a named set of effects (default clean)')
+    for option, _, kind, text in LOOK_OPTIONS:
+        looks.add_argument(option, type=kind, help=f'{text}; overrides --look')
     return parser.parse_args(argv)
 
 
@@ -61,14 +89,35 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
                     raise UsageError(f'--{name} must be at least 1, got {getattr(args, name)}')
             scenario = paper_scenario(camera_kind=args.camera or '4k', points=args.points or 7,
                                       postures=args.postures or 3, **common)
+            if args.still_interval is not None:
+                scenario = as_stills(scenario, args.still_interval)
         else:
-            given = [f'--{name}' for name in PAPER_ONLY if getattr(args, name) is not None]
+            given = [f'--{name.replace("_", "-")}' for name in PAPER_ONLY if getattr(args, name) is not None]
             if given:
                 raise UsageError(f'{", ".join(given)}: only valid with --scenario paper')
-            scenario = robot_scenario(**common)
+            makers = {'robot': robot_scenario, 'drive': robot_drive_scenario, 'tone': robot_tone_scenario}
+            scenario = makers[args.scenario](**common)
+        marker = {name: getattr(args, f'marker_{name}') for name in ('distance', 'radius')
+                  if getattr(args, f'marker_{name}') is not None}
+        if marker:
+            scenario = with_rim_markers(scenario, **marker)
+        scenario = apply_look(scenario, chosen_look(args), args.seed)
     except ValueError as error:
         raise UsageError(str(error)) from error
     return scenario.truncated(args.frames) if args.frames is not None else scenario
+
+
+def chosen_look(args: argparse.Namespace) -> Look:
+    """The --look with every effect option given on the command line put in."""
+    changes = {field: getattr(args, option[2:].replace('-', '_')) for option, field, _, _ in LOOK_OPTIONS
+               if getattr(args, option[2:].replace('-', '_')) is not None}
+    return replace(LOOKS[args.look], **changes)
+
+
+def beacon_summary(scenario: Scenario) -> str:
+    if scenario.beacon.mode == 'tone':
+        return 'tone lamps'
+    return f'chip rate {scenario.beacon.chip_rate:.0f} Hz, {scenario.beacon.id_bits} id bits'
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,8 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     write_params(params_path, scenario, args.imu)
     camera = scenario.camera
     print(f'wrote {bag_path} ({args.storage}): {frames} frames {camera.width}x{camera.height} '
-          f'{encoding(scenario.sensor.bayer)}, {len(scenario.lamps)} lamps, chip rate {scenario.beacon.chip_rate:.0f} Hz, '
-          f'{scenario.beacon.id_bits} id bits{", imu" if args.imu else ""}; params {params_path}; '
+          f'{encoding(scenario.sensor.bayer)}, {len(scenario.lamps)} lamps, {beacon_summary(scenario)}'
+          f'{", imu" if args.imu else ""}, look {args.look}; params {params_path}; '
           f'{time.perf_counter() - started:.1f} s')
     return 0
 

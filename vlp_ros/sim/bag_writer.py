@@ -15,12 +15,16 @@ from rosbags.typesys import Stores, get_typestore
 from vlp_ros.camera import CameraModel
 from vlp_ros.pose import Pose
 from vlp_ros.sim.render import RenderedFrame
+from vlp_ros.sim.sensor import encode_jpeg
 
 TYPESTORE = get_typestore(Stores.ROS2_LYRICAL)
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 CAMERA_FRAME = 'camera_optical_frame'
 MAP_FRAME = 'map'
 IMAGE_TOPIC = '/image_raw'
+COMPRESSED_TOPIC = '/image_raw/compressed'
+# image_transport's format string for a JPEG of a bgr8 image.
+JPEG_FORMAT = 'bgr8; jpeg compressed bgr8'
 CAMERA_INFO_TOPIC = '/camera_info'
 IMU_TOPIC = '/imu'
 GROUND_TRUTH_TOPIC = '/ground_truth/pose'
@@ -35,6 +39,7 @@ def _qos(reliability: QosReliability, depth: int) -> Qos:
 # What a camera driver offers: sensor-data QoS for the streams, reliable for calibration and truth.
 TOPICS = {
     IMAGE_TOPIC: ('sensor_msgs/msg/Image', _qos(QosReliability.BEST_EFFORT, 5)),
+    COMPRESSED_TOPIC: ('sensor_msgs/msg/CompressedImage', _qos(QosReliability.BEST_EFFORT, 5)),
     CAMERA_INFO_TOPIC: ('sensor_msgs/msg/CameraInfo', _qos(QosReliability.RELIABLE, 10)),
     IMU_TOPIC: ('sensor_msgs/msg/Imu', _qos(QosReliability.BEST_EFFORT, 50)),
     GROUND_TRUTH_TOPIC: ('geometry_msgs/msg/PoseStamped', _qos(QosReliability.RELIABLE, 10)),
@@ -42,9 +47,14 @@ TOPICS = {
 
 
 class SimBagWriter:
-    """Writes frames to a new rosbag2 directory (``storage``: sqlite3 or mcap). Use as a context manager."""
+    """Writes frames to a new rosbag2 directory (``storage``: sqlite3 or mcap). Use as a context manager.
 
-    def __init__(self, path: Path | str, storage: str = 'sqlite3', imu: bool = False) -> None:
+    With ``jpeg_quality`` the images go as JPEG on /image_raw/compressed (for
+    ``image_transport: compressed``) instead of raw on /image_raw.
+    """
+
+    def __init__(self, path: Path | str, storage: str = 'sqlite3', imu: bool = False,
+                 jpeg_quality: int | None = None) -> None:
         if storage not in STORAGES:
             raise ValueError(f'storage must be one of {", ".join(STORAGES)}, got {storage!r}')
         path = Path(path)
@@ -53,8 +63,10 @@ class SimBagWriter:
         self._writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
         self._writer.open()
         self._connections = {}
+        self._jpeg_quality = jpeg_quality
+        skipped = {IMAGE_TOPIC if jpeg_quality is not None else COMPRESSED_TOPIC} | (set() if imu else {IMU_TOPIC})
         for topic, (msgtype, qos) in TOPICS.items():
-            if topic == IMU_TOPIC and not imu:
+            if topic in skipped:
                 continue
             self._connections[topic] = self._writer.add_connection(
                 topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=[qos])
@@ -72,7 +84,13 @@ class SimBagWriter:
             self._write(IMU_TOPIC, stamp_ns, imu_message(specific_force, imu_noise, header))
         self._write(CAMERA_INFO_TOPIC, stamp_ns, camera_info_message(frame.camera, header))
         self._write(GROUND_TRUTH_TOPIC, stamp_ns, pose_message(frame.pose, _header(stamp_ns, MAP_FRAME)))
-        self._write(IMAGE_TOPIC, stamp_ns, image_message(frame.image, frame.encoding, header))
+        if self._jpeg_quality is None:
+            self._write(IMAGE_TOPIC, stamp_ns, image_message(frame.image, frame.encoding, header))
+        else:
+            if frame.encoding != 'bgr8':
+                raise ValueError(f'JPEG needs a bgr8 image, not {frame.encoding}')
+            self._write(COMPRESSED_TOPIC, stamp_ns, compressed_image_message(
+                encode_jpeg(frame.image, self._jpeg_quality), header))
         self.frames += 1
 
     def _write(self, topic: str, stamp_ns: int, message: object) -> None:
@@ -101,6 +119,11 @@ def image_message(image: np.ndarray, encoding: str, header: object) -> object:
     height, width = image.shape[:2]
     return Image(header=header, height=height, width=width, encoding=encoding, is_bigendian=0,
                  step=image.strides[0], data=np.ascontiguousarray(image).reshape(-1))
+
+
+def compressed_image_message(data: np.ndarray, header: object) -> object:
+    CompressedImage = TYPESTORE.types['sensor_msgs/msg/CompressedImage']
+    return CompressedImage(header=header, format=JPEG_FORMAT, data=data)
 
 
 def camera_info_message(camera: CameraModel, header: object) -> object:

@@ -9,7 +9,6 @@ import yaml
 
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import Scenario
 
 # Recording start: a plausible wall-clock stamp, since a zero stamp often means "unset" in ROS.
@@ -27,9 +26,9 @@ def record(scenario: Scenario, bag_path: Path | str, storage: str, imu: bool, rn
            progress: Callable[[int, int], None] | None = None) -> int:
     """Render every frame of ``scenario`` into a new bag; returns how many frames were written."""
     times = scenario.frame_times()
-    with SimBagWriter(bag_path, storage, imu) as writer:
+    with SimBagWriter(bag_path, storage, imu, scenario.jpeg_quality) as writer:
         for index, (pose, t) in enumerate(zip(scenario.poses, times)):
-            frame = render_frame(scenario.camera, pose, scenario.lamps, scenario.sensor, float(t), rng)
+            frame = scenario.render(index, rng)
             force = None
             if imu:
                 force = specific_force(pose, scenario.accelerations[index], scenario.imu_noise, rng)

@@ -15,11 +15,13 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.ellipse import ellipse_from_conic
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
-from vlp_ros.sim.coverage import Circle, disc_coverage
-from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern
+from vlp_ros.sim.coverage import Circle, disc_coverage, plane_points
+from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern, spill_charge
 
 RIM_SAMPLES = 180
 MARKER_RADIUS_FRACTION = 0.09
+# The glare halo is drawn out to this many of its sigmas (beyond, it is < 0.05 % of the disc's level).
+GLARE_REACH_SIGMAS = 3.5
 
 
 @dataclass(frozen=True)
@@ -29,7 +31,10 @@ class SimLamp:
     ``peak_dn`` is the expected DN of a pixel fully on the lamp at full level
     (level 1 of the waveform) through a colour channel of weight 1. The marker is
     a disc of ``marker_radius`` (default 9 % of the lamp radius) centred on
-    ``lamp.marker_position()``, lit by the lamp through a red filter.
+    ``lamp.marker_position()``, lit by the lamp through a red filter; its centre
+    lies on the disc, and a marker that straddles the rim glows red beyond it too.
+    ``marker_radius=0`` draws no marker (an ordinary lamp). ``falloff`` = a makes
+    the diffuser emit 1 - a (r/R)^2 of the centre's light at r from the centre.
     """
 
     lamp: Lamp
@@ -38,18 +43,32 @@ class SimLamp:
     color_bgr: tuple[float, float, float] = (1.0, 0.97, 0.92)
     marker_bgr: tuple[float, float, float] = (0.12, 0.16, 0.95)
     marker_radius: float | None = None
+    falloff: float = 0.0
 
     def __post_init__(self) -> None:
         if self.marker_radius is None:
             object.__setattr__(self, 'marker_radius', MARKER_RADIUS_FRACTION * self.lamp.radius)
-        if not self.marker_radius > 0.0:
-            raise ValueError(f'lamp {self.lamp.name!r}: marker radius must be positive')
-        if self.lamp.marker_distance + self.marker_radius > self.lamp.radius + 1e-12:
+        if self.marker_radius < 0.0:
+            raise ValueError(f'lamp {self.lamp.name!r}: marker radius must not be negative')
+        if self.has_marker and self.lamp.marker_distance > self.lamp.radius + 1e-12:
             raise ValueError(
-                f'lamp {self.lamp.name!r}: marker disc (centre {self.lamp.marker_distance} m from the '
-                f'centre, radius {self.marker_radius} m) sticks out of the rim (radius {self.lamp.radius} m)')
+                f'lamp {self.lamp.name!r}: marker centre ({self.lamp.marker_distance} m from the centre) '
+                f'lies outside the rim (radius {self.lamp.radius} m)')
         if self.peak_dn < 0.0:
             raise ValueError(f'lamp {self.lamp.name!r}: peak_dn must not be negative')
+        if not 0.0 <= self.falloff < 1.0:
+            raise ValueError(f'lamp {self.lamp.name!r}: falloff must be in [0, 1), got {self.falloff}')
+
+    @property
+    def has_marker(self) -> bool:
+        return self.marker_radius > 0.0
+
+    @property
+    def marker_reach(self) -> float:
+        """How far from the lamp centre (m) the marker's light reaches beyond the rim (0 if inside)."""
+        if not self.has_marker:
+            return 0.0
+        return max(self.lamp.marker_distance + self.marker_radius - self.lamp.radius, 0.0)
 
 
 @dataclass
@@ -141,7 +160,7 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
         truth, bbox = _project(camera, pose, sim, field_limit)
         truths.append(truth)
         if bbox is not None:
-            drawn.append((sim, truth, bbox))
+            drawn.append((sim, truth, bbox, _light_box(bbox, truth, sensor, camera)))
     margin = sensor.blur_margin()
     for region, members in _clusters(drawn, margin, camera):
         rx0, ry0, rx1, ry1 = region
@@ -149,13 +168,17 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
         # that row's exposure window, so each lamp is blurred unmodulated, then modulated.
         background = np.empty((ry1 - ry0, rx1 - rx0, 3), dtype=np.float32)
         background[...] = np.asarray(sensor.ambient_bgr, dtype=np.float32)
-        lamp_layers = []
-        for sim, truth, bbox in members:
+        lamp_layers, lit = [], []
+        for sim, truth, bbox, _ in members:
             layer = _lamp_layer(background, lamp_layers, region, camera, pose, sim, bbox)
             truth.visible = layer is not None
             truth.bbox = bbox if truth.visible else None
             if layer is not None:
                 lamp_layers.append((sim, layer))
+                lit.append(truth)
+        # The halo forms in the lens, in front of every lamp: added once all discs are drawn, nothing hides it.
+        for (sim, layer), truth in zip(lamp_layers, lit):
+            _add_glare(layer, region, truth, sim, sensor)
         canvas = _blurred(background, sensor)
         rows = sensor.row_start_times(first_row_time, ry0, ry1 - ry0)
         for sim, layer in lamp_layers:
@@ -163,7 +186,7 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
             canvas += _blurred(layer, sensor) * level[:, None, None]
         if pattern is not None:
             canvas = mosaic(canvas, shifted_pattern(pattern, rx0, ry0))
-        image[ry0:ry1, rx0:rx1] = read_out(canvas, sensor, rng)
+        image[ry0:ry1, rx0:rx1] = read_out(spill_charge(canvas, sensor), sensor, rng)
     for truth in truths:
         truth.fully_inside = truth.visible and truth.fully_inside
     return RenderedFrame(image, encoding(pattern), camera, pose, first_row_time,
@@ -208,11 +231,8 @@ def _project(camera: CameraModel, pose: Pose, sim: SimLamp,
     if pose.position[2] >= lamp.position[2] or np.any(rim[:, 2] <= 0.0):
         return truth, None
     truth.ellipse = _rim_ellipse(camera, pose, lamp)
-    normalised = rim[:, :2] / rim[:, 2:]
-    radius = np.linalg.norm(normalised, axis=1)
-    in_field = radius < field_limit
-    clamped = normalised * np.minimum(1.0, field_limit / np.maximum(radius, 1e-300))[:, None]
-    pixels = camera.project(np.column_stack([clamped, np.ones(RIM_SAMPLES)]))
+    in_field = np.linalg.norm(rim[:, :2] / rim[:, 2:], axis=1) < field_limit
+    pixels = _clamped_pixels(camera, rim, field_limit)
     truth.rim_pixels = np.where(in_field[:, None], pixels, np.nan)
     for point, attr in ((centre, 'center_pixel'), (marker, 'marker_pixel')):
         if np.linalg.norm(point[:2] / point[2]) < field_limit:
@@ -220,12 +240,65 @@ def _project(camera: CameraModel, pose: Pose, sim: SimLamp,
     lo, hi = pixels.min(axis=0), pixels.max(axis=0)
     truth.fully_inside = bool(in_field.all() and np.all(lo >= 0.0)
                               and hi[0] <= camera.width - 1 and hi[1] <= camera.height - 1)
+    if sim.marker_reach > 0.0:
+        outline = _clamped_pixels(camera, pose.map_to_camera(_marker_outline(sim)), field_limit)
+        lo, hi = np.minimum(lo, outline.min(axis=0)), np.maximum(hi, outline.max(axis=0))
     # The rim between samples bulges by < 0.02 px; one pixel of slack covers it.
     bx0, by0 = max(int(np.floor(lo[0])) - 1, 0), max(int(np.floor(lo[1])) - 1, 0)
     bx1, by1 = min(int(np.ceil(hi[0])) + 2, camera.width), min(int(np.ceil(hi[1])) + 2, camera.height)
     if bx0 >= bx1 or by0 >= by1:
         return truth, None
     return truth, (bx0, by0, bx1, by1)
+
+
+def _clamped_pixels(camera: CameraModel, points: np.ndarray, field_limit: float) -> np.ndarray:
+    """Pixels of camera-frame ``points`` (in front of the camera), rays beyond the field limit pulled onto it."""
+    normalised = points[:, :2] / points[:, 2:]
+    radius = np.linalg.norm(normalised, axis=1)
+    clamped = normalised * np.minimum(1.0, field_limit / np.maximum(radius, 1e-300))[:, None]
+    return camera.project(np.column_stack([clamped, np.ones(len(points))]))
+
+
+def _marker_outline(sim: SimLamp) -> np.ndarray:
+    """Map points (N, 3) on the edge of the marker disc."""
+    phi = np.linspace(0.0, 2.0 * np.pi, RIM_SAMPLES // 4, endpoint=False)
+    return sim.lamp.marker_position() + sim.marker_radius * np.stack(
+        [np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
+
+
+def _image_diameter(truth: LampTruth) -> float:
+    """The lamp's image diameter (px): that of the circle as large as its rim ellipse."""
+    return float(2.0 * np.sqrt(truth.ellipse[2] * truth.ellipse[3]))
+
+
+def _light_box(bbox: tuple[int, int, int, int], truth: LampTruth, sensor: SensorModel,
+               camera: CameraModel) -> tuple[int, int, int, int]:
+    """The pixel box that a lamp's light reaches before blur: its disc, and its glare halo if any."""
+    if sensor.glare <= 0.0 or not np.all(np.isfinite(truth.center_pixel)):
+        return bbox
+    reach = GLARE_REACH_SIGMAS * sensor.glare_sigma(_image_diameter(truth))
+    cx, cy = truth.center_pixel
+    return (max(min(bbox[0], int(np.floor(cx - reach))), 0), max(min(bbox[1], int(np.floor(cy - reach))), 0),
+            min(max(bbox[2], int(np.ceil(cx + reach)) + 1), camera.width),
+            min(max(bbox[3], int(np.ceil(cy + reach)) + 1), camera.height))
+
+
+def _add_glare(layer: np.ndarray, region: tuple[int, int, int, int], truth: LampTruth, sim: SimLamp,
+               sensor: SensorModel) -> None:
+    """Add the lens-glare halo around a lamp's image centre to its full-level ``layer`` over ``region``."""
+    if sensor.glare <= 0.0 or not np.all(np.isfinite(truth.center_pixel)):
+        return
+    sigma = sensor.glare_sigma(_image_diameter(truth))
+    reach = GLARE_REACH_SIGMAS * sigma
+    cx, cy = truth.center_pixel
+    x0, y0 = max(int(np.floor(cx - reach)), region[0]), max(int(np.floor(cy - reach)), region[1])
+    x1, y1 = min(int(np.ceil(cx + reach)) + 1, region[2]), min(int(np.ceil(cy + reach)) + 1, region[3])
+    if x0 >= x1 or y0 >= y1:
+        return
+    gx = np.exp(-0.5 * ((np.arange(x0, x1) - cx) / sigma) ** 2).astype(np.float32)
+    gy = np.exp(-0.5 * ((np.arange(y0, y1) - cy) / sigma) ** 2).astype(np.float32)
+    level = np.asarray(sim.color_bgr, dtype=np.float32) * np.float32(sim.peak_dn * sensor.glare)
+    layer[y0 - region[1]:y1 - region[1], x0 - region[0]:x1 - region[0]] += np.outer(gy, gx)[..., None] * level
 
 
 def _rim_ellipse(camera: CameraModel, pose: Pose, lamp: Lamp) -> np.ndarray:
@@ -240,7 +313,7 @@ def _clusters(drawn: list, margin: int, camera: CameraModel) -> list[tuple[tuple
     """Group lamps whose blurred boxes overlap into regions rendered together, members far first."""
     regions: list[tuple[tuple[int, int, int, int], list]] = []
     for item in drawn:
-        x0, y0, x1, y1 = item[2]
+        x0, y0, x1, y1 = item[3]
         box = (max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, camera.width), min(y1 + margin, camera.height))
         members = [item]
         # A merged box may reach regions the lamp's own box did not: absorb until none overlaps.
@@ -274,19 +347,40 @@ def _lamp_layer(background: np.ndarray, layers: list, region: tuple[int, int, in
     The lamp hides the background and the lamps drawn before it (which are farther) where it covers them.
     """
     lamp = sim.lamp
-    disc, marker = disc_coverage(
-        camera, pose, lamp.position[2],
-        [Circle(lamp.position[:2], lamp.radius), Circle(lamp.marker_position()[:2], sim.marker_radius)],
-        bbox)
+    circles = [Circle(lamp.position[:2], lamp.radius)]
+    if sim.has_marker:
+        circles.append(Circle(lamp.marker_position()[:2], sim.marker_radius))
+    coverages = disc_coverage(camera, pose, lamp.position[2], circles, bbox)
+    disc, marker = coverages[0], (coverages[1] if sim.has_marker else None)
     if not disc.any():
         return None
     x0, y0, x1, y1 = bbox
     window = (slice(y0 - region[1], y1 - region[1]), slice(x0 - region[0], x1 - region[0]))
+    white = disc
+    if marker is not None:
+        if sim.marker_reach > 0.0:
+            # A marker straddling the rim glows red beyond it as well: the lamp's light is the union.
+            disc = np.maximum(disc, marker)
+        white = np.maximum(disc - marker, 0.0)
     hidden = (1.0 - disc)[..., None].astype(np.float32)
     background[window] *= hidden
     for _, earlier in layers:
         earlier[window] *= hidden
+    light = np.asarray(sim.color_bgr, dtype=np.float32) * white[..., None]
+    if marker is not None:
+        light += np.asarray(sim.marker_bgr, dtype=np.float32) * marker[..., None]
+    if sim.falloff > 0.0:
+        light *= _diffuser_emission(camera, pose, sim, bbox)[..., None]
     layer = np.zeros_like(background)
-    layer[window] = (np.asarray(sim.color_bgr, dtype=np.float32) * (disc - marker)[..., None]
-                     + np.asarray(sim.marker_bgr, dtype=np.float32) * marker[..., None]) * np.float32(sim.peak_dn)
+    layer[window] = light * np.float32(sim.peak_dn)
     return layer
+
+
+def _diffuser_emission(camera: CameraModel, pose: Pose, sim: SimLamp, bbox: tuple[int, int, int, int]) -> np.ndarray:
+    """Relative emission 1 - falloff (r/R)^2 (h, w) at the plane point each pixel centre of ``bbox`` sees."""
+    x0, y0, x1, y1 = bbox
+    gx, gy = np.meshgrid(np.arange(x0, x1, dtype=float), np.arange(y0, y1, dtype=float))
+    points = plane_points(camera, pose, np.stack([gx.ravel(), gy.ravel()], axis=1), sim.lamp.position[2])
+    r2 = np.sum((points - sim.lamp.position[:2]) ** 2, axis=1) / sim.lamp.radius ** 2
+    emission = np.clip(1.0 - sim.falloff * np.nan_to_num(r2, nan=1.0), 0.0, 1.0)
+    return emission.reshape(y1 - y0, x1 - x0).astype(np.float32)

@@ -6,19 +6,19 @@ wide-angle camera driving under a row of ceiling lamps.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.beacon.encoding import packet_length, packet_waveform
+from vlp_ros.beacon.encoding import packet_length, packet_waveform, tone_waveform
 from vlp_ros.camera import CameraModel
 from vlp_ros.gravity import STANDARD_GRAVITY
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.locator_config import LocatorSettings, default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.pose import Pose
-from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, SimLamp
+from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, RenderedFrame, SimLamp, render_frame
 from vlp_ros.sim.sensor import SensorModel
 
 # Nokia Lumia 1020: f = 7.25 mm, 1.12 um pixels, 7712 px wide; scaled to the output width.
@@ -36,11 +36,12 @@ ROBOT_CAMERA_MOUNT = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0
 
 @dataclass(frozen=True)
 class BeaconDesign:
-    """Packet-mode beacon settings shared by all lamps of a scenario."""
+    """Beacon settings shared by all lamps of a scenario (tone mode: chip rate and ID bits unused)."""
 
     chip_rate: float
     id_bits: int
     depth: float
+    mode: str = 'packet'
 
 
 @dataclass
@@ -51,6 +52,11 @@ class Scenario:
     IMU. ``prior_up`` is where map up points in the camera when the mount makes
     that a valid static prior (None otherwise). ``independent_frames``: frames are
     separate photos, so no pose vouches for the next.
+
+    Looks (``vlp_ros.sim.looks``): ``clutter`` are unmodulated lamps that are not in the
+    map; ``jpeg_quality`` sends the images as JPEG (``image_transport: compressed``);
+    the locator is given the row time ``sensor.row_time / (1 + row_time_error)``
+    (the nominal one) while the sensor's true row time is ``sensor.row_time``.
     """
 
     name: str
@@ -66,6 +72,9 @@ class Scenario:
     prior_sigma: float = 0.0
     imu_noise: float = 0.02
     independent_frames: bool = False
+    clutter: list[SimLamp] = field(default_factory=list)
+    jpeg_quality: int | None = None
+    row_time_error: float = 0.0
 
     def frame_times(self) -> np.ndarray:
         """When each frame's row 0 starts exposing (s since the recording start)."""
@@ -74,9 +83,22 @@ class Scenario:
     def truncated(self, frames: int) -> Scenario:
         if frames < 1:
             raise ValueError(f'frames must be at least 1, got {frames}')
-        return Scenario(self.name, self.camera, self.sensor, self.lamps, self.poses[:frames],
-                        self.accelerations[:frames], self.beacon, self.frame_rate, self.prior_up,
-                        self.prior_tolerance, self.prior_sigma, self.imu_noise, self.independent_frames)
+        return replace(self, poses=self.poses[:frames], accelerations=self.accelerations[:frames])
+
+    @property
+    def nominal_row_time(self) -> float:
+        """The row time the locator is told (the sensor's true one differs by ``row_time_error``)."""
+        return self.sensor.row_time / (1.0 + self.row_time_error)
+
+    def render(self, index: int, rng: np.random.Generator | None) -> RenderedFrame:
+        """Frame ``index`` as the camera records it: the map's lamps and the clutter lamps."""
+        return render_frame(self.camera, self.poses[index], self.lamps + self.clutter, self.sensor,
+                            float(self.frame_times()[index]), rng)
+
+    def mapped_truths(self, frame: RenderedFrame) -> list:
+        """The ground truth of the map's lamps in ``frame`` (without the clutter lamps)."""
+        ids = {sim.lamp.id for sim in self.lamps}
+        return [t for t in frame.lamps if t.lamp_id in ids]
 
     def locator_parameters(self, imu: bool) -> dict[str, Any]:
         """The locator's ``ros__parameters`` (nested as in a params file) for this scenario."""
@@ -86,13 +108,15 @@ class Scenario:
             leds[lamp.name] = {'id': int(lamp.id), 'position': [round(float(v), 9) for v in lamp.position],
                                'radius': float(lamp.radius), 'marker_angle': float(lamp.marker_angle),
                                'marker_distance': float(lamp.marker_distance)}
-        params: dict[str, Any] = {
-            'map_frame': 'map',
-            'leds': leds,
-            'beacon': {'mode': 'packet', 'chip_rate': float(self.beacon.chip_rate),
-                       'id_bits': int(self.beacon.id_bits), 'row_time': float(self.sensor.row_time),
-                       'exposure': float(self.sensor.exposure)},
-        }
+            if lamp.frequency is not None:
+                leds[lamp.name]['frequency'] = float(lamp.frequency)
+        beacon: dict[str, Any] = {'mode': self.beacon.mode}
+        if self.beacon.mode == 'packet':
+            beacon.update(chip_rate=float(self.beacon.chip_rate), id_bits=int(self.beacon.id_bits))
+        beacon.update(row_time=float(self.nominal_row_time), exposure=float(self.sensor.exposure))
+        params: dict[str, Any] = {'map_frame': 'map', 'leds': leds, 'beacon': beacon}
+        if self.jpeg_quality is not None:
+            params['image_transport'] = 'compressed'
         if self.prior_up is not None:
             params['prior'] = {'up_in_camera': [float(v) for v in self.prior_up],
                                'tolerance': float(self.prior_tolerance), 'sigma': float(self.prior_sigma)}
@@ -232,3 +256,125 @@ def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.
         accelerations.append(np.array([0.0, -sway * omega ** 2 * np.sin(omega * t), 0.0]))
     return Scenario('robot', camera, sensor, lamps, poses, accelerations, beacon,
                     prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1, prior_sigma=np.radians(0.7))
+
+
+# The moving robot of issue 13 and the tone lamps of issue 14: a 1080p camera whose lamps
+# are ~77 px across (the independent renderer's f 1100 px and lens), rows 15 us apart.
+ROBOT_1080P_FOCAL = 1100.0
+ROBOT_1080P_DISTORTION = (-0.08, 0.03, 0.0005, -0.0003, 0.0)
+ROBOT_ROW_TIME = 15e-6
+ROBOT_EXPOSURE = 20e-6
+ROBOT_LAMP_RADIUS = 0.075
+ROBOT_CAMERA_HEIGHT = 0.45
+
+
+def robot_1080p_camera() -> CameraModel:
+    K = [[ROBOT_1080P_FOCAL, 0.0, 964.0], [0.0, ROBOT_1080P_FOCAL, 537.0], [0.0, 0.0, 1.0]]
+    return CameraModel(1920, 1080, K, np.array(ROBOT_1080P_DISTORTION))
+
+
+def robot_drive_scenario(seed: int = 0, duration: float = 12.0, speed: float = 0.8, turn_rate: float = 0.3,
+                         spacing: float = 2.4, height: float = 2.15, depth: float = 0.75,
+                         bayer: str | None = None) -> Scenario:
+    """A robot driving ``speed`` m/s and weaving (heading rate up to ``turn_rate`` rad/s) under
+    two rows of four packet lamps ``spacing`` m apart, 10 frames/s.
+
+    Packet IDs at 16 kchip/s, 8 bits: with 15 us rows a chip is 4 rows and a 15 cm lamp
+    (~77 px across at 2.15 m) holds 0.8 of a packet. Between the rows of lamps the
+    image often holds no lamp fully: the tracker must pick the lamps up again.
+    """
+    if not duration > 0.0 or not speed > 0.0 or not spacing > 0.0 or not height > 0.0:
+        raise ValueError('duration, speed, spacing and height must be positive')
+    rng = np.random.default_rng(seed)
+    camera = robot_1080p_camera()
+    sensor = SensorModel(row_time=ROBOT_ROW_TIME, exposure=ROBOT_EXPOSURE, blur_sigma=0.8, bayer=bayer)
+    beacon = BeaconDesign(16000.0, 8, depth)
+    ids = rng.choice(np.arange(1, 256), 8, replace=False)
+    lamps = [make_lamp(f'lamp_{k}', int(lamp_id), [spacing * (k // 2 - 1), spacing * ((k % 2) - 0.5),
+                                                    ROBOT_CAMERA_HEIGHT + height],
+                       ROBOT_LAMP_RADIUS, float(rng.uniform(-np.pi, np.pi)), beacon, rng, peak_dn=190.0)
+             for k, lamp_id in enumerate(ids)]
+    frame_rate = 10.0
+    times = np.arange(0.0, duration, 1.0 / frame_rate)
+    # Heading psi(t) = A sin(w t) with A w = turn_rate: the robot weaves across the gap between the rows.
+    omega = 2.0 * np.pi / 12.0
+    amplitude = turn_rate / omega
+    fine = np.linspace(0.0, duration, int(duration * 200) + 1)
+    heading = amplitude * np.sin(omega * fine)
+    step = fine[1] - fine[0]
+    path = np.cumsum(speed * np.stack([np.cos(heading), np.sin(heading)], axis=1), axis=0) * step
+    path += np.array([-1.5 * spacing, -0.4]) - path[0]
+    phases = rng.uniform(0.0, 2.0 * np.pi, 2)
+    poses, accelerations = [], []
+    for t in times:
+        k = int(round(t / step))
+        psi, rate = heading[k], amplitude * omega * np.cos(omega * t)
+        rock = np.radians(0.7) * np.sin(np.array([2.1, 2.9]) * t + phases)
+        rotation = Rotation.from_euler('zyx', [psi, rock[0], rock[1]]).as_matrix() @ ROBOT_CAMERA_MOUNT
+        poses.append(Pose(rotation, [path[k, 0], path[k, 1], ROBOT_CAMERA_HEIGHT]))
+        # Centripetal: speed x heading rate, to the left of the heading.
+        accelerations.append(speed * rate * np.array([-np.sin(psi), np.cos(psi), 0.0]))
+    return Scenario('robot_drive', camera, sensor, lamps, poses, accelerations, beacon, frame_rate=frame_rate,
+                    prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1, prior_sigma=np.radians(0.7))
+
+
+TONE_FREQUENCIES = tuple(2000.0 + 300.0 * k for k in range(12))
+
+
+def robot_tone_scenario(seed: int = 0, frames: int = 24, interval: float = 2.0, spacing: float = 1.2,
+                        height: float = 2.15, depth: float = 0.75, bayer: str | None = None) -> Scenario:
+    """Robot stills ``interval`` s apart under a 4 x 3 grid of tone lamps 2000-5300 Hz (300 Hz apart).
+
+    15 cm lamps 2.15 m above the 1080p camera span ~77 rows: 2.3 periods of the 2000 Hz
+    lamp and 6 of the 5300 Hz one at 15 us a row. The camera is anywhere under the grid,
+    any heading, its chassis rocking by < 1 deg (static prior).
+    """
+    if frames < 1 or not interval > 0.0 or not spacing > 0.0 or not height > 0.0:
+        raise ValueError('frames, interval, spacing and height must be positive')
+    rng = np.random.default_rng(seed)
+    camera = robot_1080p_camera()
+    sensor = SensorModel(row_time=ROBOT_ROW_TIME, exposure=ROBOT_EXPOSURE, blur_sigma=0.8, bayer=bayer)
+    beacon = BeaconDesign(0.0, 0, depth, mode='tone')
+    lamps = []
+    for k, frequency in enumerate(TONE_FREQUENCIES):
+        position = [spacing * (k // 3 - 1), spacing * (k % 3 - 1), ROBOT_CAMERA_HEIGHT + height]
+        lamp = Lamp(f'lamp_{k + 1}', k + 1, position, ROBOT_LAMP_RADIUS,
+                    marker_angle=float(rng.uniform(-np.pi, np.pi)),
+                    marker_distance=ROBOT_LAMP_RADIUS * (1.0 - MARKER_RADIUS_FRACTION - MARKER_RIM_GAP_FRACTION),
+                    frequency=frequency)
+        waveform = tone_waveform(frequency, depth, offset=float(rng.uniform(0.0, 1.0 / frequency)))
+        lamps.append(SimLamp(lamp, waveform, peak_dn=190.0))
+    poses = []
+    for _ in range(frames):
+        xy = rng.uniform([-1.5 * spacing, -1.3 * spacing], [2.5 * spacing, 1.3 * spacing])
+        rock = np.radians(0.7) * rng.uniform(-1.0, 1.0, 2)
+        rotation = Rotation.from_euler('zyx', [rng.uniform(-np.pi, np.pi), *rock]).as_matrix() @ ROBOT_CAMERA_MOUNT
+        poses.append(Pose(rotation, [xy[0], xy[1], ROBOT_CAMERA_HEIGHT]))
+    return Scenario('robot_tone', camera, sensor, lamps, poses, [np.zeros(3)] * frames, beacon,
+                    frame_rate=1.0 / interval, prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1,
+                    prior_sigma=np.radians(0.7))
+
+
+def with_rim_markers(scenario: Scenario, distance: float = 0.9, radius: float = 0.1) -> Scenario:
+    """The scenario with every marker moved: centred at ``distance`` x r from the lamp centre, radius ``radius`` x r.
+
+    The defaults are the paper's "marginal point" (a dot of 0.1 r at 0.9 r, touching the
+    rim); ``distance`` from 0.5 out to 1.0 puts it inside, touching or straddling the rim.
+    """
+    if not 0.0 <= distance <= 1.0 or not radius > 0.0:
+        raise ValueError(f'marker distance must be in [0, 1] and radius positive (fractions of r), '
+                         f'got {distance}, {radius}')
+    lamps = [replace(sim, lamp=replace(sim.lamp, marker_distance=distance * sim.lamp.radius),
+                     marker_radius=radius * sim.lamp.radius) for sim in scenario.lamps]
+    return replace(scenario, lamps=lamps)
+
+
+def as_stills(scenario: Scenario, interval: float) -> Scenario:
+    """The scenario's photos taken ``interval`` s apart, stamped so, with the locator's continuity on.
+
+    Hand-held stills 0.1 s apart let the last pose meet the next photo (which may be
+    from anywhere on the grid); 2 s apart, the default ``continuity.max_age`` expires.
+    """
+    if not interval > 0.0:
+        raise ValueError(f'interval must be positive, got {interval}')
+    return replace(scenario, frame_rate=1.0 / interval, independent_frames=False)

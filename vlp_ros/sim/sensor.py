@@ -26,6 +26,12 @@ class SensorModel:
     ``exposure`` seconds. ``ambient_bgr`` is the expected DN of the unlit ceiling.
     ``gain`` is DN per electron (default: the full well reads 255). ``bayer``
     (e.g. ``'rggb'``) makes the output a raw mosaic instead of bgr8.
+
+    Optics (docs/simulator.md): ``blur_sigma`` (px) is the lens' Gaussian blur;
+    ``glare`` adds to each lamp a halo whose peak is that fraction of the disc's
+    level, a Gaussian of ``glare_width`` times the lamp's image diameter, lit row by
+    row as the lamp. ``bloom`` is the fraction of the charge beyond the full well
+    that spills into the neighbours, spread as a Gaussian of ``bloom_sigma`` px.
     """
 
     row_time: float
@@ -36,6 +42,10 @@ class SensorModel:
     ambient_bgr: tuple[float, float, float] = (10.0, 12.0, 12.0)
     blur_sigma: float = 0.7
     bayer: str | None = None
+    glare: float = 0.0
+    glare_width: float = 0.35
+    bloom: float = 0.0
+    bloom_sigma: float = 2.0
 
     def __post_init__(self) -> None:
         if not self.row_time > 0.0:
@@ -46,6 +56,10 @@ class SensorModel:
             raise ValueError('full_well and gain must be positive')
         if self.read_noise < 0.0 or self.blur_sigma < 0.0:
             raise ValueError('read_noise and blur_sigma must not be negative')
+        if not 0.0 <= self.glare <= 1.0 or not self.glare_width > 0.0:
+            raise ValueError(f'glare must be in [0, 1] and glare_width positive, got {self.glare}, {self.glare_width}')
+        if not 0.0 <= self.bloom <= 1.0 or not self.bloom_sigma > 0.0:
+            raise ValueError(f'bloom must be in [0, 1] and bloom_sigma positive, got {self.bloom}, {self.bloom_sigma}')
         if self.bayer is not None and self.bayer not in BAYER_PATTERNS:
             raise ValueError(f'bayer must be one of {BAYER_PATTERNS}, got {self.bayer!r}')
 
@@ -58,8 +72,17 @@ class SensorModel:
         return start_time + (first_row + np.arange(rows)) * self.row_time
 
     def blur_margin(self) -> int:
-        """Pixels beyond an object that its blurred light can still reach."""
-        return int(np.ceil(4.0 * self.blur_sigma)) + 2
+        """Pixels beyond an object that its blurred (and spilled) light can still reach."""
+        spill = 4.0 * self.bloom_sigma if self.bloom > 0.0 else 0.0
+        return int(np.ceil(4.0 * self.blur_sigma + spill)) + 2
+
+    def glare_sigma(self, image_diameter: float) -> float:
+        """The halo's Gaussian sigma (px) around a lamp whose image is ``image_diameter`` px across."""
+        return self.glare_width * image_diameter
+
+    def saturation_dn(self) -> float:
+        """The expected DN at which a pixel's well is full."""
+        return self.full_well * self.dn_per_electron
 
 
 def encoding(bayer: str | None) -> str:
@@ -104,6 +127,21 @@ def read_out(expected: np.ndarray, sensor: SensorModel, rng: np.random.Generator
     return np.clip(np.rint(electrons * g), 0, 255).astype(np.uint8)
 
 
+def spill_charge(expected: np.ndarray, sensor: SensorModel) -> np.ndarray:
+    """Blooming: ``sensor.bloom`` of each pixel's charge beyond the full well spreads to its neighbours.
+
+    The full pixel itself still reads its full-well level (``read_out`` clips it);
+    the spill brightens the pixels around a saturated area, as on a real CMOS sensor.
+    """
+    if sensor.bloom <= 0.0:
+        return expected
+    excess = np.maximum(expected - np.float32(sensor.saturation_dn()), 0.0)
+    if not excess.any():
+        return expected
+    spread = cv2.GaussianBlur(excess, (0, 0), sensor.bloom_sigma, borderType=cv2.BORDER_CONSTANT)
+    return expected + np.float32(sensor.bloom) * spread
+
+
 def flat_field(height: int, width: int, sensor: SensorModel, rng: np.random.Generator | None,
                x0: int = 0, y0: int = 0) -> np.ndarray:
     """The read-out of the uniformly lit ceiling: (H, W, 3) bgr8, or (H, W) raw if Bayer.
@@ -133,3 +171,11 @@ def _fill(image: np.ndarray, mean: np.ndarray, sigma: np.ndarray, rng: np.random
     cv2.setRNGSeed(int(rng.integers(2 ** 31)))
     cv2.randn(image, tuple(float(m) for m in mean), tuple(float(s) for s in sigma))
     return image
+
+
+def encode_jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    """The JPEG bytes (uint8 array) of a bgr8 image, as a camera driver's compressed transport sends it."""
+    ok, data = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError('JPEG encoding failed')
+    return data.reshape(-1)
