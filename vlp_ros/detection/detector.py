@@ -13,6 +13,7 @@ import numpy as np
 from vlp_ros.compiled import kernel
 from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness_and_peaks, shape_spread
+from vlp_ros.detection.point import fit_point
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
                                    row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
@@ -38,11 +39,11 @@ _STEADY_FLOOR = 0.01
 # Rows dimmer than this (of the brightest row) carry too little marker signal to use.
 _MIN_MARKER_ROW_FRACTION = 0.1
 # In clipped rows the marker's red channel clips with the lamp while its green and blue do not: its
-# edge moves in by up to about this many blurs where white surrounds it and out where the dark
-# ceiling does, so a marker at the rim seems shifted outward (0.3-1.0 px at blur 0.9-1.7 px on the
-# foreign frames, of whose rows most were clipped). Its uncertainty per axis is counted as this
-# many blurs times the share of clipped rows through the marker (z of the foreign frames near 1).
-_CLIPPED_MARKER_SHIFT = 0.4
+# edge moves in where white surrounds it and out where the dark ceiling does, so a marker at the
+# rim seems shifted outward, by up to a blur and more (0.3-1.0 px at blur 0.9-1.7 px on the foreign
+# frames; up to 2.2 px at blur 1.6 px and twice the clip level in vlp_ros.sim). Its uncertainty per
+# axis is counted as this many blurs times the share of clipped rows through the marker.
+_CLIPPED_MARKER_SHIFT = 1.0
 
 
 @dataclass(frozen=True)
@@ -122,8 +123,33 @@ def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> 
     blobs = find_blobs(image, options.step, options.threshold_fraction, options.min_contrast,
                        options.noise_factor, options.max_stripe_rows, options.min_diameter,
                        margin=options.blur_margin + int(np.ceil(0.2 * options.min_diameter)))
-    observations = [o for o in (_observe(image, blob, options) for blob in blobs) if o is not None]
+    observations = [o for o in (_observe(image, blob, options) or _observe_point(image, blob, options)
+                                for blob in blobs) if o is not None]
     return _distinct(observations)
+
+
+def _observe_point(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
+    """The lamp in ``blob`` as the centre of its light, when its rim gave no ellipse (rim unusable)."""
+    x0, y0, x1, y1 = blob.bbox
+    roi = image[y0:y1, x0:x1]
+    brightness = roi[..., int(np.argmax(roi.reshape(-1, 3).max(axis=0)))] if roi.ndim == 3 else roi
+    background, peak = _box_levels(np.ascontiguousarray(brightness))
+    if peak - background < options.min_contrast:
+        return None
+    fit = fit_point(brightness, background, blob.noise, 0.25 * options.min_diameter, options.noise_factor,
+                    options.saturation_level)
+    if fit is None:
+        return None
+    centre = fit.center + np.array([x0, y0], dtype=float)
+    ellipse = np.array([centre[0], centre[1], fit.radius, fit.radius, 0.0])
+    lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
+    bbox = (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
+            min(math.ceil(hi_x) + 2, image.shape[1]), min(math.ceil(hi_y) + 2, image.shape[0]))
+    if bbox[0] <= 0 or bbox[1] <= 0 or bbox[2] >= image.shape[1] or bbox[3] >= image.shape[0]:
+        return None
+    return LampObservation(ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
+                           marker_sigma=float('inf'), bbox=bbox, disc_mask=_chord_mask(conic_of(ellipse), *bbox),
+                           rim_usable=False, center_sigma=fit.sigma)
 
 
 def _distinct(observations: list[LampObservation]) -> list[LampObservation]:
