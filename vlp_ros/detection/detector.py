@@ -14,8 +14,8 @@ from vlp_ros.compiled import kernel
 from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness_and_peaks, shape_spread
 from vlp_ros.detection.point import fit_point
-from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
-                                   row_crossings)
+from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
+                                   fit_rim, outward_normals, row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
@@ -295,13 +295,14 @@ def _ranked_level(counts: np.ndarray, rank: int) -> int:
     return level
 
 
-def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
+def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions, fraction: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Row crossings (N, 2), their rows' plateaus, and which rows are clipped.
+    """Row crossings (N, 2) at ``fraction`` of each row's rise (``edge_level_fraction``; None: a half),
+    their rows' plateaus, and which rows are clipped.
 
     Clipped rows are left out when enough unclipped ones remain.
     """
-    points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach)
+    points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach, fraction)
     seed = box.seed
     centre = np.zeros(2) if seed is None else np.asarray(seed.center, dtype=float)
     radius = 0.0 if seed is None else seed.radius + options.blur_margin + 1.0
@@ -358,7 +359,8 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
         return rim
     marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
     levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * math.sqrt(variance), marker)
-    points, _, clipped = _rim_points(box, levels, options)
+    fraction = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance))
+    points, _, clipped = _rim_points(box, levels, options, fraction)
     if len(points) < options.min_rim_points or clipped.any():
         return rim
     return fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
