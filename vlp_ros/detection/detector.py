@@ -350,16 +350,19 @@ def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np
 
 
 def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _LampBox,
-               options: DetectionOptions) -> RimFit:
+               options: DetectionOptions) -> RimFit | None:
     """The rim again, free of the blur: crossings at the half of plateaus measured where blur
     does not dim the disc (three blurs inside the edge), moved out by the blur's pull on the
-    curved edge. ``rim`` as it is when the ramps do not tell the blur."""
+    curved edge, at the level of the disc's edge (``edge_level_fraction``). ``rim`` as it is when the
+    ramps do not tell the blur; None when the light is no disc on a ceiling."""
     variance = blur_variance(box.brightness, points, plateaus, box.background, rim.ellipse)
     if variance is None:
         return rim
     marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
     levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * math.sqrt(variance), marker)
     fraction = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance))
+    if fraction is None:
+        return None
     points, _, clipped = _rim_points(box, levels, options, fraction)
     if len(points) < options.min_rim_points or clipped.any():
         return rim

@@ -58,18 +58,19 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
     """The centre of the light in ``brightness`` (one lamp's box, one channel), or None when its core
     is not round enough, or too small (``min_radius`` px), to give one.
 
-    A clipped row's maximum is not its level: half of it lies out in the glow. Such rows
-    are used only when the unclipped ones give too few crossings.
+    A clipped row's maximum is not its level, and where it leaves the clip depends on how
+    far its stripe overexposes it: clipped rows are used only when the unclipped ones give
+    too few crossings, and their scatter (stripe by stripe) then widens the centre's sigma.
     """
     points, rows, clipped = _half_maximum_crossings(brightness, background, noise_factor * noise,
                                                     saturation_level)
-    if np.count_nonzero(~clipped) >= _MIN_POINTS // 2:
-        points, rows = points[np.repeat(~clipped, 2)], rows[~clipped]
     if len(points) < _MIN_POINTS:
         return None
     width = points[1::2, 0] - points[0::2, 0]
     narrow = width[width <= 0.5 * (width.min() + width.max())]
     core = width <= _CORE_WIDTH_FACTOR * median(narrow)
+    if np.count_nonzero(core & ~clipped) >= _MIN_POINTS // 2:
+        core &= ~clipped
     pairs = np.flatnonzero(core)
     core_points = points[np.ravel(np.column_stack([2 * pairs, 2 * pairs + 1]))]
     core_rows = rows[pairs]
@@ -94,16 +95,20 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
 
 def _half_maximum_crossings(brightness: np.ndarray, background: float, floor: float,
                             saturation_level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Left and right crossings (interleaved, (2N, 2)) of half of each bright row's maximum, around
-    the run of pixels above it that holds the maximum, the N rows and which of them are clipped."""
+    """Left and right crossings (interleaved, (2N, 2)) of half of each bright row's maximum (of the
+    clip level in clipped rows), around the run of pixels above it that holds the maximum, the N rows
+    and which of them are clipped."""
     light = brightness.astype(np.float64) - background
     maxima = light.max(axis=1)
     peak = maxima.max()
     points, rows = [], []
     width = light.shape[1]
+    clip = saturation_level - 1.0 - background
     for row in np.flatnonzero((maxima > _MIN_ROW_SHARE * peak) & (maxima > floor)):
         profile = light[row]
-        half = 0.5 * maxima[row]
+        # A clipped row's maximum is not its level: where it leaves the clip is a level crossing
+        # of its own (half of the clip would lie out in the glow).
+        half = clip if maxima[row] >= clip else 0.5 * maxima[row]
         top = int(np.argmax(profile))
         left = top
         while left > 0 and profile[left - 1] >= half:
@@ -119,8 +124,7 @@ def _half_maximum_crossings(brightness: np.ndarray, background: float, floor: fl
         points += [(x_left, row), (x_right, row)]
         rows.append(row)
     rows = np.asarray(rows, dtype=int)
-    return (np.asarray(points, dtype=float).reshape(-1, 2), rows,
-            maxima[rows] + background >= saturation_level - 1.0)
+    return np.asarray(points, dtype=float).reshape(-1, 2), rows, maxima[rows] >= clip
 
 
 def _robust_circle(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray] | None:

@@ -48,7 +48,8 @@ _MIN_ACROSS = 0.3
 # of them as about this many.
 _UNIFORM_CHI_SQUARE = 13.8
 _EDGE_CORRELATION = 4.0
-# A fraction outside these says the ramps are not an edge between two levels.
+# A fraction outside these says the ramps are not an edge between two levels (discs under the
+# simulator's looks, glare and falloff included: 0.33-0.55; bare LEDs with glow reach 0.25 and 0.75).
 _FRACTION_BOUNDS = (0.25, 0.75)
 
 
@@ -218,9 +219,10 @@ def _ramps(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, bac
 
 
 def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: float, ellipse: np.ndarray,
-                        blur: float) -> np.ndarray:
+                        blur: float) -> np.ndarray | None:
     """Where between background and each row's plateau the disc's edge lies: the step's midpoint,
-    as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling), per row of ``levels``.
+    as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling), per row of ``levels``;
+    None when it leaves ``_FRACTION_BOUNDS`` (the light is no disc on a ceiling: a bare LED's glow).
 
     A diffuser brighter in the middle puts the plateau (read in the chord's middle)
     above the disc's level at its edge, and a glare halo lifts the ceiling next to it:
@@ -259,7 +261,10 @@ def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: f
     if deviation @ (design.T @ design) @ deviation / variance < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION:
         return np.full(levels.rows.size, 0.5)
     row_radius = _chord_middle_radius(levels.rows, conic_of(ellipse), ellipse)
-    return np.clip(line[0] + line[1] * row_radius, *_FRACTION_BOUNDS)
+    fraction = line[0] + line[1] * row_radius
+    if fraction.min() < _FRACTION_BOUNDS[0] or fraction.max() > _FRACTION_BOUNDS[1]:
+        return None
+    return fraction
 
 
 @kernel
