@@ -1,5 +1,7 @@
 """Lamp detection on simulated frames: accuracy against the simulator's ground truth, and robustness;
 its compiled kernels against direct formulations."""
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -118,9 +120,9 @@ def test_fully_clipped_lamp_keeps_its_centre_and_edge():
     assert np.all(np.abs(np.mean(axis_errors, axis=0)) < 0.12)
 
 
-def test_grossly_overexposed_lamp_is_left_out():
-    frame, _ = single(depth=1.0, peak_dn=2000.0)
-    assert detect_lamps(frame.image) == []
+def test_grossly_overexposed_lamp_gives_no_rim():
+    frame, truth = single(depth=1.0, peak_dn=2000.0)
+    assert all(not o.rim_usable and len(o.rim_points) == 0 and o.marker is None for o in detect_lamps(frame.image))
 
 
 def test_every_lamp_of_a_frame_is_found_once():
@@ -316,3 +318,94 @@ def test_steady_rows_match_the_neighbour_rule():
         with np.errstate(invalid='ignore'):
             expected = closest <= 0.04 * np.abs(profile) + 0.1
         assert np.array_equal(steady_rows(profile, 0.04, 0.1), expected)
+
+
+def rim_marker_lamp(cam, pose, at, diameter_px, marker_angle, peak_dn, phase):
+    """The paper's marker: a dot of radius 0.1 r centred at 0.9 r, its edge touching the rim."""
+    ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
+    position = ray * HEIGHT / ray[2]
+    radius = 0.5 * diameter_px * np.linalg.norm(position) / cam.focal
+    lamp = Lamp('rim', 7, position, radius, marker_angle=marker_angle, marker_distance=0.9 * radius)
+    return SimLamp(lamp, packet_waveform(7, 1.0 / (6 * ROW_TIME), 0.8, offset=phase), peak_dn=peak_dn,
+                   marker_radius=0.1 * radius)
+
+
+@pytest.mark.parametrize('peak_dn, blur', [(200.0, 0.8), (500.0, 0.8), (500.0, 1.6)])
+def test_rim_marker_is_found_saturated_and_in_dark_stripes_with_an_honest_sigma(peak_dn, blur):
+    """Deep stripes six rows a period cover parts of the marker; at 500 DN the bright rows clip."""
+    cam, pose = camera(), tilted_pose()
+    found, z = 0, []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        lamp = rim_marker_lamp(cam, pose, (300.0, 250.0), 80.0, 0.5 * seed, peak_dn, rng.uniform(0.0, 1e-3))
+        frame = render(cam, pose, [lamp], seed=seed, blur=blur)
+        truth = frame.truth(7)
+        observations = [o for o in detect_lamps(frame.image) if o.rim_usable]
+        if len(observations) != 1 or observations[0].marker is None:
+            continue
+        found += 1
+        error = observations[0].marker - truth.marker_pixel
+        # A wrong marker gives a wrong yaw: never off by more than a few of its sigmas.
+        assert np.linalg.norm(error) < 4.5 * observations[0].marker_sigma
+        z.append(error / observations[0].marker_sigma)
+    assert found >= 9
+    assert np.sqrt(np.mean(np.square(z))) < 1.6
+
+
+def bare_led_photo(centres, core_radius, peak, seed, width=1200, height=800):
+    """Bare LEDs as real photos show them: a soft bright core, a glow still at 10 % 120 px out,
+    stripes 16-22 rows a period across both, clipped bright rows, noise and JPEG q90."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    light = np.zeros((height, width), np.float32)
+    for k, (cx, cy) in enumerate(centres):
+        r = np.hypot(x - cx, y - cy)
+        spot = 0.5 * (1.0 + np.tanh((core_radius - r) / 4.0)) + 0.4 * np.exp(-0.5 * (r / 72.0) ** 2)
+        period = 16.0 * (1.0 + 0.2 * k)
+        dark = np.sin(2.0 * np.pi * np.arange(height) / period + rng.uniform(0.0, 2.0 * np.pi)) > 0.0
+        light += spot * np.where(dark, 0.4, 1.0).astype(np.float32)[:, None]
+    image = 8.0 + peak * light[..., None] * np.array([0.95, 1.0, 0.9], np.float32)
+    image = np.clip(np.rint(image + rng.normal(0.0, 2.0, image.shape)), 0, 255).astype(np.uint8)
+    _, data = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return cv2.imdecode(data, cv2.IMREAD_COLOR)
+
+
+@pytest.mark.parametrize('core_radius, peak', [(15.5, 300.0), (20.0, 400.0)])
+def test_bare_leds_with_glow_are_points_with_their_centre(core_radius, peak):
+    centres = np.array([(300.3, 250.7), (850.6, 300.2), (550.1, 560.4)])
+    found = 0
+    for seed in range(2):
+        observations = detect_lamps(bare_led_photo(centres, core_radius, peak, seed))
+        assert len(observations) <= 3
+        found += len(observations)
+        for o in observations:
+            error = np.min(np.linalg.norm(centres - o.center, axis=1))
+            assert error < 4.0
+            if not o.rim_usable:
+                assert len(o.rim_points) == 0 and o.marker is None and error < 4.0 * o.center_sigma
+    # Today 5-6 of the 6 LEDs (issue 14 asks for every one): a core whose unclipped rows are too few
+    # for the circle is still missed.
+    assert found >= 5
+
+
+@pytest.mark.parametrize('glare, falloff', [(0.2, 0.3), (0.0, 0.3), (0.2, 0.0)])
+def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, falloff):
+    """Blur 2 px, a row-lit glare halo of 20 % (Gaussian of 0.35 of the image diameter) and a diffuser
+    30 % dimmer at the rim: half of the chord's middle lay inside the edge, and the semi-axes came out
+    0.2-0.5 px short. Now the rim fits the edge to within 0.15 px in every frame."""
+    cam, pose = camera(), tilted_pose()
+    sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=2.0, glare=glare)
+    errors, distances = [], []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        lamp = replace(sim_lamp(cam, pose, (300.0, 250.0), 100.0, depth=0.5, phase=rng.uniform(0.0, 1e-3)),
+                       falloff=falloff)
+        frame = render_frame(cam, pose, [lamp], sensor, 0.0, np.random.default_rng(seed))
+        truth = frame.truth(lamp.lamp.id)
+        observation = only(detect_lamps(frame.image))
+        assert observation.rim_usable
+        errors.append(np.r_[observation.center - truth.ellipse[:2], observation.ellipse[2:4] - truth.ellipse[2:4]])
+        distances.append(geometric_distances(truth.ellipse, observation.rim_points))
+    assert np.max(np.abs(errors)) < 0.15
+    assert np.all(np.abs(np.mean(errors, axis=0)) < 0.08)
+    assert abs(np.mean(np.concatenate(distances))) < 0.05

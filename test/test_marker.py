@@ -89,6 +89,19 @@ class _Model:
         return cost, residual, jac.T, row_terms
 
 
+def reference_inflation(residual, rows):
+    """(1 + rho) / (1 - rho) per axis, rho the residuals' lag-one correlation (clipped to [0, 0.8])
+    along rows and between adjacent used rows."""
+    factor = 1.0
+    adjacent = np.flatnonzero(np.diff(rows) == 1)
+    pairs = ((residual[:, :-1], residual[:, 1:]), (residual[adjacent], residual[adjacent + 1]))
+    for first, second in pairs:
+        norm = 0.5 * float(np.sum(first ** 2) + np.sum(second ** 2))
+        rho = float(np.clip(np.sum(first * second) / norm, 0.0, 0.8)) if norm > 0.0 else 0.0
+        factor *= (1.0 + rho) / (1.0 - rho)
+    return factor
+
+
 def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, shape_spread):
     """(centre, sigma, radius, blur, shape) or None, as fit_marker computed them in numpy."""
     half = seed.radius + margin
@@ -138,7 +151,8 @@ def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_u
     _, inverse = cv2.invert(fitted.T @ fitted, flags=cv2.DECOMP_SVD)
     shape_effect = inverse @ fitted.T @ shape
     level_effect = inverse @ row_terms.T
-    covariance = (cost / dof * inverse + shape_spread ** 2 * shape_effect @ shape_effect.T
+    covariance = (reference_inflation(residual.reshape(len(rows), -1), rows) * cost / dof * inverse
+                  + shape_spread ** 2 * shape_effect @ shape_effect.T
                   + 0.05 ** 2 * level_effect @ level_effect.T)
     sigma = float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
     return centre, sigma, float(radius), float(blur), root @ root

@@ -15,9 +15,16 @@ class LampObservation:
     ``rim_points``. ``rim_sigma`` is the measured standard deviation (px) of rim
     points across the edge; ``marker_sigma`` that of the marker centroid per axis.
     ``bbox`` = (x0, y0, x1, y1), x1 and y1 exclusive; ``disc_mask`` and
-    ``marker_mask`` are boolean arrays over that box. ``center_sigma`` is the standard
-    deviation (px, per axis) of ``center`` when the detector measures the centre itself
-    (the light of a bare LED, whose rim is no ellipse); None: the rim points carry it.
+    ``marker_mask`` are boolean arrays over that box.
+
+    ``rim_usable`` is False for a lamp whose light has no elliptic rim (a bare LED with
+    its glow, a lamp too small, soft or overexposed for an ellipse): then ``center`` is
+    the centre of its light (found robustly against stripes and glow: ``detection.point``),
+    ``center_sigma`` its standard deviation per axis (px), ``ellipse`` the circle through
+    the core's half-maximum crossings (a = b, theta 0; for masks and boxes only),
+    ``rim_points`` is empty, ``rim_sigma`` infinite and ``marker`` None. Such an
+    observation is a point for the solver, never a disc. For lamps with a usable rim
+    ``center_sigma`` is None: the rim points carry the centre.
     """
 
     ellipse: np.ndarray
@@ -28,6 +35,7 @@ class LampObservation:
     bbox: tuple[int, int, int, int]
     disc_mask: np.ndarray
     marker_mask: np.ndarray | None = None
+    rim_usable: bool = True
     center_sigma: float | None = None
 
     @property

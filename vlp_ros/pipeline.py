@@ -67,8 +67,10 @@ class Pipeline:
             return FrameResult(None, NO_LAMP)
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp)
+        # An observation without a usable rim (LampObservation.rim_usable) is a point, which the disc
+        # solvers cannot use.
         pairs = [(obs, self.settings.lamps.get(i)) for obs, i in zip(observations, ids)
-                 if i is not None and i in self.settings.lamps]
+                 if i is not None and i in self.settings.lamps and obs.rim_usable]
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
         if not pairs:

@@ -6,18 +6,20 @@ compiled kernels (``vlp_ros.compiled``) in the modules they belong to, and here.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from vlp_ros.compiled import kernel
 from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness_and_peaks, shape_spread
-from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, fit_rim, outward_normals,
-                                   row_crossings)
+from vlp_ros.detection.point import fit_point
+from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
+                                   fit_rim, outward_normals, row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
 from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
+from vlp_ros.small_arrays import median
 
 # A lamp's rim must have this many kept points on each side of its centre.
 _MIN_SIDE_FRACTION = 0.2
@@ -36,6 +38,15 @@ _STEADY_TOLERANCE = 0.04
 _STEADY_FLOOR = 0.01
 # Rows dimmer than this (of the brightest row) carry too little marker signal to use.
 _MIN_MARKER_ROW_FRACTION = 0.1
+# In clipped rows the marker's red channel clips with the lamp while its green and blue do not: its
+# edge moves in where white surrounds it and out where the dark ceiling does, so a marker at the
+# rim seems shifted outward, by up to a blur and more (0.3-1.0 px at blur 0.9-1.7 px on the foreign
+# frames; up to 2.2 px at blur 1.6 px and twice the clip level in vlp_ros.sim). Its uncertainty per
+# axis is counted as this many blurs times the share of clipped rows through the marker.
+_CLIPPED_MARKER_SHIFT = 1.0
+# A marker seen only in rows on one side of its centre may be off by up to about half its radius
+# that way; counted per axis as this many radii.
+_ONE_SIDED_MARKER_SHIFT = 0.5
 
 
 @dataclass(frozen=True)
@@ -115,8 +126,33 @@ def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> 
     blobs = find_blobs(image, options.step, options.threshold_fraction, options.min_contrast,
                        options.noise_factor, options.max_stripe_rows, options.min_diameter,
                        margin=options.blur_margin + int(np.ceil(0.2 * options.min_diameter)))
-    observations = [o for o in (_observe(image, blob, options) for blob in blobs) if o is not None]
+    observations = [o for o in (_observe(image, blob, options) or _observe_point(image, blob, options)
+                                for blob in blobs) if o is not None]
     return _distinct(observations)
+
+
+def _observe_point(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
+    """The lamp in ``blob`` as the centre of its light, when its rim gave no ellipse (rim unusable)."""
+    x0, y0, x1, y1 = blob.bbox
+    roi = image[y0:y1, x0:x1]
+    brightness = roi[..., int(np.argmax(roi.reshape(-1, 3).max(axis=0)))] if roi.ndim == 3 else roi
+    background, peak = _box_levels(np.ascontiguousarray(brightness))
+    if peak - background < options.min_contrast:
+        return None
+    fit = fit_point(brightness, background, blob.noise, 0.25 * options.min_diameter, options.noise_factor,
+                    options.saturation_level)
+    if fit is None:
+        return None
+    centre = fit.center + np.array([x0, y0], dtype=float)
+    ellipse = np.array([centre[0], centre[1], fit.radius, fit.radius, 0.0])
+    lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
+    bbox = (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
+            min(math.ceil(hi_x) + 2, image.shape[1]), min(math.ceil(hi_y) + 2, image.shape[0]))
+    if bbox[0] <= 0 or bbox[1] <= 0 or bbox[2] >= image.shape[1] or bbox[3] >= image.shape[0]:
+        return None
+    return LampObservation(ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
+                           marker_sigma=float('inf'), bbox=bbox, disc_mask=_chord_mask(conic_of(ellipse), *bbox),
+                           rim_usable=False, center_sigma=fit.sigma)
 
 
 def _distinct(observations: list[LampObservation]) -> list[LampObservation]:
@@ -262,13 +298,14 @@ def _ranked_level(counts: np.ndarray, rank: int) -> int:
     return level
 
 
-def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions
+def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions, fraction: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Row crossings (N, 2), their rows' plateaus, and which rows are clipped.
+    """Row crossings (N, 2) at ``fraction`` of each row's rise (``edge_level_fraction``; None: a half),
+    their rows' plateaus, and which rows are clipped.
 
     Clipped rows are left out when enough unclipped ones remain.
     """
-    points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach)
+    points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach, fraction)
     seed = box.seed
     centre = np.zeros(2) if seed is None else np.asarray(seed.center, dtype=float)
     radius = 0.0 if seed is None else seed.radius + options.blur_margin + 1.0
@@ -316,16 +353,20 @@ def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np
 
 
 def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _LampBox,
-               options: DetectionOptions) -> RimFit:
+               options: DetectionOptions) -> RimFit | None:
     """The rim again, free of the blur: crossings at the half of plateaus measured where blur
     does not dim the disc (three blurs inside the edge), moved out by the blur's pull on the
-    curved edge. ``rim`` as it is when the ramps do not tell the blur."""
+    curved edge, at the level of the disc's edge (``edge_level_fraction``). ``rim`` as it is when the
+    ramps do not tell the blur; None when the light is no disc on a ceiling."""
     variance = blur_variance(box.brightness, points, plateaus, box.background, rim.ellipse)
     if variance is None:
         return rim
     marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
     levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * math.sqrt(variance), marker)
-    points, _, clipped = _rim_points(box, levels, options)
+    fraction = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance))
+    if fraction is None:
+        return None
+    points, _, clipped = _rim_points(box, levels, options, fraction)
     if len(points) < options.min_rim_points or clipped.any():
         return rim
     return fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
@@ -333,39 +374,109 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
-    """The marker, fitted on lit, unclipped rows that share their level with a neighbour.
+    """The marker, fitted on lit rows that share their level with a neighbour: unclipped rows, and
+    rows inside a clipped stripe at the level that makes them agree with the unclipped ones.
 
-    A row whose level differs from both neighbours' has been mixed with them by blur.
+    A row whose level differs from both neighbours' has been mixed with them by blur. A
+    marker at the rim of a saturated lamp often lies mostly in clipped rows, where the
+    lamp's level is unknown but the marker's redness is nearly one value (its red
+    channel clips with the lamp's): those rows carry it as well as unclipped ones.
     """
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    lit, rows = _marker_rows(profile, box.background, float(options.saturation_level))
+    lit, unclipped, clipped = _marker_rows(profile, box.background, float(options.saturation_level))
     if not lit:
         return None
+    level, rows = _marker_levels(box.red, box.seed, profile, unclipped, clipped)
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
-                     profile, rows, shape_spread(box.rim.ellipse, focal_length))
-    if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > 0.0:
+                     level, rows, shape_spread(box.rim.ellipse, focal_length))
+    # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
+    if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
-    return fit
+    index = np.arange(rows.size)
+    crossing = np.abs(index - fit.center[1]) < fit.radius
+    clipped_share = np.count_nonzero(rows & clipped & crossing) / max(np.count_nonzero(rows & crossing), 1)
+    sigma = math.hypot(fit.sigma, _CLIPPED_MARKER_SHIFT * clipped_share * fit.blur)
+    # Rows on one side of the centre only leave it to the curvature of their chords: an extrapolation
+    # (on the foreign frames 3.8 px off with a sigma of 0.9 px, from three rows at one end).
+    if not ((rows & crossing & (index < fit.center[1])).any() and (rows & crossing & (index > fit.center[1])).any()):
+        sigma = math.hypot(sigma, _ONE_SIDED_MARKER_SHIFT * fit.radius)
+    return replace(fit, sigma=sigma)
 
 
 @kernel
-def _marker_rows(profile: np.ndarray, background: float, saturation_level: float) -> tuple[bool, np.ndarray]:
-    """(whether any row is lit, the rows ``_marker`` fits on) of a row profile (NaN: unknown)."""
+def _marker_rows(profile: np.ndarray, background: float,
+                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray]:
+    """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on) of a row
+    profile (NaN: unknown). Clipped rows count only inside a clipped stripe (both neighbours clipped),
+    where blur mixes in no unclipped light."""
     lit, brightest = False, -np.inf
     for level in profile:
         if level > 0.0:
             lit = True
         if level > brightest:
             brightest = level
-    # Dim rows still show the marker: anything clearly above the noise takes part. In
-    # clipped rows the marker's redness is no longer proportional to the row's level.
-    rows = steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
+    # Dim rows still show the marker: anything clearly above the noise takes part.
+    steady = steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
+    unclipped = np.zeros(profile.size, np.bool_)
+    clipped = np.zeros(profile.size, np.bool_)
     for i in range(profile.size):
-        rows[i] &= profile[i] > _MIN_MARKER_ROW_FRACTION * brightest and profile[i] + background < saturation_level
-    return lit, rows
+        bright = profile[i] > _MIN_MARKER_ROW_FRACTION * brightest
+        at_clip = profile[i] + background >= saturation_level
+        unclipped[i] = steady[i] and bright and not at_clip
+        if 0 < i < profile.size - 1:
+            clipped[i] = (at_clip and profile[i - 1] + background >= saturation_level
+                          and profile[i + 1] + background >= saturation_level)
+    return lit, unclipped, clipped
+
+
+def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,
+                   clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row levels, rows used) for the marker fit.
+
+    In unclipped rows the marker's redness is one ratio times the row's level. In clipped
+    rows it is nearly one value, which the ratio turns into an equivalent level: both are
+    read on the marker's core (the seed's middle half), where blur leaves the marker whole.
+    When only one kind of row crosses the core, only rows of that kind are used.
+    """
+    unclipped_core, clipped_core = _core_redness(red, seed.center, seed.radius, profile, unclipped, clipped)
+    if clipped_core.size == 0 or not clipped.any():
+        return profile, unclipped
+    if unclipped_core.size == 0:
+        return profile, clipped
+    level = profile.copy()
+    level[clipped] = median(clipped_core) / median(unclipped_core)
+    return level, unclipped | clipped
+
+
+@kernel
+def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: np.ndarray, unclipped: np.ndarray,
+                  clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean redness over the seed's middle half in each unclipped row crossing it (over the row's
+    level) and in each clipped one."""
+    half = 0.5 * radius
+    y0, y1 = max(math.ceil(centre[1] - half), 0), min(math.floor(centre[1] + half), red.shape[0] - 1)
+    x0, x1 = max(math.ceil(centre[0] - half), 0), min(math.floor(centre[0] + half), red.shape[1] - 1)
+    ratios, values = np.empty(max(y1 - y0 + 1, 0)), np.empty(max(y1 - y0 + 1, 0))
+    ratio_count = value_count = 0
+    if x1 < x0:
+        return ratios[:0], values[:0]
+    for y in range(y0, y1 + 1):
+        if not (unclipped[y] or clipped[y]):
+            continue
+        total = 0.0
+        for x in range(x0, x1 + 1):
+            total += red[y, x]
+        mean = total / (x1 - x0 + 1)
+        if unclipped[y]:
+            ratios[ratio_count] = mean / profile[y]
+            ratio_count += 1
+        else:
+            values[value_count] = mean
+            value_count += 1
+    return ratios[:ratio_count], values[:value_count]
 
 
 def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],

@@ -43,6 +43,8 @@ _ROW_LEVEL_SPREAD = 0.05
 # The marker's shape differs from its lamp's by up to this factor times the perspective estimate, plus the floor.
 _SHAPE_MARGIN = 1.5
 _SHAPE_FLOOR = 0.005
+# Largest lag-one correlation of the residuals counted (a variance inflation of 9 per axis).
+_MAX_CORRELATION = 0.8
 # The marker's and the lamp's amplitudes, eliminated from the fit.
 _LINEAR_COUNT = 2
 
@@ -578,6 +580,40 @@ def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, no
 
 
 @kernel
+def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.ndarray, coef_0: float,
+                           coef_1: float, rows: np.ndarray, width: int) -> float:
+    """How much more the residuals' mean square weighs than if it were independent per pixel.
+
+    JPEG's chroma is sampled on 2x2 blocks, and a model that misses the real marker
+    (clipped channels, glare) leaves residuals in patches: either way neighbouring
+    residuals are alike, and the fit's noise counts fewer independent pixels than it
+    has. Along each axis the lag-one correlation rho of the residuals (over adjacent
+    pixels and adjacent used rows) inflates the variance by (1 + rho) / (1 - rho), as
+    for a first-order autoregressive noise; rho is taken in [0, _MAX_CORRELATION].
+    """
+    n = data.size
+    residual = np.empty(n)
+    for i in range(n):
+        residual[i] = data[i] - (coef_0 * marker[i] + coef_1 * disc_term[i])
+    along = along_norm = across = across_norm = 0.0
+    count = rows.size
+    for k in range(count):
+        base = k * width
+        for j in range(width - 1):
+            along += residual[base + j] * residual[base + j + 1]
+            along_norm += 0.5 * (residual[base + j] ** 2 + residual[base + j + 1] ** 2)
+        if k + 1 < count and rows[k + 1] == rows[k] + 1:
+            for j in range(width):
+                across += residual[base + j] * residual[base + width + j]
+                across_norm += 0.5 * (residual[base + j] ** 2 + residual[base + width + j] ** 2)
+    factor = 1.0
+    for total, norm in ((along, along_norm), (across, across_norm)):
+        rho = min(max(total / norm, 0.0), _MAX_CORRELATION) if norm > 0.0 else 0.0
+        factor *= (1.0 + rho) / (1.0 - rho)
+    return factor
+
+
+@kernel
 def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, ellipse: np.ndarray,
          blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray,
          spread: float) -> tuple:
@@ -685,7 +721,11 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
         return failed
     gram, cross, row_terms = _consider_terms(params, rounded, root, level, data, disc_term, disc_norm2, project_1,
                                              width, marker, jac)
-    sigma = _centre_sigma(gram, cross, row_terms, cost / dof, spread)
+    gram_00, gram_01, project_0 = _marker_terms(mx, my, radius, blur, rounded, root, level, data, disc_term, marker,
+                                                jac)[:3]
+    coef_0, coef_1 = _amplitudes(gram_00, gram_01, disc_norm2, project_0, project_1)[:2]
+    inflation = _correlation_inflation(data, marker, disc_term, coef_0, coef_1, rows, width)
+    sigma = _centre_sigma(gram, cross, row_terms, inflation * cost / dof, spread)
     shape_00 = root[0, 0] * root[0, 0] + root[0, 1] * root[1, 0]
     shape_01 = root[0, 0] * root[0, 1] + root[0, 1] * root[1, 1]
     shape_10 = root[1, 0] * root[0, 0] + root[1, 1] * root[1, 0]

@@ -24,7 +24,7 @@ from scipy.optimize import least_squares
 from scipy.special import ndtr, ndtri
 
 from vlp_ros.compiled import kernel
-from vlp_ros.detection.rows import RowLevels
+from vlp_ros.detection.rows import RowLevels, chords
 from vlp_ros.ellipse import OK, conic_of, distances, fit_error, fit_points, geometric_distances
 from vlp_ros.small_arrays import median
 
@@ -37,6 +37,20 @@ _MAX_POOLED_ROWS = 200
 # too noisy to measure the blur with.
 _PROBIT_MARGIN = 0.03
 _MIN_BLUR_ROWS = 10
+# The bands (in blurs from the edge) whose levels are followed back to it; from 3 blurs on, blur
+# mixes in under 0.2 % of the other side.
+_EDGE_BANDS = (3.0, 4.0)
+_MIN_EDGE_ROWS = 10
+# Rows meeting the edge at a grazing angle (|n_x| below this) reach too far along the row for the bands.
+_MIN_ACROSS = 0.3
+# The 99.9 % point of chi-square with 2 degrees of freedom, for the line against a uniform disc's
+# (0.5, 0); the per-side values of neighbouring rows are alike (stripes, blur), which counts each
+# of them as about this many.
+_UNIFORM_CHI_SQUARE = 13.8
+_EDGE_CORRELATION = 4.0
+# A fraction outside these says the ramps are not an edge between two levels (discs under the
+# simulator's looks, glare and falloff included: 0.33-0.55; bare LEDs with glow reach 0.25 and 0.75).
+_FRACTION_BOUNDS = (0.25, 0.75)
 
 
 @dataclass(frozen=True)
@@ -51,20 +65,22 @@ class RimFit:
 
 
 def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
-                  reach: int) -> tuple[np.ndarray, np.ndarray]:
-    """Left and right half-level crossings of every row, as points (N, 2) in the array's pixels.
+                  reach: int, fraction: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Left and right crossings of every row at ``fraction`` (one per row of ``levels``; None: a
+    half) of the way from background to the row's plateau, as points (N, 2) in the array's pixels.
 
     Returns the points and each one's row plateau. ``reach`` bounds how far inside
     the first pixel above threshold the crossing may lie. Rows whose edge leaves the
     array give no point.
     """
     return _crossings(brightness, levels.rows, levels.first, levels.last, levels.plateau, float(background),
-                      int(reach))
+                      int(reach), np.full(levels.rows.size, 0.5) if fraction is None
+                      else np.asarray(fraction, dtype=float))
 
 
 @kernel
 def _crossings(brightness: np.ndarray, rows: np.ndarray, first: np.ndarray, last: np.ndarray,
-               plateau: np.ndarray, background: float, reach: int) -> tuple[np.ndarray, np.ndarray]:
+               plateau: np.ndarray, background: float, reach: int, fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``row_crossings``: left crossings in row order, then right ones."""
     width = brightness.shape[1]
     points = np.empty((2 * rows.size, 2))
@@ -73,7 +89,7 @@ def _crossings(brightness: np.ndarray, rows: np.ndarray, first: np.ndarray, last
     for side in range(2):
         direction = 1 if side == 0 else -1
         for i in range(rows.size):
-            half = 0.5 * (plateau[i] + background)
+            half = background + fraction[i] * (plateau[i] - background)
             start = first[i] if side == 0 else last[i]
             # Steps -1 .. reach from the first pixel above threshold; outside the array counts as
             # bright, so a clipped edge yields no crossing.
@@ -200,6 +216,126 @@ def _ramps(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, bac
             left[count], right[count], across[count] = low, high, abs(normals[i, 0])
             count += 1
     return left[:count], right[:count], across[:count]
+
+
+def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: float, ellipse: np.ndarray,
+                        blur: float) -> np.ndarray | None:
+    """Where between background and each row's plateau the disc's edge lies: the step's midpoint,
+    as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling), per row of ``levels``;
+    None when it leaves ``_FRACTION_BOUNDS`` (the light is no disc on a ceiling: a bare LED's glow).
+
+    A diffuser brighter in the middle puts the plateau (read in the chord's middle)
+    above the disc's level at its edge, and a glare halo lifts the ceiling next to it:
+    half of the plateau then lies inside the edge, by 0.7 px at 2 px of blur for a 30 %
+    falloff with a 20 % halo. On each side of every row the levels inside and outside
+    the edge are read in two bands (``_EDGE_BANDS`` blurs from it, where blur no longer
+    mixes them) and followed in a straight line back to the edge; their midpoint over
+    the row's rise is that side's fraction. Falloff and halo are round about the lamp,
+    so the fraction depends on where the row's plateau was read: it is fitted (robustly)
+    as a straight line in the squared normalised radius of the chord's middle, which
+    averages the bands' noise over all rows instead of adding it to each rim point.
+    """
+    ellipse = np.asarray(ellipse, dtype=float)
+    plateau_of = np.full(brightness.shape[0], np.nan)
+    plateau_of[levels.rows] = levels.plateau
+    radius, fractions = _edge_fractions(brightness, levels.rows, plateau_of, float(background), conic_of(ellipse),
+                                        ellipse, float(blur))
+    if fractions.size < _MIN_EDGE_ROWS:
+        return np.full(levels.rows.size, 0.5)
+    kept = np.ones(fractions.size, bool)
+    line = np.array([0.5, 0.0])
+    for _ in range(3):
+        design = np.column_stack([np.ones(np.count_nonzero(kept)), radius[kept]])
+        line, *_ = np.linalg.lstsq(design, fractions[kept], rcond=None)
+        residual = fractions - (line[0] + line[1] * radius)
+        scale = max(_MAD_TO_SIGMA * median(np.abs(residual[kept])), 1e-3)
+        kept = np.abs(residual) <= 3.0 * scale
+        if np.count_nonzero(kept) < _MIN_EDGE_ROWS:
+            return np.full(levels.rows.size, 0.5)
+    # A uniform disc on a dark ceiling has its edge at half of every row's rise; unless the rows tell
+    # otherwise beyond doubt, that stays exact: the line's own noise would move all rim points alike.
+    design = np.column_stack([np.ones(np.count_nonzero(kept)), radius[kept]])
+    residual = fractions[kept] - design @ line
+    variance = float(residual @ residual) / max(len(residual) - 2, 1)
+    deviation = line - np.array([0.5, 0.0])
+    if deviation @ (design.T @ design) @ deviation / variance < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION:
+        return np.full(levels.rows.size, 0.5)
+    row_radius = _chord_middle_radius(levels.rows, conic_of(ellipse), ellipse)
+    fraction = line[0] + line[1] * row_radius
+    if fraction.min() < _FRACTION_BOUNDS[0] or fraction.max() > _FRACTION_BOUNDS[1]:
+        return None
+    return fraction
+
+
+@kernel
+def _chord_middle_radius(rows: np.ndarray, conic: np.ndarray, ellipse: np.ndarray) -> np.ndarray:
+    """(r / R)^2 in the ellipse's own frame at the middle of each row's chord (1 where it misses)."""
+    left, right, crossed = chords(conic, rows.astype(np.float64))
+    cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
+    c, s = math.cos(theta), math.sin(theta)
+    radius = np.ones(rows.size)
+    for i in range(rows.size):
+        if crossed[i]:
+            dx, dy = 0.5 * (left[i] + right[i]) - cx, rows[i] - cy
+            u, v = (dx * c + dy * s) / a, (-dx * s + dy * c) / b
+            radius[i] = u * u + v * v
+    return radius
+
+
+@kernel
+def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.ndarray, background: float,
+                    conic: np.ndarray, ellipse: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
+    """``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius``."""
+    middle = _chord_middle_radius(rows, conic, ellipse)
+    width = brightness.shape[1]
+    left, right, crossed = chords(conic, rows.astype(np.float64))
+    near, far = _EDGE_BANDS[0] * blur, _EDGE_BANDS[1] * blur
+    values, radius = np.empty(2 * rows.size), np.empty(2 * rows.size)
+    count = 0
+    for i in range(rows.size):
+        rise = plateau_of[rows[i]] - background
+        if not (crossed[i] and rise > 0.0):
+            continue
+        for side in range(2):
+            edge = left[i] if side == 0 else right[i]
+            inward = 1.0 if side == 0 else -1.0
+            gx = edge * conic[0, 0] + rows[i] * conic[1, 0] + conic[2, 0]
+            gy = edge * conic[0, 1] + rows[i] * conic[1, 1] + conic[2, 1]
+            across = abs(gx) / max(math.sqrt(gx * gx + gy * gy), 1e-12)
+            # Both bands inside must lie in the near half of the chord.
+            if across < _MIN_ACROSS or (2.0 * far - near) / across > 0.5 * (right[i] - left[i]):
+                continue
+            found_1, inside_1, outside_1 = _band_levels(brightness, rows[i], edge, inward, near / across,
+                                                         far / across, width)
+            found_2, inside_2, outside_2 = _band_levels(brightness, rows[i], edge, inward, far / across,
+                                                         (2.0 * far - near) / across, width)
+            if not (found_1 and found_2):
+                continue
+            # Band centres at c and c + (far - near) blurs: a straight line back to the edge.
+            back = 0.5 * (near + far) / (far - near)
+            inside = inside_1 - (inside_2 - inside_1) * back
+            outside = outside_1 - (outside_2 - outside_1) * back
+            values[count] = (0.5 * (inside + outside) - background) / rise
+            radius[count] = middle[i]
+            count += 1
+    return radius[:count], values[:count]
+
+
+@kernel
+def _band_levels(brightness: np.ndarray, row: int, edge: float, inward: float, lo: float, hi: float,
+                 width: int) -> tuple[bool, float, float]:
+    """(in the array, mean inside, mean outside) of the pixels ``lo`` to ``hi`` px along the row from
+    ``edge``, inward and outward (at least one pixel each)."""
+    start, end = math.ceil(lo), max(math.floor(hi), math.ceil(lo))
+    inside = outside = 0.0
+    for k in range(start, end + 1):
+        inner, outer = int(round(edge + inward * k)), int(round(edge - inward * k))
+        if not (0 <= inner < width and 0 <= outer < width):
+            return False, 0.0, 0.0
+        inside += brightness[row, inner]
+        outside += brightness[row, outer]
+    count = end - start + 1
+    return True, inside / count, outside / count
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:
