@@ -40,6 +40,12 @@ class FrameResult:
     detail: str = ''
 
 
+def solvable(observation: LampObservation, lamp: Lamp) -> bool:
+    """Whether the solvers can use ``observation`` of ``lamp``: an observation without a usable
+    rim (a bare LED's light) serves only a point lamp, whose centre is all the solver needs."""
+    return observation.rim_usable or lamp.is_point
+
+
 class Pipeline:
     """Stateful across frames: beacon evidence per tracked lamp, and the last pose for continuity."""
 
@@ -67,10 +73,8 @@ class Pipeline:
             return FrameResult(None, NO_LAMP)
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp)
-        # An observation without a usable rim (LampObservation.rim_usable) is a point, which the disc
-        # solvers cannot use.
         pairs = [(obs, self.settings.lamps.get(i)) for obs, i in zip(observations, ids)
-                 if i is not None and i in self.settings.lamps and obs.rim_usable]
+                 if i is not None and i in self.settings.lamps and solvable(obs, self.settings.lamps.get(i))]
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
         if not pairs:
