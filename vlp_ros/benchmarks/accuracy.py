@@ -142,7 +142,8 @@ def look_setups(quick: bool, seed: int) -> list[Setup]:
     drive = robot_drive_scenario(seed=seed)
     drive = drive.truncated(70) if quick else drive
     made += [Setup('robot drive', f'look {name}', apply_look(drive, LOOKS[name], seed), 0, only, targets)
-             for name, targets in (('clean', ('drive',)), ('falloff', ('falloff',)), ('realistic', ('any look',)))]
+             for name, targets in (('clean', ('drive',)), ('overexposed', ('drive',)), ('falloff', ('falloff',)),
+                                   ('realistic', ('any look',)))]
     tone = robot_tone_scenario(seed=seed, frames=12 if quick else 24)
     made += [Setup('robot tone', f'look {name}', apply_look(tone, LOOKS[name], seed), 0, only, ('tone',))
              for name in ('clean', 'realistic', 'realistic_jpeg')]

@@ -70,6 +70,8 @@ LOOKS = {
     'glare': Look(glare=0.2),
     'falloff': Look(falloff=0.3),
     'saturated': Look(brightness=2.5, bloom=0.3),
+    # The independent renderer's clean look: its lamps saturate too.
+    'overexposed': Look(brightness=2.2),
     'clutter': Look(clutter=2),
     'jpeg': Look(jpeg_quality=90),
     'row_time_error': Look(row_time_error=0.02),
