@@ -25,12 +25,13 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
-from vlp_ros.sim.looks import LOOKS
-from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.sim.looks import LOOKS, apply_look
+from vlp_ros.sim.render import SimLamp
+from vlp_ros.sim.scenarios import BeaconDesign, Scenario
 from vlp_ros.sim.sensor import SensorModel
 
 DISTANCES_D = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)
-# Neither the bag nor params.yaml says these: the simulator's own defaults.
+# Neither the bag nor params.yaml says these: the simulator's own defaults (a look may set the depth).
 DEPTH = 0.75
 EXPOSURE = 10e-6
 
@@ -51,8 +52,8 @@ def read_frames(bag: Path) -> tuple[CameraModel, list[tuple[np.ndarray, Pose]]]:
     return camera, list(zip(images, poses))
 
 
-def map_lamps(params: Path, peak_dn: float, falloff: float, rng: np.random.Generator) -> tuple[list[SimLamp], dict]:
-    """The lamps of a params file with their beacons (random clock offsets), and its beacon settings."""
+def map_lamps(params: Path, peak_dn: float, rng: np.random.Generator) -> tuple[list[SimLamp], dict]:
+    """The lamps of a params file with their beacons (random clock offsets) in the clean look, and its beacon settings."""
     values = next(iter(yaml.safe_load(params.read_text()).values()))['ros__parameters']
     leds, beacon = values['leds'], values['beacon']
     lamps = []
@@ -65,7 +66,7 @@ def map_lamps(params: Path, peak_dn: float, falloff: float, rng: np.random.Gener
         else:
             waveform = packet_waveform(lamp.id, beacon['chip_rate'], DEPTH, beacon['id_bits'],
                                        offset=float(rng.uniform(0.0, 1e-3)))
-        lamps.append(SimLamp(lamp, waveform, peak_dn=peak_dn, falloff=falloff, marker_radius=0.1 * lamp.radius))
+        lamps.append(SimLamp(lamp, waveform, peak_dn=peak_dn, marker_radius=0.1 * lamp.radius))
     return lamps, beacon
 
 
@@ -92,17 +93,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--frames', type=int, default=4)
     args = parser.parse_args(argv)
     camera, frames = read_frames(args.folder / 'bag')
-    look = LOOKS[args.look]
+    frames = frames[:args.frames]
+    # Their frames hold their clutter lamps already: ours would land elsewhere.
+    look = replace(LOOKS[args.look], clutter=0)
     if args.glare_width is not None:
         look = replace(look, glare_width=args.glare_width)
-    sims, beacon = map_lamps(args.folder / 'params.yaml', args.peak * look.brightness, look.falloff,
-                             np.random.default_rng(0))
+    sims, beacon = map_lamps(args.folder / 'params.yaml', args.peak, np.random.default_rng(0))
     sensor = SensorModel(row_time=beacon['row_time'], exposure=beacon.get('exposure', EXPOSURE),
-                         ambient_bgr=(10.0, 10.0, 10.0), blur_sigma=look.blur_sigma or 0.8,
-                         glare=look.glare, glare_width=look.glare_width, bloom=look.bloom)
+                         ambient_bgr=(10.0, 10.0, 10.0), blur_sigma=0.8)
+    scene = Scenario(args.folder.name, camera, sensor, sims, [pose for _, pose in frames], [np.zeros(3)] * len(frames),
+                     BeaconDesign(beacon.get('chip_rate', 0.0), beacon.get('id_bits', 0), DEPTH))
+    scene = apply_look(scene, look)
     rows = []
-    for index, (image, pose) in enumerate(frames[:args.frames]):
-        ours = render_frame(camera, pose, sims, sensor, 0.0, np.random.default_rng(index))
+    for index, (image, _) in enumerate(frames):
+        ours = scene.render(index, np.random.default_rng(index))
         for truth in ours.lamps:
             if not truth.fully_inside:
                 continue
