@@ -247,8 +247,12 @@ def test_look_check_finds_our_own_realistic_frames_match_our_realistic_look(tmp_
     record(scenario, tmp_path / 'bag', 'mcap', False, np.random.default_rng(2))
     write_params(tmp_path / 'params.yaml', scenario, False)
     assert look_check.main([str(tmp_path), '--look', 'realistic']) == 0
-    lines = [line.split() for line in capsys.readouterr().out.splitlines() if ' theirs ' in line or ' ours ' in line]
+    halo_table, outcome_table = capsys.readouterr().out.split('Pipeline outcome')
+    lines = [line.split() for line in halo_table.splitlines() if line.split()[3:4] in (['theirs'], ['ours'])]
     assert len(lines) == 4
+    # Each frame of both went through a pipeline: one line per frame.
+    outcomes = [line.split() for line in outcome_table.splitlines()[3:]]
+    assert len(outcomes) == 2
     for theirs, ours in zip(lines[::2], lines[1::2]):
         assert theirs[3] == 'theirs' and ours[3] == 'ours'
         halo_theirs, halo_ours = np.array(theirs[4:10], dtype=float), np.array(ours[4:10], dtype=float)
