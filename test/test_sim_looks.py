@@ -205,10 +205,11 @@ def test_row_time_error_changes_the_true_stripes_but_the_params_keep_the_nominal
 def test_realistic_look_is_the_independent_renderers():
     realistic = LOOKS['realistic']
     assert (realistic.blur_sigma, realistic.glare, realistic.glare_width, realistic.falloff) == (1.6, 0.2, 0.35, 0.3)
-    assert realistic.clutter == 2 and realistic.brightness > 1.0
+    assert realistic.clutter == 2 and realistic.brightness > 1.0 and realistic.depth == 0.6
     assert LOOKS['realistic_jpeg'].jpeg_quality == 90
     scenario = apply_look(with_rim_markers(paper_scenario('4k', points=1, postures=1)), realistic)
-    assert scenario.sensor.blur_sigma == 1.6 and all(s.falloff == 0.3 for s in scenario.lamps)
+    assert (scenario.sensor.blur_sigma, scenario.sensor.image_blur) == (0.0, 1.6)
+    assert all(s.falloff == 0.3 and s.waveform.depth == 0.6 for s in scenario.lamps) and scenario.beacon.depth == 0.6
     with pytest.raises(ValueError, match='Bayer'):
         apply_look(paper_scenario('1080p', points=1, postures=1, bayer='rggb'), LOOKS['jpeg'])
 
@@ -246,11 +247,34 @@ def test_look_check_finds_our_own_realistic_frames_match_our_realistic_look(tmp_
     record(scenario, tmp_path / 'bag', 'mcap', False, np.random.default_rng(2))
     write_params(tmp_path / 'params.yaml', scenario, False)
     assert look_check.main([str(tmp_path), '--look', 'realistic']) == 0
-    lines = [line.split() for line in capsys.readouterr().out.splitlines() if ' theirs ' in line or ' ours ' in line]
+    halo_table, outcome_table = capsys.readouterr().out.split('Pipeline outcome')
+    lines = [line.split() for line in halo_table.splitlines() if line.split()[3:4] in (['theirs'], ['ours'])]
     assert len(lines) == 4
+    # Each frame of both went through a pipeline: one line per frame.
+    outcomes = [line.split() for line in outcome_table.splitlines()[3:]]
+    assert len(outcomes) == 2
     for theirs, ours in zip(lines[::2], lines[1::2]):
         assert theirs[3] == 'theirs' and ours[3] == 'ours'
         halo_theirs, halo_ours = np.array(theirs[4:10], dtype=float), np.array(ours[4:10], dtype=float)
         assert halo_theirs[0] > 10.0
         np.testing.assert_allclose(halo_ours, halo_theirs, atol=3.0)
         assert abs(float(theirs[10]) - float(ours[10])) < 15.0
+
+
+def test_optics_blur_keeps_the_stripes_sharp_and_image_blur_smooths_them():
+    modulated = packet_waveform(3, 4000.0, 0.6, offset=1.1e-4)
+    big = lamp(radius=0.1, waveform=modulated)
+    rows = np.arange(200, 281)
+    model = sensor()
+    level = LEVEL * modulated.mean_brightness(rows * model.row_time, model.exposure)
+    # The lens blurs the scene before the rolling shutter: inside the disc each row keeps its own level.
+    optics = render(big, sensor(blur_sigma=2.0))
+    np.testing.assert_allclose(optics[rows, 320], level, atol=0.6)
+    # The recorded frame's blur mixes rows: the stripes come out convolved with the same Gaussian.
+    smoothed = render(big, sensor(image_blur=2.0))
+    all_rows = np.arange(480)
+    profile = LEVEL * modulated.mean_brightness(all_rows * model.row_time, model.exposure)
+    kernel = norm.pdf(np.arange(-8, 9), scale=2.0)
+    expected = np.convolve(profile, kernel / kernel.sum(), mode='same')[rows]
+    np.testing.assert_allclose(smoothed[rows, 320], expected, atol=1.0)
+    assert np.max(np.abs(smoothed[rows, 320] - level)) > 20.0  # the edges of the stripes are soft

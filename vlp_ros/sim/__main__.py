@@ -24,9 +24,11 @@ from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
 
 PAPER_ONLY = ('points', 'postures', 'still_interval')
 BARE_LEDS_ONLY = ('photos', 'led_core_radius', 'led_glow')
+DEFAULT_DEPTH = 0.75
 # Options that change one effect of the chosen --look: (option, Look field, type, help).
 LOOK_OPTIONS = (
-    ('--blur', 'blur_sigma', float, 'optics blur sigma in px (up to 2 px is ordinary; realistic 1.6)'),
+    ('--blur', 'blur_sigma', float, 'blur sigma (px) of the recorded image, stripes included (up to 2 px is '
+                                    'ordinary; realistic 1.6)'),
     ('--glare', 'glare', float, "lens-glare halo peak as a fraction of the disc's level (realistic 0.2)"),
     ('--glare-width', 'glare_width', float, "halo sigma as a fraction of the lamp's image diameter (0.35)"),
     ('--falloff', 'falloff', float, 'diffuser emission 1 - a (r/R)^2: a (realistic 0.3)'),
@@ -64,7 +66,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help='bare_leds: radius (m) of each LED\'s bright core (default 0.01: 46 px wide at 2.46 m)')
     parser.add_argument('--led-glow', type=float, help="bare_leds: the glow's level next to the core (default 0.4)")
     parser.add_argument('--height', type=float, help='lamp height above the camera in m (paper 2.0, robot 2.15)')
-    parser.add_argument('--depth', type=float, default=0.75, help='beacon modulation depth (0..1]')
+    parser.add_argument('--depth', type=float, help='beacon modulation depth (0..1], default 0.75 or the look\'s '
+                                                    '(realistic 0.6)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--bayer', choices=BAYER_PATTERNS, help='record a raw Bayer mosaic instead of bgr8')
     parser.add_argument('--imu', action='store_true', help='record /imu and enable it in params.yaml')
@@ -82,13 +85,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def build_scenario(args: argparse.Namespace) -> Scenario:
-    if not 0.0 < args.depth <= 1.0:
+    if args.depth is not None and not 0.0 < args.depth <= 1.0:
         raise UsageError(f'--depth must be in (0, 1], got {args.depth}')
     if args.frames is not None and args.frames < 1:
         raise UsageError(f'--frames must be at least 1, got {args.frames}')
     if args.height is not None and not args.height > 0.0:
         raise UsageError(f'--height must be positive, got {args.height}')
-    common = dict(seed=args.seed, depth=args.depth, bayer=args.bayer)
+    common = dict(seed=args.seed, depth=DEFAULT_DEPTH if args.depth is None else args.depth, bayer=args.bayer)
     if args.height is not None:
         common['height'] = args.height
     try:
@@ -141,9 +144,11 @@ def _reject_options(args: argparse.Namespace, names: tuple[str, ...], scenario: 
 
 
 def chosen_look(args: argparse.Namespace) -> Look:
-    """The --look with every effect option given on the command line put in."""
+    """The --look with every effect option given on the command line put in (--depth too)."""
     changes = {field: getattr(args, option[2:].replace('-', '_')) for option, field, _, _ in LOOK_OPTIONS
                if getattr(args, option[2:].replace('-', '_')) is not None}
+    if args.depth is not None:
+        changes['depth'] = args.depth
     return replace(LOOKS[args.look], **changes)
 
 

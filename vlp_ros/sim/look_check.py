@@ -5,7 +5,10 @@ and ``params.yaml`` (the lamp map), as /work/shared/data/foreign_frames/* do. Ea
 frame is rendered again from its ground-truth pose with ``--look`` and both are
 compared where the look shows: the light beside the disc on rows whose middle is
 saturated (the glare halo at full level, in DN above the ceiling, at distances from
-the lamp centre in image diameters D), and how many lamp pixels read 255.
+the lamp centre in image diameters D), and how many lamp pixels read 255. Then both
+go through one ``Pipeline`` each, configured by ``params.yaml`` (ours as JPEG of
+``--jpeg`` quality, the up direction from the true pose), and each frame's outcome
+and decoded IDs are printed side by side.
 """
 from __future__ import annotations
 
@@ -25,34 +28,38 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
-from vlp_ros.sim.looks import LOOKS
-from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.locator_config import settings_from_params_file
+from vlp_ros.pipeline import Pipeline
+from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.render import SimLamp
+from vlp_ros.sim.scenarios import BeaconDesign, Scenario
 from vlp_ros.sim.sensor import SensorModel
 
 DISTANCES_D = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)
-# Neither the bag nor params.yaml says these: the simulator's own defaults.
+# Neither the bag nor params.yaml says these: the simulator's own defaults (a look may set the depth).
 DEPTH = 0.75
 EXPOSURE = 10e-6
 
 
-def read_frames(bag: Path) -> tuple[CameraModel, list[tuple[np.ndarray, Pose]]]:
-    """The camera and every (image, true pose) of a bag."""
-    images, poses, camera = [], [], None
+def read_frames(bag: Path) -> tuple[CameraModel, list[tuple[np.ndarray, Pose, float]]]:
+    """The camera and every (image, true pose, stamp in s) of a bag."""
+    images, poses, stamps, camera = [], [], [], None
     with AnyReader([bag]) as reader:
         for connection, _, raw in reader.messages():
             msg = reader.deserialize(raw, connection.msgtype)
             if connection.topic == '/image_raw/compressed':
                 images.append(cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR))
+                stamps.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
             elif connection.topic == '/ground_truth/pose':
                 q, p = msg.pose.orientation, msg.pose.position
                 poses.append(Pose(Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix(), [p.x, p.y, p.z]))
             elif connection.topic == '/camera_info' and camera is None:
                 camera = CameraModel(msg.width, msg.height, np.reshape(msg.k, (3, 3)), np.asarray(msg.d))
-    return camera, list(zip(images, poses))
+    return camera, list(zip(images, poses, stamps))
 
 
-def map_lamps(params: Path, peak_dn: float, falloff: float, rng: np.random.Generator) -> tuple[list[SimLamp], dict]:
-    """The lamps of a params file with their beacons (random clock offsets), and its beacon settings."""
+def map_lamps(params: Path, peak_dn: float, rng: np.random.Generator) -> tuple[list[SimLamp], dict]:
+    """The lamps of a params file with their beacons (random clock offsets) in the clean look, and its beacon settings."""
     values = next(iter(yaml.safe_load(params.read_text()).values()))['ros__parameters']
     leds, beacon = values['leds'], values['beacon']
     lamps = []
@@ -65,7 +72,7 @@ def map_lamps(params: Path, peak_dn: float, falloff: float, rng: np.random.Gener
         else:
             waveform = packet_waveform(lamp.id, beacon['chip_rate'], DEPTH, beacon['id_bits'],
                                        offset=float(rng.uniform(0.0, 1e-3)))
-        lamps.append(SimLamp(lamp, waveform, peak_dn=peak_dn, falloff=falloff, marker_radius=0.1 * lamp.radius))
+        lamps.append(SimLamp(lamp, waveform, peak_dn=peak_dn, marker_radius=0.1 * lamp.radius))
     return lamps, beacon
 
 
@@ -90,19 +97,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--peak', type=float, default=210.0, help='clean-look lamp level in DN (the paper scenario\'s)')
     parser.add_argument('--glare-width', type=float, help="the look's halo width, changed")
     parser.add_argument('--frames', type=int, default=4)
+    parser.add_argument('--jpeg', type=int, default=92, help='JPEG quality of ours for the pipeline (theirs: 92)')
     args = parser.parse_args(argv)
     camera, frames = read_frames(args.folder / 'bag')
-    look = LOOKS[args.look]
+    frames = frames[:args.frames]
+    # Their frames hold their clutter lamps already: ours would land elsewhere.
+    look = replace(LOOKS[args.look], clutter=0)
     if args.glare_width is not None:
         look = replace(look, glare_width=args.glare_width)
-    sims, beacon = map_lamps(args.folder / 'params.yaml', args.peak * look.brightness, look.falloff,
-                             np.random.default_rng(0))
+    sims, beacon = map_lamps(args.folder / 'params.yaml', args.peak, np.random.default_rng(0))
     sensor = SensorModel(row_time=beacon['row_time'], exposure=beacon.get('exposure', EXPOSURE),
-                         ambient_bgr=(10.0, 10.0, 10.0), blur_sigma=look.blur_sigma or 0.8,
-                         glare=look.glare, glare_width=look.glare_width, bloom=look.bloom)
-    rows = []
-    for index, (image, pose) in enumerate(frames[:args.frames]):
-        ours = render_frame(camera, pose, sims, sensor, 0.0, np.random.default_rng(index))
+                         ambient_bgr=(10.0, 10.0, 10.0), blur_sigma=0.8)
+    scene = Scenario(args.folder.name, camera, sensor, sims, [pose for _, pose, _ in frames],
+                     [np.zeros(3)] * len(frames), BeaconDesign(beacon.get('chip_rate', 0.0), beacon.get('id_bits', 0),
+                                                               DEPTH))
+    scene = apply_look(scene, replace(look, jpeg_quality=args.jpeg))
+    settings = settings_from_params_file(args.folder / 'params.yaml')
+    pipelines = {'theirs': Pipeline(settings), 'ours': Pipeline(settings)}
+    rows, outcomes = [], []
+    for index, (image, pose, stamp) in enumerate(frames):
+        ours = scene.render(index, np.random.default_rng(index))
+        answers = [pipelines[name].process(picture, camera, stamp, pose.up_in_camera())
+                   for name, picture in (('theirs', image), ('ours', transported(scene, ours.image)))]
+        outcomes.append([str(index), *(f'{a.outcome} {sorted(a.decoded_ids)}' for a in answers)])
         for truth in ours.lamps:
             if not truth.fully_inside:
                 continue
@@ -117,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'{args.folder.name} against look {args.look}: glare halo (DN above the ceiling) at distance x D from the '
           f'lamp centre on full-level rows; % of lit lamp pixels at 255')
     print(format_table(rows, ('frame', 'lamp', 'D px', 'frame of', *(f'{d:g} D' for d in DISTANCES_D), '% at 255')))
+    print(f'\nPipeline outcome and decoded IDs (ours as JPEG q{args.jpeg})')
+    print(format_table(outcomes, ('frame', 'theirs', 'ours')))
     return 0
 
 

@@ -28,8 +28,10 @@ STEADY = Waveform(np.array([1], dtype=np.uint8), 1.0, 0.0)
 class Look:
     """Effects on top of a scenario's own rendering (all off: the scenario's clean look).
 
-    ``blur_sigma`` (px; None keeps the scenario's) is the optics' Gaussian blur;
-    ``glare`` the halo's peak as a fraction of the disc's level and ``glare_width``
+    ``blur_sigma`` (px; None keeps the scenario's) blurs the recorded frame, stripes
+    included (lens, demosaicing, pixel crosstalk), instead of the scenario's optics
+    blur of the scene alone; ``depth`` (None keeps the scenario's) is the lamps'
+    modulation depth; ``glare`` the halo's peak as a fraction of the disc's level and ``glare_width``
     its Gaussian sigma as a fraction of the lamp's image diameter; ``falloff`` = a
     makes each diffuser emit 1 - a (r/R)^2; ``brightness`` scales the lamps' light
     (> 1 saturates them) and ``bloom`` is the fraction of the charge beyond the full
@@ -39,6 +41,7 @@ class Look:
     """
 
     blur_sigma: float | None = None
+    depth: float | None = None
     glare: float = 0.0
     glare_width: float = 0.35
     falloff: float = 0.0
@@ -51,6 +54,8 @@ class Look:
     def __post_init__(self) -> None:
         if self.blur_sigma is not None and not 0.0 <= self.blur_sigma <= 5.0:
             raise ValueError(f'blur sigma must be in [0, 5] px, got {self.blur_sigma}')
+        if self.depth is not None and not 0.0 < self.depth <= 1.0:
+            raise ValueError(f'modulation depth must be in (0, 1], got {self.depth}')
         if not 0.0 <= self.falloff < 1.0:
             raise ValueError(f'falloff must be in [0, 1), got {self.falloff}')
         if not self.brightness > 0.0 or self.clutter < 0:
@@ -61,15 +66,17 @@ class Look:
             raise ValueError(f'row-time error must be within +-0.1, got {self.row_time_error}')
 
 
-# The independent renderer's realistic look (foreign_frames/README.md), lamps overexposed as in its
-# frames (about half the lamp pixels read 255; docs/simulator.md), and as JPEG at issue 14's q90.
-REALISTIC = Look(blur_sigma=1.6, glare=0.2, falloff=0.3, brightness=2.2, clutter=2)
+# The independent renderer's realistic look (foreign_frames/README.md), with the overexposure and
+# modulation depth measured on its frames (docs/simulator.md), and as JPEG at issue 14's q90.
+REALISTIC = Look(blur_sigma=1.6, depth=0.6, glare=0.2, falloff=0.3, brightness=2.2, clutter=2)
 LOOKS = {
     'clean': Look(),
     'blur': Look(blur_sigma=2.0),
     'glare': Look(glare=0.2),
     'falloff': Look(falloff=0.3),
     'saturated': Look(brightness=2.5, bloom=0.3),
+    # The independent renderer's clean look: its lamps saturate too.
+    'overexposed': Look(blur_sigma=0.8, depth=0.6, brightness=2.2),
     'clutter': Look(clutter=2),
     'jpeg': Look(jpeg_quality=90),
     'row_time_error': Look(row_time_error=0.02),
@@ -86,9 +93,13 @@ def apply_look(scenario: Scenario, look: Look, seed: int = 0) -> Scenario:
     changes = dict(glare=look.glare, glare_width=look.glare_width, bloom=look.bloom,
                    row_time=scenario.nominal_row_time * (1.0 + look.row_time_error))
     if look.blur_sigma is not None:
-        changes['blur_sigma'] = look.blur_sigma
+        changes.update(blur_sigma=0.0, image_blur=look.blur_sigma)
     lamps = [replace(sim, falloff=look.falloff, peak_dn=sim.peak_dn * look.brightness) for sim in scenario.lamps]
-    return replace(scenario, sensor=replace(sensor, **changes), lamps=lamps,
+    beacon = scenario.beacon
+    if look.depth is not None:
+        lamps = [replace(sim, waveform=replace(sim.waveform, depth=look.depth)) for sim in lamps]
+        beacon = replace(beacon, depth=look.depth)
+    return replace(scenario, sensor=replace(sensor, **changes), lamps=lamps, beacon=beacon,
                    clutter=clutter_lamps(lamps, look.clutter, np.random.default_rng([seed, 7])),
                    jpeg_quality=look.jpeg_quality, row_time_error=look.row_time_error)
 

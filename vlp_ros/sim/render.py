@@ -184,6 +184,9 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
         for sim, layer in lamp_layers:
             level = sim.waveform.mean_brightness(rows, sensor.exposure).astype(np.float32)
             canvas += _blurred(layer, sensor) * level[:, None, None]
+        if sensor.image_blur > 0.0:
+            # The recorded frame's blur mixes neighbouring rows, so it smooths the stripes as well.
+            canvas = cv2.GaussianBlur(canvas, (0, 0), sensor.image_blur, borderType=cv2.BORDER_REPLICATE)
         if pattern is not None:
             canvas = mosaic(canvas, shifted_pattern(pattern, rx0, ry0))
         image[ry0:ry1, rx0:rx1] = read_out(spill_charge(canvas, sensor), sensor, rng)

@@ -27,8 +27,10 @@ class SensorModel:
     ``gain`` is DN per electron (default: the full well reads 255). ``bayer``
     (e.g. ``'rggb'``) makes the output a raw mosaic instead of bgr8.
 
-    Optics (docs/simulator.md): ``blur_sigma`` (px) is the lens' Gaussian blur;
-    ``glare`` adds to each lamp a halo whose peak is that fraction of the disc's
+    Optics (docs/simulator.md): ``blur_sigma`` (px) is the lens' Gaussian blur of
+    the scene, before the rolling shutter, so it softens rims but not stripes;
+    ``image_blur`` (px) blurs the recorded frame (demosaicing, pixel crosstalk, a
+    camera's processing), stripes included. ``glare`` adds to each lamp a halo whose peak is that fraction of the disc's
     level, a Gaussian of ``glare_width`` times the lamp's image diameter, lit row by
     row as the lamp. ``bloom`` is the fraction of the charge beyond the full well
     that spills into the neighbours, spread as a Gaussian of ``bloom_sigma`` px.
@@ -46,6 +48,7 @@ class SensorModel:
     glare_width: float = 0.35
     bloom: float = 0.0
     bloom_sigma: float = 2.0
+    image_blur: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.row_time > 0.0:
@@ -58,6 +61,8 @@ class SensorModel:
             raise ValueError('read_noise and blur_sigma must not be negative')
         if not 0.0 <= self.glare <= 1.0 or not self.glare_width > 0.0:
             raise ValueError(f'glare must be in [0, 1] and glare_width positive, got {self.glare}, {self.glare_width}')
+        if self.image_blur < 0.0:
+            raise ValueError(f'image_blur must not be negative, got {self.image_blur}')
         if not 0.0 <= self.bloom <= 1.0 or not self.bloom_sigma > 0.0:
             raise ValueError(f'bloom must be in [0, 1] and bloom_sigma positive, got {self.bloom}, {self.bloom_sigma}')
         if self.bayer is not None and self.bayer not in BAYER_PATTERNS:
@@ -74,7 +79,7 @@ class SensorModel:
     def blur_margin(self) -> int:
         """Pixels beyond an object that its blurred (and spilled) light can still reach."""
         spill = 4.0 * self.bloom_sigma if self.bloom > 0.0 else 0.0
-        return int(np.ceil(4.0 * self.blur_sigma + spill)) + 2
+        return int(np.ceil(4.0 * (self.blur_sigma + self.image_blur) + spill)) + 2
 
     def glare_sigma(self, image_diameter: float) -> float:
         """The halo's Gaussian sigma (px) around a lamp whose image is ``image_diameter`` px across."""

@@ -1,0 +1,50 @@
+"""The accuracy benchmark's looks and issue-13 rows: availability counts what the issues count, and prints it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vlp_ros.benchmarks import accuracy
+from vlp_ros.evaluation.metrics import FrameOutcome
+from vlp_ros.pose import Pose
+
+TRUTH = Pose(np.eye(3), [0.0, 0.0, 0.0])
+
+
+def outcome(posed: bool, reason: str = 'no_id') -> FrameOutcome:
+    return FrameOutcome(TRUTH, TRUTH if posed else None, reason='pose' if posed else reason)
+
+
+def test_availability_counts_frames_with_a_lamp_and_gaps_recovered_within_three_frames():
+    # Frames:      0  1  2     3  4  5  6     7  8  9  10 11 12
+    in_view = [True, True, False, False, True, True, True, False, True, True, True, True, True]
+    posed = [True, False, False, True, False, False, True, False, False, False, False, True, True]
+    run = accuracy.SetupRun({'perspective': [outcome(p, 'no_candidate_agrees' if k == 1 else 'no_id')
+                                             for k, p in enumerate(posed)]}, [], in_view)
+    a = accuracy.availability(run, 'perspective')
+    assert (a.frames, a.in_view, a.posed, a.elsewhere) == (13, 10, 4, 1)
+    assert a.reasons == {'no_id': 5, 'no_candidate_agrees': 1}
+    # After the gap at 2-3 the pose comes on frame 6, the third frame with a lamp; after 7, only on 11 (the fourth).
+    assert (a.gaps, a.recovered) == (2, 1)
+    assert a.rate == pytest.approx(0.4)
+
+
+def test_targets_need_poses_and_name_their_issue():
+    run = accuracy.SetupRun({'perspective': [outcome(False)] * 3}, [], [True] * 3)
+    a = accuracy.availability(run, 'perspective')
+    summary = accuracy.summarize(run.outcomes['perspective'])
+    checks = {what: (issue, met) for issue, what, _, met in accuracy._issue_targets('falloff', a, summary)}
+    assert checks == {'mean NEES in [4, 8]': ('13', False), 'poses beyond 99.9 % chi-square = 0': ('13', False)}
+    drive = accuracy._issue_targets('drive', a, summary)
+    assert [met for *_, met in drive] == [False, False, True]
+
+
+def test_benchmark_prints_the_looks_and_issue_13_rows_with_their_targets(capsys):
+    assert accuracy.main(['--quick', '--frames', '2', '--only', 'look realistic_jpeg', '--only', 'stills 0.1']) == 0
+    out = capsys.readouterr().out
+    for row in ('hand-held 4K 2 m look realistic_jpeg perspective', 'hand-held 4K 2 m stills 0.1 s apart perspective',
+                'robot tone look realistic_jpeg perspective'):
+        assert row in out.split('Looks of real lamps')[1].split('Targets of issues 13 and 14')[0]
+        assert row in out.split('Targets of issues 13 and 14')[1]
+    assert '#14' in out and '#13' in out and 'Why frames had no pose' not in out
+    assert accuracy.main(['--quick', '--only', 'no such setup']) == 2
