@@ -162,8 +162,7 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     # d residual / d offset: an outward offset moves every rim point out by it.
     design = np.column_stack([jacobian, np.zeros(len(residuals))])
     design[rims, 6] = -offset_shape / rim_sigma
-    scatter_px = float(np.sqrt(np.mean(np.square(residuals[rims] * rim_sigma))))
-    offset_sigma = RIM_OFFSET_PRIOR * max(scatter_px, float(np.mean(rim_sigma)))
+    offset_sigma = _rim_offset_sigma(residuals[rims], rim_sigma)
     estimated = lamp_count >= 2
     if estimated:
         offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
@@ -179,6 +178,15 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     predicted = residuals + design @ step
     return ModelErrorFit(step=step[:6], covariance=0.5 * (covariance + covariance.T),
                          cost=float(predicted @ predicted + (step[6] / offset_sigma) ** 2), rim_offset=float(step[6]))
+
+
+def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float:
+    """The rim offset's prior sigma (px) from the rims' scatter; point lamps alone have no rim,
+    and then the offset, which moves nothing, keeps the floor's prior."""
+    if not len(rim_sigma):
+        return RIM_OFFSET_FLOOR_PX
+    scatter_px = float(np.sqrt(np.mean(np.square(rim_residuals * rim_sigma))))
+    return RIM_OFFSET_PRIOR * max(scatter_px, float(np.mean(rim_sigma)))
 
 
 def _weighted_fit(residuals: np.ndarray, design: np.ndarray, weights: np.ndarray, offset_sigma: float,
