@@ -23,6 +23,7 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 
@@ -34,6 +35,7 @@ from vlp_ros.gravity import GravityBuffer
 from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
 from vlp_ros.image_message import MessageFormatError, parse_compressed_image, parse_image
 from vlp_ros.locator_config import ConfigError, settings_from_parameters
+from vlp_ros.mounting import publishable_covariance
 from vlp_ros.nodes.diagnostics import diagnostic_array
 from vlp_ros.nodes.parameters import declare_locator_parameters
 from vlp_ros.pipeline import FrameResult, Pipeline
@@ -56,12 +58,15 @@ class Locator(Node):
 
         self.pose_pub = self.create_publisher(PoseStamped, 'vlp/pose', 10)
         self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', 10)
+        # The camera optical frame's own pose, whichever frame vlp/pose carries.
+        self.camera_pose_pub = self.create_publisher(PoseStamped, 'vlp/camera_pose', 10)
         # One Header per processed frame (stamp = image stamp, frame_id = outcome), so a
         # player can wait for each frame to be answered even when it yields no pose.
         self.processed_pub = self.create_publisher(Header, 'vlp/processed', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._advise_on_camera_settings()
         self._warm_up()
+        self._report_frames()
         self._subscribe()
         self.create_timer(1.0, self._publish_diagnostics)
         self._worker = threading.Thread(target=self._work, name='vlp_locator_worker', daemon=True)
@@ -80,6 +85,17 @@ class Locator(Node):
             advice = packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure)
         for text in advice:
             self.get_logger().warning(text)
+
+    def _report_frames(self) -> None:
+        mounting = self.settings.mounting
+        if mounting is None:
+            self.get_logger().info(f'publishing the camera optical frame in {self.settings.map_frame}')
+            return
+        quaternion = ', '.join(f'{v:.4g}' for v in Rotation.from_matrix(mounting.rotation).as_quat())
+        self.get_logger().info(
+            f'publishing {self.settings.base_frame} in {self.settings.map_frame}, the camera optical frame at '
+            f'{[round(float(v), 4) for v in mounting.translation]} m, [{quaternion}] in it '
+            f'(vlp/camera_pose carries the camera)')
 
     def _warm_up(self) -> None:
         """Load (or, without the build's cache, compile) the kernels a frame needs."""
@@ -199,11 +215,18 @@ class Locator(Node):
         header = Header(frame_id=self.settings.map_frame)
         header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         if result.pose is not None:
-            self.pose_pub.publish(PoseStamped(header=header, pose=_pose_message(result.pose)))
-            with_cov = PoseWithCovarianceStamped(header=header)
-            with_cov.pose.pose = _pose_message(result.pose)
-            with_cov.pose.covariance = _covariance_of(result.pose)
-            self.pose_cov_pub.publish(with_cov)
+            self.camera_pose_pub.publish(PoseStamped(header=header, pose=_pose_message(result.pose)))
+            mounting = self.settings.mounting
+            pose = result.pose if mounting is None else mounting.base_pose(result.pose)
+            self.pose_pub.publish(PoseStamped(header=header, pose=_pose_message(pose)))
+            covariance = publishable_covariance(pose.covariance)
+            # No covariance (the paper's solver gives none) is not published as a fake one:
+            # a localization filter would trust it.
+            if covariance is not None:
+                with_cov = PoseWithCovarianceStamped(header=header)
+                with_cov.pose.pose = _pose_message(pose)
+                with_cov.pose.covariance = [float(v) for v in covariance.reshape(36)]
+                self.pose_cov_pub.publish(with_cov)
         processed = Header(stamp=header.stamp, frame_id=result.outcome)
         self.processed_pub.publish(processed)
 
@@ -225,13 +248,6 @@ def _pose_message(pose: Pose) -> PoseMsg:
     q = pose.quaternion_xyzw()
     msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (float(v) for v in q)
     return msg
-
-
-def _covariance_of(pose: Pose) -> list[float]:
-    """Row-major 6x6; -1 in the first element marks an unknown covariance (REP 145 style)."""
-    if pose.covariance is None:
-        return [-1.0] + [0.0] * 35
-    return [float(v) for v in np.asarray(pose.covariance).reshape(36)]
 
 
 def main(args: list[str] | None = None) -> None:
