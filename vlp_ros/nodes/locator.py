@@ -17,19 +17,21 @@ import time
 import numpy as np
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
 from vlp_ros.camera import CameraModel
 from vlp_ros.compile_kernels import warm_up
+from vlp_ros.debug_view import debug_view
 from vlp_ros.frame_stats import FrameStats
 from vlp_ros.gravity import GravityBuffer
 from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
@@ -38,6 +40,7 @@ from vlp_ros.locator_config import ConfigError, settings_from_parameters
 from vlp_ros.mounting import publishable_covariance
 from vlp_ros.nodes.diagnostics import diagnostic_array
 from vlp_ros.nodes.parameters import declare_locator_parameters
+from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
 from vlp_ros.pipeline import FrameResult, Pipeline
 from vlp_ros.pose import Pose
 
@@ -64,6 +67,13 @@ class Locator(Node):
         # player can wait for each frame to be answered even when it yields no pose.
         self.processed_pub = self.create_publisher(Header, 'vlp/processed', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        # What users look at: the map (latched for late subscribers such as RViz) and what the frame showed.
+        self.lamps_pub = self.create_publisher(MarkerArray, 'vlp/lamps', QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.debug_image_pub = self.create_publisher(Image, 'vlp/debug_image', 1)
+        self._lamps_in_pose: set[int] | None = None
+        self.debug_images_drawn = 0
+        self._show_lamps_used(set())
         self._advise_on_camera_settings()
         self._warm_up()
         self._report_frames()
@@ -210,6 +220,24 @@ class Locator(Node):
         self._publish(result, msg.stamp_ns)
         self.stats.ids_seen(result.decoded_ids, result.unknown_ids)
         self.stats.frame_processed(result.outcome, time.monotonic() - received)
+        # After the pose is out, so that neither adds to its latency.
+        if result.pose is not None:
+            self._show_lamps_used({seen.lamp_id for seen in result.seen if seen.lamp_id is not None})
+        self._publish_debug_image(pixels, result, msg.stamp_ns, msg.frame_id)
+
+    def _show_lamps_used(self, lamp_ids: set[int]) -> None:
+        if lamp_ids != self._lamps_in_pose:
+            self._lamps_in_pose = lamp_ids
+            self.lamps_pub.publish(lamp_markers(self.settings.lamps, self.settings.map_frame, lamp_ids))
+
+    def _publish_debug_image(self, pixels: np.ndarray, result: FrameResult, stamp_ns: int, frame_id: str) -> None:
+        # Drawing and sending ~1.5 MB costs milliseconds a frame: only for someone looking.
+        if self.debug_image_pub.get_subscription_count() == 0:
+            return
+        header = Header(frame_id=frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        self.debug_image_pub.publish(bgr8_image(debug_view(pixels, result), header))
+        self.debug_images_drawn += 1
 
     def _publish(self, result: FrameResult, stamp_ns: int) -> None:
         header = Header(frame_id=self.settings.map_frame)
@@ -232,6 +260,7 @@ class Locator(Node):
 
     def _publish_diagnostics(self) -> None:
         array = diagnostic_array(self.stats, self._camera is not None, self._image_topic)
+        array.status[0].values.append(KeyValue(key='debug images drawn', value=str(self.debug_images_drawn)))
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 
