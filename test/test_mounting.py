@@ -150,3 +150,14 @@ def test_prior_and_imu_stay_in_the_camera_frame_with_a_tilted_mounting() -> None
     assert estimate.position_error(base) < 0.02
     assert np.degrees(np.arccos(np.clip(estimate.rotation[2, 2], -1.0, 1.0))) < 0.5, 'the base is level'
     assert np.degrees(estimate.rotation_error(base)) < 0.5
+
+
+def test_base_frame_benchmark_prints_camera_base_and_lever_free_rows(capsys: pytest.CaptureFixture[str]) -> None:
+    from vlp_ros.benchmarks import base_frame
+    assert base_frame.main(['--frames', '6', '--first', '100']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = {line.split('  ')[0]: line.split() for line in lines if line.startswith(('camera', 'base_link'))}
+    assert len(rows) == 3
+    lever_free = next(v for k, v in rows.items() if "camera's covariance" in k)
+    published = next(v for k, v in rows.items() if k.startswith('base_link (vlp/pose'))
+    assert float(lever_free[-1]) > 10 * float(published[-1]), 'the lever-arm terms matter on this mount'
