@@ -87,6 +87,8 @@ def test_published_covariance_has_no_zero_negative_or_nan_variance() -> None:
     assert publishable_covariance(None) is None
     assert publishable_covariance(np.full((6, 6), np.nan)) is None
     assert publishable_covariance(-np.eye(6)) is None
+    rounded = publishable_covariance(np.diag([4e-6, -1e-12, 1e-5, 1e-6, 1e-6, 2e-7]))
+    assert rounded[1, 1] == MIN_POSITION_VARIANCE, "a rounding-level negative variance is raised to the floor"
 
 
 def _values(**overrides):

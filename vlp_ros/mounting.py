@@ -96,13 +96,14 @@ def unit_quaternion_problem(xyzw: np.ndarray) -> str | None:
 
 def publishable_covariance(covariance: np.ndarray | None) -> np.ndarray | None:
     """The symmetric 6x6 covariance with every variance at least its floor; None when there is
-    none to publish (no covariance, or one that is not finite or has a negative variance)."""
+    none to publish (no covariance, or one that is not finite or has a variance below minus its
+    floor: more negative than rounding makes it, so broken)."""
     if covariance is None:
         return None
     covariance = np.asarray(covariance, dtype=float).reshape(6, 6)
-    if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) < 0.0):
-        return None
     floors = np.array([MIN_POSITION_VARIANCE] * 3 + [MIN_ROTATION_VARIANCE] * 3)
+    if not np.all(np.isfinite(covariance)) or np.any(np.diag(covariance) < -floors):
+        return None
     # Raising diagonal entries keeps a positive semi-definite matrix positive semi-definite.
     raised = 0.5 * (covariance + covariance.T)
     raised[np.diag_indices(6)] = np.maximum(np.diag(raised), floors)

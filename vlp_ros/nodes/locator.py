@@ -255,6 +255,9 @@ class Locator(Node):
                 with_cov.pose.pose = _pose_message(pose)
                 with_cov.pose.covariance = [float(v) for v in covariance.reshape(36)]
                 self.pose_cov_pub.publish(with_cov)
+            elif pose.covariance is not None:
+                self.get_logger().error('vlp/pose_with_covariance withheld: the pose covariance is not finite '
+                                        'or has a negative variance', throttle_duration_sec=THROTTLE_S)
         processed = Header(stamp=header.stamp, frame_id=result.outcome)
         self.processed_pub.publish(processed)
 
