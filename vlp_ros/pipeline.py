@@ -16,6 +16,7 @@ from vlp_ros.detection import detect_lamps
 from vlp_ros.lamp_map import Lamp, LampMap
 from vlp_ros.locator_config import LocatorSettings
 from vlp_ros.observation import LampObservation
+from vlp_ros.pinhole_view import solver_view
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Choice, Reason, explains_the_image
@@ -80,7 +81,8 @@ class Pipeline:
         if not pairs:
             outcome = UNKNOWN_ID if unknown else NO_ID
             return FrameResult(None, outcome, decoded, unknown, len(observations), seen=seen)
-        choice = self._solve(pairs, camera, stamp, gravity_up)
+        # Detection and decoding read the raw image; the solvers see lamps through a model they take.
+        choice = self._solve(*solver_view(pairs, camera), stamp, gravity_up)
         if choice.pose is None:
             return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail, seen)
         self._recent = (choice.pose, stamp)
