@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from solver_scenes import grid_lamps, looking_up
+from vlp_ros.benchmarks import camera_models
 from vlp_ros.benchmarks.camera_models import EQUIDISTANT_D, RATIONAL_D, robot_cameras, wide_camera
 from vlp_ros.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, RECTIFIED, CameraModel
 from vlp_ros.ellipse import geometric_distances
@@ -151,3 +152,11 @@ def test_poses_through_the_wide_lenses_are_right_with_an_honest_covariance(model
     assert np.median(errors) < 0.01, np.median(errors)
     # Six pose dimensions: a mean NEES of 6 says the covariance matches the errors (4-8 as docs/benchmarks.md).
     assert 4.0 <= np.mean(values) <= 8.0, np.mean(values)
+
+
+def test_the_benchmark_prints_a_row_per_model(capsys: pytest.CaptureFixture[str]) -> None:
+    assert camera_models.main(['--frames', '3', '--first', '100']) == 0
+    rows = capsys.readouterr().out.splitlines()
+    for model in (PLUMB_BOB, RATIONAL_POLYNOMIAL, EQUIDISTANT):
+        row = next(line for line in rows if line.startswith(f'{model} '))
+        assert row.split()[4:6] == ['3', '3'], row  # frames, poses
