@@ -143,7 +143,8 @@ def _undistorted_camera(width: int, height: int, K: np.ndarray, p, r) -> CameraM
     P = None if p is None else np.asarray(p, dtype=float).reshape(3, 4)
     if P is None or not P[0, 0] > 0.0:
         return CameraModel(width, height, K)
-    R = np.eye(3) if r is None or not np.any(np.asarray(r, dtype=float) != 0.0) else np.asarray(r, dtype=float).reshape(3, 3)
+    R = np.eye(3) if r is None else np.asarray(r, dtype=float).reshape(3, 3)
+    R = R if np.any(R != 0.0) else np.eye(3)  # an unset R (all zero) is no rotation
     if not (np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOLERANCE) and np.linalg.det(R) > 0.0):
         raise ValueError('camera_info R is not a rotation')
     if np.allclose(R, np.eye(3), atol=ROTATION_TOLERANCE):

@@ -62,8 +62,9 @@ def run(frames: int, first: int, seed: int) -> list[list[str]]:
             summary_row("base_link with the camera's covariance", summarize(lever_free_rows))]
 
 
-def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.base_frame', description=__doc__.split('\n')[0])
+def drive_arguments(prog: str, doc: str, argv: list[str] | None) -> argparse.Namespace:
+    """--frames, --first and --seed of a benchmark over part of the robot drive."""
+    parser = argparse.ArgumentParser(prog=f'python -m {prog}', description=doc.split('\n')[0])
     parser.add_argument('--frames', type=int, default=240, help='frames of the drive')
     parser.add_argument('--first', type=int, default=0, help='first frame of the drive')
     parser.add_argument('--seed', type=int, default=1)
@@ -71,7 +72,7 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _arguments(argv)
+    args = drive_arguments('vlp_ros.benchmarks.base_frame', __doc__, argv)
     translation = ', '.join(f'{v:g}' for v in MOUNTING.translation)
     quaternion = ', '.join(f'{v:.4f}' for v in Rotation.from_matrix(MOUNTING.rotation).as_quat())
     print(f'robot drive, camera_in_base: translation [{translation}] m, rotation [{quaternion}]; '

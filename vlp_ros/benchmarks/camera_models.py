@@ -9,11 +9,11 @@ same camera: the rows compare the camera poses with their truth.
 """
 from __future__ import annotations
 
-import argparse
 from dataclasses import replace
 
 import numpy as np
 
+from vlp_ros.benchmarks.base_frame import drive_arguments
 from vlp_ros.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, CameraModel
 from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
 from vlp_ros.pipeline import Pipeline
@@ -65,17 +65,8 @@ def run(frames: int, first: int, seed: int) -> list[list[str]]:
     return rows
 
 
-def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.camera_models',
-                                     description=__doc__.split('\n')[0])
-    parser.add_argument('--frames', type=int, default=240, help='frames of the drive')
-    parser.add_argument('--first', type=int, default=0, help='first frame of the drive')
-    parser.add_argument('--seed', type=int, default=1)
-    return parser.parse_args(argv)
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = _arguments(argv)
+    args = drive_arguments('vlp_ros.benchmarks.camera_models', __doc__, argv)
     print(f'robot drive through three lens models ({HFOV_DEG:g} deg HFOV, 1920x1080); '
           f'frames {args.first}-{args.first + args.frames - 1}, seed {args.seed}')
     print(format_table(run(args.frames, args.first, args.seed)))
