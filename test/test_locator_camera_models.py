@@ -31,9 +31,11 @@ def test_a_wide_robot_camera_reaches_the_robot_accuracy(test_node, tmp_path, mod
     assert len(listener.poses) >= 0.9 * FRAMES, listener.outcomes
     errors = [estimate.position_error(truth[stamp]) for stamp, estimate in listener.poses.items()]
     # Today's robot accuracy with the plumb_bob camera: 0.29 cm mean, 2.99 cm max on the whole drive
-    # (docs/benchmarks.md); the first 120 frames through the locator: median < 0.5 cm, max < 3 cm.
+    # with the IMU (docs/benchmarks.md, accuracy); here the first 120 frames, no IMU.
+    # The plumb_bob camera on the same 120 frames offline: median 0.35 cm, max 2.8 cm, orientation
+    # p95 0.39 deg, max 0.71 deg (python -m vlp_ros.benchmarks.camera_models: docs/benchmarks.md).
     assert np.median(errors) < 0.005 and max(errors) < 0.03, errors
     angles = [np.degrees(estimate.rotation_error(truth[stamp])) for stamp, estimate in listener.poses.items()]
-    assert max(angles) < 0.5, angles
+    assert np.percentile(angles, 95) < 0.5 and max(angles) < 1.0, angles
     mean_nees = np.mean([nees(estimate, truth[stamp]) for stamp, estimate in listener.poses.items()])
     assert 4.0 <= mean_nees <= 8.0, mean_nees
