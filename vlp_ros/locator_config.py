@@ -14,6 +14,7 @@ import numpy as np
 import yaml
 
 from vlp_ros.lamp_map import Lamp, LampMap
+from vlp_ros.mounting import Mounting, unit_quaternion_problem
 
 BEACON_MODES = ('packet', 'tone')
 SOLVERS = ('perspective', 'paper')
@@ -64,6 +65,13 @@ PARAMETERS = (
     ParameterSpec('image_transport', 'string', 'raw', 'raw (image_raw) or compressed (image_raw/compressed)'),
     ParameterSpec('qos.reliability', 'string', 'best_effort', 'image subscription reliability: best_effort or reliable'),
     ParameterSpec('qos.depth', 'integer', 1, 'image subscription queue depth'),
+    ParameterSpec('base_frame', 'string', '',
+                  "the robot's frame whose pose is published; empty = publish the camera optical frame"),
+    ParameterSpec('camera_in_base.translation', 'number_array', [0.0, 0.0, 0.0],
+                  "the camera optical frame's origin in base_frame (x, y, z) (m)"),
+    ParameterSpec('camera_in_base.rotation', 'number_array', [0.0, 0.0, 0.0, 1.0],
+                  'unit quaternion (x, y, z, w) of the camera optical frame (z forward, x right, y down) '
+                  'in base_frame'),
 )
 LAMP_PARAMETERS = (
     ParameterSpec('id', 'integer', None, 'beacon ID of the lamp'),
@@ -118,6 +126,9 @@ class LocatorSettings:
     image_transport: str
     qos_reliability: str
     qos_depth: int
+    # None when base_frame is empty: the camera optical frame is published.
+    base_frame: str | None = None
+    mounting: Mounting | None = None
 
 
 def _number(values: Mapping[str, Any], name: str, *, positive: bool = False,
@@ -248,6 +259,21 @@ def beacon_from_parameters(values: Mapping[str, Any]) -> BeaconSettings:
         frequency_tolerance=_number(values, 'beacon.frequency_tolerance', positive=True))
 
 
+def mounting_from_parameters(values: Mapping[str, Any], map_frame: str) -> tuple[str | None, Mounting]:
+    """(base_frame or None, the camera's mounting in it); the mounting is validated even when unused."""
+    base_frame = values.get('base_frame')
+    if not isinstance(base_frame, str):
+        raise ConfigError('base_frame', f'must be a frame name or empty, got {base_frame!r}')
+    if base_frame == map_frame:
+        raise ConfigError('base_frame', f'must differ from map_frame ({map_frame!r})')
+    translation = _vector(values, 'camera_in_base.translation', 3)
+    rotation = _vector(values, 'camera_in_base.rotation', 4)
+    problem = unit_quaternion_problem(rotation)
+    if problem:
+        raise ConfigError('camera_in_base.rotation', problem)
+    return base_frame or None, Mounting.from_quaternion(rotation / np.linalg.norm(rotation), translation)
+
+
 def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
     """Typed, validated settings; raises ConfigError naming the first bad parameter."""
     map_frame = values.get('map_frame')
@@ -256,6 +282,7 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
     beacon = beacon_from_parameters(values)
     prior_up = _vector(values, 'prior.up_in_camera', 3, allow_empty=True)
     rotation = _unit(_vector(values, 'imu.rotation', 4), 'imu.rotation')
+    base_frame, mounting = mounting_from_parameters(values, map_frame)
     return LocatorSettings(
         map_frame=map_frame,
         lamps=lamp_map_from_parameters(values, beacon),
@@ -274,7 +301,9 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         continuity_max_speed=_number(values, 'continuity.max_speed', minimum=0.0),
         image_transport=_choice(values, 'image_transport', IMAGE_TRANSPORTS),
         qos_reliability=_choice(values, 'qos.reliability', RELIABILITIES),
-        qos_depth=_integer(values, 'qos.depth', 1, 1000))
+        qos_depth=_integer(values, 'qos.depth', 1, 1000),
+        base_frame=base_frame,
+        mounting=mounting if base_frame else None)
 
 
 def flatten_parameters(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:

@@ -14,9 +14,10 @@ from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, r
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
-from vlp_ros.lamp_map import Lamp
+from vlp_ros.lamp_map import Lamp, LampMap
 from vlp_ros.locator_config import LocatorSettings
 from vlp_ros.observation import LampObservation
+from vlp_ros.pinhole_view import solver_view
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, explains_the_image
@@ -28,9 +29,19 @@ NO_ID = 'no_id'
 UNKNOWN_ID = 'unknown_id'
 
 
+@dataclass(frozen=True)
+class SeenLamp:
+    """A detected lamp and its ID in the map (None: why not, in ``detail``), for showing users."""
+
+    observation: LampObservation
+    lamp_id: int | None
+    detail: str = ''
+
+
 @dataclass
 class FrameResult:
-    """``outcome`` is 'pose' when ``pose`` is set, else why there is none."""
+    """``outcome`` is 'pose' when ``pose`` is set, else why there is none. ``seen``: the lamps
+    detected; a pose is solved from those with an ID."""
 
     pose: Pose | None
     outcome: str
@@ -38,6 +49,7 @@ class FrameResult:
     unknown_ids: int = 0
     lamps_detected: int = 0
     detail: str = ''
+    seen: list[SeenLamp] = field(default_factory=list)
 
 
 def solvable(observation: LampObservation, lamp: Lamp) -> bool:
@@ -77,13 +89,15 @@ class Pipeline:
                  if i is not None and i in self.settings.lamps and solvable(obs, self.settings.lamps.get(i))]
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
+        seen = [_seen_lamp(obs, i, reading, self.settings.lamps) for obs, i, reading in zip(observations, ids, readings)]
         if not pairs:
             outcome = UNKNOWN_ID if unknown else NO_ID
-            return FrameResult(None, outcome, decoded, unknown, len(observations))
-        choice = self.locate(pairs, camera, stamp, gravity_up)
+            return FrameResult(None, outcome, decoded, unknown, len(observations), seen=seen)
+        # Detection and decoding read the raw image; the solvers see lamps through a model they take.
+        choice = self.locate(*solver_view(pairs, camera), stamp, gravity_up)
         if choice.pose is None:
-            return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail)
-        return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value)
+            return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail, seen)
+        return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value, seen)
 
     def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None = None) -> Choice:
@@ -140,3 +154,11 @@ class Pipeline:
             # The paper's two mirror solutions are told apart by the same hints as ours (by default).
             return self.paper_choice(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))
+
+
+def _seen_lamp(observation: LampObservation, lamp_id: int | None, reading: BeaconReading, lamps: LampMap) -> SeenLamp:
+    if lamp_id is not None and lamp_id in lamps:
+        return SeenLamp(observation, lamp_id)
+    if reading.unknown:
+        return SeenLamp(observation, None, 'ID not in the map')
+    return SeenLamp(observation, None, reading.detail or 'ID not certain yet')

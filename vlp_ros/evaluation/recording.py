@@ -75,7 +75,8 @@ def recorded_frames(bag_path: Path | str, topics: RecordingTopics, gravity: Grav
                 waiting = []
             if message.topic == topics.camera_info:
                 info = TYPESTORE.deserialize_cdr(message.data, message.msgtype)
-                camera = CameraModel.from_camera_info(info.width, info.height, info.k, info.d, info.distortion_model)
+                camera = CameraModel.from_camera_info(info.width, info.height, info.k, info.d, info.distortion_model,
+                                                      info.p, info.r)
             elif message.topic == topics.imu:
                 imu = TYPESTORE.deserialize_cdr(message.data, message.msgtype)
                 a = imu.linear_acceleration

@@ -17,25 +17,30 @@ import time
 import numpy as np
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
 from vlp_ros.camera import CameraModel
 from vlp_ros.compile_kernels import warm_up
+from vlp_ros.debug_view import debug_view
 from vlp_ros.frame_stats import FrameStats
 from vlp_ros.gravity import GravityBuffer
 from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
 from vlp_ros.image_message import MessageFormatError, parse_compressed_image, parse_image
 from vlp_ros.locator_config import ConfigError, settings_from_parameters
+from vlp_ros.mounting import publishable_covariance
 from vlp_ros.nodes.diagnostics import diagnostic_array
 from vlp_ros.nodes.parameters import declare_locator_parameters
+from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
 from vlp_ros.pipeline import FrameResult, Pipeline
 from vlp_ros.pose import Pose
 
@@ -56,12 +61,22 @@ class Locator(Node):
 
         self.pose_pub = self.create_publisher(PoseStamped, 'vlp/pose', 10)
         self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', 10)
+        # The camera optical frame's own pose, whichever frame vlp/pose carries.
+        self.camera_pose_pub = self.create_publisher(PoseStamped, 'vlp/camera_pose', 10)
         # One Header per processed frame (stamp = image stamp, frame_id = outcome), so a
         # player can wait for each frame to be answered even when it yields no pose.
         self.processed_pub = self.create_publisher(Header, 'vlp/processed', 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        # What users look at: the map (latched for late subscribers such as RViz) and what the frame showed.
+        self.lamps_pub = self.create_publisher(MarkerArray, 'vlp/lamps', QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.debug_image_pub = self.create_publisher(Image, 'vlp/debug_image', 1)
+        self._lamps_in_pose: set[int] | None = None
+        self.debug_images_drawn = 0
+        self._show_lamps_used(set())
         self._advise_on_camera_settings()
         self._warm_up()
+        self._report_frames()
         self._subscribe()
         self.create_timer(1.0, self._publish_diagnostics)
         self._worker = threading.Thread(target=self._work, name='vlp_locator_worker', daemon=True)
@@ -80,6 +95,17 @@ class Locator(Node):
             advice = packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure)
         for text in advice:
             self.get_logger().warning(text)
+
+    def _report_frames(self) -> None:
+        mounting = self.settings.mounting
+        if mounting is None:
+            self.get_logger().info(f'publishing the camera optical frame in {self.settings.map_frame}')
+            return
+        quaternion = ', '.join(f'{v:.4g}' for v in Rotation.from_matrix(mounting.rotation).as_quat())
+        self.get_logger().info(
+            f'publishing {self.settings.base_frame} in {self.settings.map_frame}, the camera optical frame at '
+            f'{[round(float(v), 4) for v in mounting.translation]} m, [{quaternion}] in it '
+            f'(vlp/camera_pose carries the camera)')
 
     def _warm_up(self) -> None:
         """Load (or, without the build's cache, compile) the kernels a frame needs."""
@@ -137,7 +163,8 @@ class Locator(Node):
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            self._camera = CameraModel.from_camera_info(msg.width, msg.height, msg.k, msg.d, msg.distortion_model)
+            self._camera = CameraModel.from_camera_info(msg.width, msg.height, msg.k, msg.d, msg.distortion_model,
+                                                          msg.p, msg.r)
         except ValueError as err:
             self.get_logger().error(f'camera_info ignored: {err}', throttle_duration_sec=THROTTLE_S)
 
@@ -194,22 +221,51 @@ class Locator(Node):
         self._publish(result, msg.stamp_ns)
         self.stats.ids_seen(result.decoded_ids, result.unknown_ids)
         self.stats.frame_processed(result.outcome, time.monotonic() - received)
+        # After the pose is out, so that neither adds to its latency.
+        if result.pose is not None:
+            self._show_lamps_used({seen.lamp_id for seen in result.seen if seen.lamp_id is not None})
+        self._publish_debug_image(pixels, result, msg.stamp_ns, msg.frame_id)
+
+    def _show_lamps_used(self, lamp_ids: set[int]) -> None:
+        if lamp_ids != self._lamps_in_pose:
+            self._lamps_in_pose = lamp_ids
+            self.lamps_pub.publish(lamp_markers(self.settings.lamps, self.settings.map_frame, lamp_ids))
+
+    def _publish_debug_image(self, pixels: np.ndarray, result: FrameResult, stamp_ns: int, frame_id: str) -> None:
+        # Drawing and sending ~1.5 MB costs milliseconds a frame: only for someone looking.
+        if self.debug_image_pub.get_subscription_count() == 0:
+            return
+        header = Header(frame_id=frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        self.debug_image_pub.publish(bgr8_image(debug_view(pixels, result), header))
+        self.debug_images_drawn += 1
 
     def _publish(self, result: FrameResult, stamp_ns: int) -> None:
         header = Header(frame_id=self.settings.map_frame)
         header.stamp.sec, header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
         if result.pose is not None:
-            self.pose_pub.publish(PoseStamped(header=header, pose=_pose_message(result.pose)))
-            with_cov = PoseWithCovarianceStamped(header=header)
-            with_cov.pose.pose = _pose_message(result.pose)
-            with_cov.pose.covariance = _covariance_of(result.pose)
-            self.pose_cov_pub.publish(with_cov)
+            self.camera_pose_pub.publish(PoseStamped(header=header, pose=_pose_message(result.pose)))
+            mounting = self.settings.mounting
+            pose = result.pose if mounting is None else mounting.base_pose(result.pose)
+            self.pose_pub.publish(PoseStamped(header=header, pose=_pose_message(pose)))
+            covariance = publishable_covariance(pose.covariance)
+            # No covariance (the paper's solver gives none) is not published as a fake one:
+            # a localization filter would trust it.
+            if covariance is not None:
+                with_cov = PoseWithCovarianceStamped(header=header)
+                with_cov.pose.pose = _pose_message(pose)
+                with_cov.pose.covariance = [float(v) for v in covariance.reshape(36)]
+                self.pose_cov_pub.publish(with_cov)
+            elif pose.covariance is not None:
+                self.get_logger().error('vlp/pose_with_covariance withheld: the pose covariance is not finite '
+                                        'or has a negative variance', throttle_duration_sec=THROTTLE_S)
         processed = Header(stamp=header.stamp, frame_id=result.outcome)
         self.processed_pub.publish(processed)
 
     def _publish_diagnostics(self) -> None:
         array = diagnostic_array(self.stats, self._camera is not None, self._image_topic,
                                  self.pipeline.track_restarts)
+        array.status[0].values.append(KeyValue(key='debug images drawn', value=str(self.debug_images_drawn)))
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 
@@ -226,13 +282,6 @@ def _pose_message(pose: Pose) -> PoseMsg:
     q = pose.quaternion_xyzw()
     msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (float(v) for v in q)
     return msg
-
-
-def _covariance_of(pose: Pose) -> list[float]:
-    """Row-major 6x6; -1 in the first element marks an unknown covariance (REP 145 style)."""
-    if pose.covariance is None:
-        return [-1.0] + [0.0] * 35
-    return [float(v) for v in np.asarray(pose.covariance).reshape(36)]
 
 
 def main(args: list[str] | None = None) -> None:

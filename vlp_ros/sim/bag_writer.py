@@ -130,7 +130,7 @@ def camera_info_message(camera: CameraModel, header: object) -> object:
     CameraInfo = TYPESTORE.types['sensor_msgs/msg/CameraInfo']
     RegionOfInterest = TYPESTORE.types['sensor_msgs/msg/RegionOfInterest']
     projection = np.hstack([camera.K, np.zeros((3, 1))])
-    return CameraInfo(header=header, height=camera.height, width=camera.width, distortion_model='plumb_bob',
+    return CameraInfo(header=header, height=camera.height, width=camera.width, distortion_model=camera.model,
                       d=camera.D.astype(float), k=camera.K.reshape(-1), r=np.eye(3).reshape(-1),
                       p=projection.reshape(-1), binning_x=0, binning_y=0,
                       roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))

@@ -5,13 +5,13 @@ lamp's projected bounding box (plus the blur margin).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
 from vlp_ros.beacon.encoding import Waveform
-from vlp_ros.camera import CameraModel
+from vlp_ros.camera import PLUMB_BOB, CameraModel
 from vlp_ros.ellipse import ellipse_from_conic
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
@@ -126,7 +126,7 @@ def crop_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraMo
     K = camera.K.copy()
     K[0, 2] -= x0
     K[1, 2] -= y0
-    return CameraModel(width, height, K, camera.D)
+    return replace(camera, width=width, height=height, K=K)
 
 
 def lamp_roi(camera: CameraModel, pose: Pose, lamp: Lamp, size: int) -> tuple[int, int, int, int]:
@@ -206,19 +206,34 @@ def _field_limit(camera: CameraModel) -> float:
     border = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h], [w / 2, -0.5], [w / 2, h], [-0.5, h / 2], [w, h / 2]])
     if not camera.is_distorted:
         return float(4.0 * np.max(np.linalg.norm(camera.normalize(border), axis=1)))
-    k1, k2, _, _, k3 = camera.D
-    # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6) = 0, as a polynomial in r^2.
-    roots = np.atleast_1d(np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]))
-    real = [r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0.0]
-    fold = np.sqrt(min(real)) if real else np.inf
+    image_radius = np.max(np.linalg.norm(camera.normalize(border), axis=1))
+    fold, fold_radius = _fold(camera, 4.0 * image_radius)
     distorted = (border - camera.K[:2, 2]) / np.diag(camera.K)[:2]
     if np.isfinite(fold):
-        fold_radius = fold * (1.0 + k1 * fold ** 2 + k2 * fold ** 4 + k3 * fold ** 6)
         if fold_radius <= np.max(np.linalg.norm(distorted, axis=1)):
             raise ValueError(f'camera distortion {camera.D} folds back inside the image '
                              f'(at normalised radius {fold:.3f})')
-    image_radius = np.max(np.linalg.norm(camera.normalize(border), axis=1))
     return float(min(fold, 4.0 * image_radius))
+
+
+def _fold(camera: CameraModel, reach: float) -> tuple[float, float]:
+    """Normalised radius where the radial distortion stops growing (inf if not within ``reach``),
+    and the distorted radius there."""
+    if camera.model == PLUMB_BOB:
+        k1, k2, _, _, k3 = camera.D
+        # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6) = 0, as a polynomial in r^2.
+        roots = np.atleast_1d(np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]))
+        real = [r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0.0]
+        if not real:
+            return np.inf, np.inf
+        fold = np.sqrt(min(real))
+        return fold, fold * (1.0 + k1 * fold ** 2 + k2 * fold ** 4 + k3 * fold ** 6)
+    # Other models: the distorted radius along the x axis on a fine grid, first step that does not grow.
+    radii = np.linspace(0.0, reach, 4001)[1:]
+    distorted = (camera.project(np.column_stack([radii, np.zeros_like(radii), np.ones_like(radii)]))[:, 0]
+                 - camera.K[0, 2]) / camera.K[0, 0]
+    stops = np.flatnonzero(np.diff(distorted) <= 0.0)
+    return (float(radii[stops[0]]), float(distorted[stops[0]])) if stops.size else (np.inf, np.inf)
 
 
 def _project(camera: CameraModel, pose: Pose, sim: SimLamp,
