@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, read_lamp
+from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, decode_packet, decode_tone, read_lamp
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
@@ -117,7 +117,9 @@ class Pipeline:
                 glow=False)
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
-            profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids))
+            profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),
+            decode_glow=lambda profile: decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits,
+                                                      self._known_ids, blur_mixes=BLUR_MIXES))
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
         s = self.settings

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.beacon.decoding import BeaconReading, decode_packet, decode_tone, read_lamp, row_profile
+from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, decode_packet, decode_tone, read_lamp, row_profile
 from vlp_ros.beacon.camera_settings import MIN_ROWS_PER_PERIOD, MIN_TRANSMISSION
 from vlp_ros.beacon.encoding import packet_chips, packet_length, packet_waveform, tone_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
@@ -198,15 +198,16 @@ def observe(scene: Scene, rng: np.random.Generator) -> tuple[RenderedFrame, Lamp
 
 
 def timed_read(frame: RenderedFrame, observation: LampObservation, decode: Callable,
-               timer: Timer, glow: bool = True) -> tuple[RowProfile, BeaconReading]:
+               timer: Timer, glow: bool = True,
+               decode_glow: Callable | None = None) -> tuple[RowProfile, BeaconReading]:
     """The pipeline's reading of one lamp, timed; and the disc's row profile (the rows it samples)."""
     x0, y0, x1, y1 = observation.bbox
     start = time.perf_counter()
     frame.image[y0:y1, x0:x1].copy()
     copied = time.perf_counter()
-    reading = read_lamp(frame.image, observation, decode, glow)
+    reading = read_lamp(frame.image, observation, decode, glow, decode_glow)
     done = time.perf_counter()
-    read_lamp(frame.image, observation, decode, glow)
+    read_lamp(frame.image, observation, decode, glow, decode_glow)
     timer.repeated.append(time.perf_counter() - done)
     timer.copy.append(copied - start)
     timer.read.append(done - copied)
@@ -222,16 +223,17 @@ def draw_id(rng: np.random.Generator, mapped_ids: list[int], all_ids: list[int],
 
 def packet_trial(rng: np.random.Generator, condition: Condition, tally: Tally, timer: Timer) -> None:
     lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)))
-    scene, decode = packet_setup(rng, condition, lamp_id)
+    scene, decode, decode_glow = packet_setup(rng, condition, lamp_id)
     frame, observation = observe(scene, rng)
     if observation is not None:
         # A steady lamp sends no ID: any ID read is wrong.
         mapped = mapped and not condition.steady
-        tally.add_reading(lamp_id, mapped, timed_read(frame, observation, decode, timer)[1])
+        tally.add_reading(lamp_id, mapped, timed_read(frame, observation, decode, timer, decode_glow=decode_glow)[1])
 
 
 def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
-                 unmapped_weight: float = UNMAPPED_WEIGHT) -> tuple[Scene, Callable]:
+                 unmapped_weight: float = UNMAPPED_WEIGHT) -> tuple[Scene, Callable, Callable]:
+    """A lamp's scene, and the pipeline's decoders of its disc (sharp chips) and of its light (blur weighed in)."""
     row_time = rng.uniform(7e-6, 35e-6)
     rows_per_chip = rng.uniform(*condition.rows_per_chip)
     chip_rate = 1.0 / (row_time * rows_per_chip)
@@ -241,8 +243,10 @@ def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
     scene = lamp_scene(rng, lamp_id, rows, waveform, condition, row_time, exposure)
     nominal_rate = chip_rate * (1.0 + rng.uniform(-0.02, 0.02))
     nominal_row_time = row_time * (1.0 + rng.uniform(-0.01, 0.01)) / (1.0 + condition.look.row_time_error)
-    return scene, lambda profile: decode_packet(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS,
-                                                unmapped_weight=unmapped_weight)
+    def decode(profile: RowProfile, blur_mixes: tuple[float, ...] = (0.0,)) -> BeaconReading:
+        return decode_packet(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS,
+                             unmapped_weight=unmapped_weight, blur_mixes=blur_mixes)
+    return scene, decode, lambda profile: decode(profile, BLUR_MIXES)
 
 
 def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, timer: Timer) -> None:
@@ -300,14 +304,14 @@ def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, lo
     ``max_frames``). A trusted map (``unmapped_weight`` 0) sees only mapped lamps."""
     share = UNMAPPED_SHARE if unmapped_weight > 0.0 else 0.0
     lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)), share)
-    scene, decode = packet_setup(rng, condition, lamp_id, unmapped_weight)
+    scene, decode, decode_glow = packet_setup(rng, condition, lamp_id, unmapped_weight)
     tracker = EvidenceTracker(MAP_IDS)
     first, decision, windows = None, None, []
     for frame_index in range(max_frames):
         frame, observation = observe(scene, rng)
         if observation is None:
             return
-        profile, reading = timed_read(frame, observation, decode, timer)
+        profile, reading = timed_read(frame, observation, decode, timer, decode_glow=decode_glow)
         decided = tracker.update([observation], [reading], frame_index * FRAME_PERIOD)[0]
         windows.append(sampled_chips(scene, frame, profile))
         if decided is not None and decided != lamp_id:
