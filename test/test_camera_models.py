@@ -2,6 +2,8 @@
 accepted and how, and the solvers' view of lamps through a lens they do not model."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -133,6 +135,17 @@ def test_a_fisheye_lamp_maps_onto_the_exact_pinhole_ellipse_with_its_noise_stret
     assert np.max(np.abs(geometric_distances(_rim_ellipse(camera, truth, lamp), seen.rim_points))) < PIXEL_TOLERANCE
     # The fisheye compresses the field off axis: the pinhole's pixels stretch the noise by 1.1-2x.
     assert 1.1 * 0.3 < seen.rim_sigma < 2.0 * 0.3 and 1.1 * 0.2 < seen.marker_sigma < 2.0 * 0.2
+
+
+def test_a_rimless_light_under_a_fisheye_maps_by_its_centre() -> None:
+    """A bare LED's light has no rim to refit: its centre is mapped, its sigma stretched like a marker's."""
+    camera = robot_cameras()[EQUIDISTANT]
+    observation = synthetic_observation(grid_lamps(1)[0], looking_up((-1.4, -0.6, 0.45)), camera)
+    light = replace(observation, rim_points=np.empty((0, 2)), rim_sigma=np.inf, marker=None, rim_usable=False,
+                    center_sigma=0.5)
+    seen = seen_through_pinhole(light, camera)
+    assert np.allclose(seen.center, camera.undistort_pixels(light.center.reshape(1, 2))[0], atol=PIXEL_TOLERANCE)
+    assert 1.1 * 0.5 < seen.center_sigma < 2.0 * 0.5
 
 
 @pytest.mark.parametrize('model', [RATIONAL_POLYNOMIAL, EQUIDISTANT])
