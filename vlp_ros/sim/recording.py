@@ -9,6 +9,7 @@ import yaml
 
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.imu import specific_force
+from vlp_ros.sim.render import RenderedFrame
 from vlp_ros.sim.scenarios import Scenario
 
 # Recording start: a plausible wall-clock stamp, since a zero stamp often means "unset" in ROS.
@@ -23,8 +24,10 @@ def write_params(path: Path | str, scenario: Scenario, imu: bool) -> None:
 
 
 def record(scenario: Scenario, bag_path: Path | str, storage: str, imu: bool, rng: np.random.Generator,
-           progress: Callable[[int, int], None] | None = None) -> int:
-    """Render every frame of ``scenario`` into a new bag; returns how many frames were written."""
+           progress: Callable[[int, int], None] | None = None,
+           on_frame: Callable[[RenderedFrame], None] | None = None) -> int:
+    """Render every frame of ``scenario`` into a new bag; returns how many frames were written.
+    ``on_frame`` sees each rendered frame with its ground truth (which lamps it shows)."""
     times = scenario.frame_times()
     with SimBagWriter(bag_path, storage, imu, scenario.jpeg_quality) as writer:
         for index, (pose, t) in enumerate(zip(scenario.poses, times)):
@@ -33,6 +36,8 @@ def record(scenario: Scenario, bag_path: Path | str, storage: str, imu: bool, rn
             if imu:
                 force = specific_force(pose, scenario.accelerations[index], scenario.imu_noise, rng)
             writer.write_frame(frame, EPOCH_NS + int(round(t * 1e9)), force, scenario.imu_noise)
+            if on_frame is not None:
+                on_frame(frame)
             if progress is not None:
                 progress(index + 1, len(times))
         return writer.frames
