@@ -104,8 +104,32 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
     sigma2 = max(sigma2, 1e-12)
     sums, rows = _cumulative(z, w)
     period, phase = _search_grid(sums, rows, period, tolerance, sigma2)
+    return _on_grid(sums, rows, period, phase, margin, sigma2)
+
+
+def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float | None,
+                 offsets: tuple[float, ...], scales: tuple[float, ...]) -> list[ChipLevels]:
+    """Chip levels on the grids around ``found``'s: its chip edges moved by each of ``offsets`` (in chips) and
+    its period scaled by each of ``scales``, anchored at the window's weighted middle (grids with no chip left
+    out)."""
+    sigma2 = max(_noise_variance(z, w), 1e-12)
+    sums, rows = _cumulative(z, w)
+    anchor = _weighted_middle(rows)
+    # The found grid's chip edge nearest the anchor: scaling the period about it keeps the middle in place.
+    edge = found.phase + found.period * round((anchor - found.phase) / found.period)
+    grids = []
+    for scale in scales:
+        for offset in offsets:
+            grid = _on_grid(sums, rows, found.period * scale, edge + offset * found.period, margin, sigma2)
+            if grid is not None:
+                grids.append(grid)
+    return grids
+
+
+def _on_grid(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float | None,
+             sigma2: float) -> ChipLevels | None:
     interior = period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
-    index, levels, variances, start = _levels(sums, rows, period, phase, interior, sigma2)
+    index, levels, variances, start = _levels(sums, rows, period, phase % period, interior, sigma2)
     if index.size == 0:
         return None
     return ChipLevels(index, levels, variances, period, start)
