@@ -10,6 +10,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from vlp_ros.beacon.encoding import complement_closed
 from vlp_ros.beacon.tone import ROW_TIME_TOLERANCE
 
 # Packet mode: rows per chip (the benchmark's fewest, all read), and the longest exposure (in chips)
@@ -22,9 +23,14 @@ MIN_ROWS_PER_PERIOD = 4.0
 MIN_TRANSMISSION = 0.3
 
 
-def packet_setting_advice(chip_rate: float, row_time: float, exposure: float | None) -> list[str]:
+def packet_setting_advice(chip_rate: float, row_time: float, exposure: float | None,
+                          id_bits: int = 8) -> list[str]:
     """What to change so that packet-mode frames are read reliably (empty: nothing)."""
     advice = []
+    if complement_closed(id_bits):
+        advice.append(f'beacon.id_bits {id_bits} is odd: the complement of every ID passes parity too, so a lamp is '
+                      f'told from the lamp of its complement ID only by the stripes\' polarity, which clipped, '
+                      f'blurred stripes can hide (such lamps then stay unidentified); an even beacon.id_bits avoids it')
     rows_per_chip = 1.0 / (chip_rate * row_time)
     if rows_per_chip < MIN_ROWS_PER_CHIP:
         advice.append(f'beacon.chip_rate {chip_rate:g} Hz gives {rows_per_chip:.1f} rows per chip at beacon.row_time '

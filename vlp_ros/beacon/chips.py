@@ -17,9 +17,8 @@ import numpy as np
 from vlp_ros.compiled import kernel
 from vlp_ros.small_arrays import median
 
-_COARSE_PHASES = 6
-# Chips of the window the coarse grid looks at, and the largest drift of its period steps across them.
-_FIRST_CHIPS = 24
+_COARSE_PHASES = 24
+# The largest drift of the coarse grid's period steps across the window, in chips.
 _COARSE_DRIFT = 0.3
 # The fine grid: 5 x 5 points a quarter of the coarse steps apart, around the coarse best.
 _FINE_STEPS = np.arange(-2, 3) / 4.0
@@ -105,8 +104,32 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
     sigma2 = max(sigma2, 1e-12)
     sums, rows = _cumulative(z, w)
     period, phase = _search_grid(sums, rows, period, tolerance, sigma2)
+    return _on_grid(sums, rows, period, phase, margin, sigma2)
+
+
+def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float | None,
+                 offsets: tuple[float, ...], scales: tuple[float, ...]) -> list[ChipLevels]:
+    """Chip levels on the grids around ``found``'s: its chip edges moved by each of ``offsets`` (in chips) and
+    its period scaled by each of ``scales``, anchored at the window's weighted middle (grids with no chip left
+    out)."""
+    sigma2 = max(_noise_variance(z, w), 1e-12)
+    sums, rows = _cumulative(z, w)
+    anchor = _weighted_middle(rows)
+    # The found grid's chip edge nearest the anchor: scaling the period about it keeps the middle in place.
+    edge = found.phase + found.period * round((anchor - found.phase) / found.period)
+    grids = []
+    for scale in scales:
+        for offset in offsets:
+            grid = _on_grid(sums, rows, found.period * scale, edge + offset * found.period, margin, sigma2)
+            if grid is not None:
+                grids.append(grid)
+    return grids
+
+
+def _on_grid(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float | None,
+             sigma2: float) -> ChipLevels | None:
     interior = period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
-    index, levels, variances, start = _levels(sums, rows, period, phase, interior, sigma2)
+    index, levels, variances, start = _levels(sums, rows, period, phase % period, interior, sigma2)
     if index.size == 0:
         return None
     return ChipLevels(index, levels, variances, period, start)
@@ -176,42 +199,59 @@ def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, mar
 @kernel
 def _search_grid(sums: np.ndarray, rows: np.ndarray, period: float, tolerance: float,
                  sigma2: float) -> tuple[float, float]:
-    """A coarse grid on the window's first chips, then a fine one around its best on the whole
-    window (a period error drifts the grid in proportion to the rows it spans)."""
+    """A coarse grid on the whole window, its period steps as fine as the window's length needs (a period
+    error drifts the grid in proportion to the rows it spans from its anchor, the window's weighted middle),
+    then a fine one around its best.
+
+    Not a coarse grid on the first chips alone: a light profile's window begins in the glow's faint rows, and
+    a blurred window's isolated chips are faint too, so a short stretch misplaced the period by 1-2 % on
+    foreign 4K frames, enough to drift a 50-chip window by a chip."""
     size = float(sums.shape[1] - 1)
-    end = min(size, _FIRST_CHIPS * period)
-    step = _COARSE_DRIFT * period / end
+    anchor = _weighted_middle(rows)
+    step = _COARSE_DRIFT * period / size
     # Less a rounding error: 5 % in steps of 1.25 % is four steps, not five.
     count = math.ceil(tolerance / step - 1e-9)
     phase_step = period / _COARSE_PHASES
-    best_period, best_phase = _best_grid(sums, rows, end, period * (1.0 + step * np.arange(-count, count + 1)),
+    best_period, best_phase = _best_grid(sums, rows, 0.0, size, anchor,
+                                         period * (1.0 + step * np.arange(-count, count + 1)),
                                          phase_step * np.arange(_COARSE_PHASES), sigma2)
-    return _best_grid(sums, rows, size, best_period * (1.0 + step * _FINE_STEPS), best_phase + phase_step * _FINE_STEPS,
-                      sigma2)
+    fine_period, fine_phase = _best_grid(sums, rows, 0.0, size, anchor, best_period * (1.0 + step * _FINE_STEPS),
+                                         best_phase + phase_step * _FINE_STEPS, sigma2)
+    return fine_period, (anchor + fine_phase) % fine_period
 
 
 @kernel
-def _best_grid(sums: np.ndarray, rows: np.ndarray, end: float, periods: np.ndarray, phases: np.ndarray,
-               sigma2: float) -> tuple[float, float]:
-    """The (period, phase) pair whose chip-wise constant fit of rows [0, end) captures most energy
-    beyond noise."""
-    chips = math.ceil(end / periods.min()) + 3
+def _weighted_middle(rows: np.ndarray) -> float:
+    """The rows' centre of weight (row r covers [r, r + 1)), from their own terms."""
+    weight, moment = 0.0, 0.0
+    for r in range(rows.shape[1]):
+        weight += rows[0, r]
+        moment += rows[0, r] * (r + 0.5)
+    return moment / weight if weight > 0.0 else 0.5 * (rows.shape[1] - 1)
+
+
+@kernel
+def _best_grid(sums: np.ndarray, rows: np.ndarray, begin: float, end: float, anchor: float, periods: np.ndarray,
+               phases: np.ndarray, sigma2: float) -> tuple[float, float]:
+    """The (period, phase) pair whose chip-wise constant fit of rows [begin, end) captures most energy
+    beyond noise; chip edges lie at anchor + phase + k period."""
+    chips = math.ceil((end - begin) / periods.min()) + 3
     best, best_period, best_phase = -np.inf, 0.0, 0.0
     for period in periods:
         for phase in phases:
-            offset = phase % period
+            # The last chip edge at or before ``begin``.
+            offset = anchor + phase - period * math.ceil((anchor + phase - begin) / period)
             energy = 0.0
-            bound = min(max(offset - period, 0.0), end)
-            weight_before, total_before = _at(sums, rows, 0, bound), _at(sums, rows, 1, bound)
-            for chip in range(chips - 1):
-                bound = min(max(offset + period * chip, 0.0), end)
+            weight_before, total_before = _at(sums, rows, 0, begin), _at(sums, rows, 1, begin)
+            for chip in range(1, chips):
+                bound = min(max(offset + period * chip, begin), end)
                 weight_after, total_after = _at(sums, rows, 0, bound), _at(sums, rows, 1, bound)
                 weight, total = weight_after - weight_before, total_after - total_before
                 # Empty chips have zero sums: the tiny offset only keeps their ratio defined.
                 energy += total * total / (weight + 1e-12) - (sigma2 if weight > 1e-9 else 0.0)
                 weight_before, total_before = weight_after, total_after
             if energy > best:
-                best, best_period, best_phase = energy, period, offset
+                best, best_period, best_phase = energy, period, phase
     return best_period, best_phase
 
 

@@ -29,7 +29,9 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
     tracks and frames). When ``decode`` leaves the light profile open, ``decode_glow`` (packet mode: blur weighed
     in) reads it again, and its reading is taken only if it is certain: a disc without evidence is one that blur
     and clipping spoilt. Its uncertain readings are not passed on, because summed over frames they left the
-    tracker less certain than the sharp ones (the simulator's realistic drive: 2 poses instead of 7 of 62).
+    tracker less certain than the sharp ones (the simulator's realistic drive: 2 poses instead of 7 of 62). Nor are
+    the light profile's uncertain sharp readings: where the disc clips, its bright rows are seen on the glow alone,
+    and summed over frames such readings leaned to wrong IDs (the accuracy benchmark's realistic robot row).
 
     Tone mode reads the disc only (``glow=False``, docs/beacon.md): blur across rows rounds the stripes
     that the glow shows unclipped, and the square wave fitted with the given exposure then misplaces the
@@ -43,7 +45,7 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
         blurred = decode_glow(profile)
         if blurred.lamp_id is not None or blurred.unknown:
             return blurred
-    return light if _has_evidence(light) else disc
+    return light if light.lamp_id is not None or light.unknown else disc
 
 
 def _has_evidence(reading: BeaconReading) -> bool:

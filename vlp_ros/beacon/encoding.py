@@ -28,6 +28,13 @@ def packet_bits(lamp_id: int, id_bits: int = 8) -> list[int]:
     return data + [sum(data) % 2]
 
 
+def complement_closed(id_bits: int) -> bool:
+    """Whether every packet's complement (each data and parity bit inverted) passes parity too: with odd
+    ``id_bits`` the word has an even number of bits. Its chips, all inverted, are then the complement ID's
+    packet with the preamble inverted, so only the stripes' polarity tells the two apart."""
+    return id_bits % 2 == 1
+
+
 def packet_chips(lamp_id: int, id_bits: int = 8) -> np.ndarray:
     """One packet as chips (uint8 0/1): preamble, then the Manchester-coded bits."""
     chips = list(PREAMBLE)

@@ -16,7 +16,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2
 
-from vlp_ros.beacon.chips import ChipLevels, chip_levels
+from vlp_ros.beacon.chips import ChipLevels, chip_levels, nearby_grids
 from vlp_ros.beacon.encoding import packet_bits, packet_chips, packet_length
 from vlp_ros.beacon.profile import RowProfile, relative_brightness
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
@@ -30,10 +30,22 @@ MAX_PACKETS = 2.3
 # about a third and a half of the chip (a 2 px blur of 5-row chips leaves an isolated chip 40 % of its
 # contrast, mix 0.2).
 BLUR_MIXES = (0.0, 0.15, 0.3)
+# Where blur is weighed in, the chip grid is too: the grid search's best (the chip-wise constant fit's) sat a
+# quarter chip off the likelihood's on foreign 4K frames, where blur and the rows' exposure round the chips.
+# Grids with the chip edges moved by these shares of a chip, and the period scaled by these factors.
+GRID_OFFSETS = (-0.3, -0.15, 0.0, 0.15, 0.3)
+GRID_SCALES = (0.99, 1.0, 1.01)
 # The default: sharp chips only. With BLUR_MIXES the benchmark's tracker rows have not been run yet.
 SHARP = (0.0,)
 # A best fit worse than this tail probability of its chi-square means the lamp is not sending packets.
 MISFIT_PROBABILITY = 1e-6
+# A window whose rows have more than this share of their pixels clipped is read as clipped: a clipped chip
+# only says its light reached the ceiling, which blur can lift an isolated dark chip to (docs/beacon.md).
+CLIPPED_SHARE = 0.1
+# The largest misfit (weighted squared residual per degree of freedom) of a clipped window's best fit that
+# still counts as evidence: clipped discs that read right fitted to 0.46 at most, clipped and blurred ones
+# that hid their dark chips under the ceiling (and leaned to wrong IDs) to 1.17 at least.
+CLIPPED_MISFIT = 0.7
 
 
 @lru_cache(maxsize=4)
@@ -93,36 +105,59 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     # Only the mean level: a curve fitted through few chips bends with them, and the chip levels
     # follow the envelope locally anyway.
     z, w, _ = relative_brightness(profile)
-    z, w = _central_rows(z, w, MAX_PACKETS * packet_length(id_bits) * period)
+    first = int(np.argmax(np.asarray(profile.weights) > 0))
+    clipped_share = np.asarray(profile.saturated, dtype=float)[first:first + len(z)]
+    z, w, clipped_share = _central_rows(MAX_PACKETS * packet_length(id_bits) * period, z, w, clipped_share)
+    clipped = bool(clipped_share @ w > CLIPPED_SHARE * w.sum())
     levels = chip_levels(z, w, period, timing_tolerance, margin)
     if levels is None:
         return no_evidence(candidates, mapped, prior, 'too few rows for a chip grid')
     if levels.index.size < MIN_CHIPS:
         return no_evidence(candidates, mapped, prior, f'only {levels.index.size} chips visible')
-    weights = 1.0 / (levels.variances + model_error ** 2)
-    # Sharp chips first (quick, and all a sharp lamp needs); blurred ones weighed in when that leaves the ID open.
-    sharp = _packet_reading(levels, weights, id_bits, (0.0,), candidates, mapped, prior, min_confidence)
+    # Sharp chips first (quick, and all a sharp lamp needs); blurred ones weighed in when that leaves the ID open,
+    # on the grids around the found one too.
+    sharp = _packet_reading([levels], model_error, id_bits, (0.0,), candidates, mapped, prior, min_confidence, clipped)
     if sharp.lamp_id is not None or sharp.unknown or blur_mixes == (0.0,):
         return sharp
-    return _packet_reading(levels, weights, id_bits, blur_mixes, candidates, mapped, prior, min_confidence)
+    grids = [levels] + nearby_grids(z, w, levels, margin, GRID_OFFSETS, GRID_SCALES)
+    return _packet_reading(grids, model_error, id_bits, blur_mixes, candidates, mapped, prior, min_confidence,
+                           clipped)
 
 
-def _packet_reading(levels: ChipLevels, weights: np.ndarray, id_bits: int, mixes: tuple[float, ...],
+def _packet_reading(grids: list[ChipLevels], model_error: float, id_bits: int, mixes: tuple[float, ...],
                     candidates: np.ndarray, mapped: np.ndarray, prior: np.ndarray,
-                    min_confidence: float) -> BeaconReading:
-    log_likelihoods, misfit = _id_log_likelihoods(levels.levels, weights, levels.index, id_bits, mixes)
-    if misfit > _misfit_limit(levels.index.size - 4):
-        return no_evidence(candidates, mapped, prior, 'the chips fit no packet')
-    return reading(candidates, mapped, log_likelihoods, prior, min_confidence)
+                    min_confidence: float, clipped: bool) -> BeaconReading:
+    """The reading of the chips on ``grids`` (equally likely a priori: their likelihoods are averaged) under
+    ``mixes``. A grid counts only where its best fit fits (more strictly where the window is ``clipped``: there the
+    chips' levels are not linear in the light, so a misfit means the ceiling hid dark chips, and the fit then
+    leans to IDs whose chips were never seen); none that fits: no evidence."""
+    fitting, detail = [], 'the chips fit no packet'
+    for levels in grids:
+        weights = 1.0 / (levels.variances + model_error ** 2)
+        log_likelihoods, misfit = _id_log_likelihoods(levels.levels, weights, levels.index, id_bits, mixes)
+        dof = levels.index.size - 4
+        if misfit > _misfit_limit(dof):
+            continue
+        if clipped and misfit > CLIPPED_MISFIT * dof:
+            detail = 'clipped chips misfit: blur may have lifted dark chips to the ceiling'
+            continue
+        fitting.append(log_likelihoods)
+    if not fitting:
+        return no_evidence(candidates, mapped, prior, detail)
+    if len(fitting) == 1:
+        return reading(candidates, mapped, fitting[0], prior, min_confidence)
+    stacked = np.array(fitting)
+    top = stacked.max(axis=0)
+    return reading(candidates, mapped, top + np.log(np.exp(stacked - top).mean(axis=0)), prior, min_confidence)
 
 
-def _central_rows(z: np.ndarray, w: np.ndarray, rows: float) -> tuple[np.ndarray, np.ndarray]:
-    """The window cut to its central ``rows`` when it holds more."""
-    excess = len(z) - math.ceil(rows)
+def _central_rows(rows: float, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The window's ``arrays`` (one value per row) cut to their central ``rows`` when they hold more."""
+    excess = len(arrays[0]) - math.ceil(rows)
     if excess <= 0:
-        return z, w
-    first, last = excess // 2, len(z) - (excess - excess // 2)
-    return z[first:last], w[first:last]
+        return arrays
+    first, last = excess // 2, len(arrays[0]) - (excess - excess // 2)
+    return tuple(array[first:last] for array in arrays)
 
 
 @lru_cache(maxsize=256)

@@ -92,7 +92,7 @@ class Locator(Node):
             frequencies = {lamp.name: lamp.frequency for lamp in self.settings.lamps}
             advice = tone_setting_advice(frequencies, beacon.row_time, beacon.exposure)
         else:
-            advice = packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure)
+            advice = packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure, beacon.id_bits)
         for text in advice:
             self.get_logger().warning(text)
 
