@@ -143,6 +143,7 @@ RIM_OFFSET_FLOOR_PX = 0.5
 OFFSET_DETERMINED = 0.25
 MARKER_CONSISTENT = 2.0
 _REWEIGHTINGS = 2
+_MODE_REWEIGHTINGS = 1
 # Candidate prior sigmas (px) of the rim modes: none, then 0.005 to 5 px a factor sqrt(2) apart
 # (a likelihood this flat near its maximum costs nothing at that spacing).
 _MODE_SIGMA_GRID_PX = np.concatenate([[1e-4], 0.005 * 2.0 ** (np.arange(21) / 2.0)])
@@ -224,9 +225,10 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
     offset = solution[6]
     mode_sigma = 0.0
     if estimated:
-        # The fit with each lamp's modes, their prior sigma estimated at each reweighting.
-        weights[:] = 1.0
-        for reweighting in range(_REWEIGHTINGS + 1):
+        # The fit with each lamp's modes, from the weights the fit without them ended with (the
+        # modes take up part of that scatter), their prior sigma estimated at each reweighting.
+        _reweight(predicted, weights, rims, marker_count, rim_dof)
+        for reweighting in range(_MODE_REWEIGHTINGS + 1):
             # From the lamps alone: an up direction that disagrees (an accelerating IMU) is no
             # evidence of model error, and the lamps' shapes must not yield to it.
             lamp_rows = rims + 2 * marker_count
@@ -237,7 +239,7 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
                 gram[k, k] += 1.0 / (mode_sigma * mode_sigma)
             solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
             predicted = residuals + design @ solution
-            if reweighting < _REWEIGHTINGS:
+            if reweighting < _MODE_REWEIGHTINGS:
                 _reweight(predicted, weights, rims, marker_count, rim_dof)
     for i in range(6):
         step[i] = solution[i]
