@@ -116,68 +116,75 @@ def _add_rotation_curvature(covariance, lever):
 
 
 # Model error. A lamp that is not the model's uniform disc with a sharp edge (a diffuser
-# brighter in the middle, glare, soft edges) moves its half-level crossings in or out all
-# round the rim together: measured on an independent renderer's frames with blur 1.6 px,
-# 30 % falloff and glare, 0.4-0.6 px inward with 0.3-0.4 px scatter about that, and on
-# the simulator's falloff look 0.31 px, where clean frames are within 0.03 px. One lamp's
-# rim cannot tell that offset from range (a larger disc farther away has the same image),
-# so it is a parameter of the fit (``measurement.rim_offset_shape`` says how it varies
-# round the rim). With several lamps, which fix the scale, it is estimated with a prior of
-# ``RIM_OFFSET_FLOOR_PX`` (or ``RIM_OFFSET_PRIOR`` times the rim's scatter, if more), and
-# the pose moves with it where the data determine it (its variance below
-# ``OFFSET_DETERMINED`` of the prior's). One lamp's marker would fix the scale too, but
-# too noisily and with a bias near frontal views (measured: 2 mm at 0.3 m, 5 standard
-# errors): there it only widens the covariance along range by ``RIM_OFFSET_PRIOR`` times
-# the rim's scatter. The rim points' scatter beyond their stated sigma, and a marker that
-# the pose cannot place within ``MARKER_CONSISTENT`` sigmas, widen their own information
-# by what their residuals show.
+# brighter in the middle, glare, soft edges, a rolling-shutter lamp's rows read apart from
+# its columns) moves its half-level crossings by a smooth pattern round the rim: measured on
+# an independent renderer's frames with blur 1.6 px, 30 % falloff and glare, at the true pose,
+# 0.3-0.4 px inward and 0.6 px in the second harmonic, where clean frames are within 0.05 px.
+# Such a pattern's offset and first two harmonics (``measurement.rim_error_modes``) are what
+# an ellipse absorbs: one lamp's residuals cannot show them, while the fit turns them into
+# range and tilt (1-2 degrees near frontal views) and claims hundredths of a pixel for them
+# from the rim's hundreds of points. So each lamp's modes are parameters of the fit, with a
+# common prior sigma that the frame's redundancy estimates (restricted maximum likelihood
+# over ``_MODE_SIGMA_GRID_PX``, the pose marginalised): the disagreement of the lamps with
+# one another, with an up direction, with the marker. Where the modes are consistent with
+# noise (clean frames), the sigma comes out near 0 and nothing changes; where they are not,
+# the rim's shape counts for what the disagreement shows and the pose moves toward the
+# measurements that disagree with it. Besides, a common rim offset (all lamps alike) is a
+# parameter with a prior of ``RIM_OFFSET_FLOOR_PX`` (or ``RIM_OFFSET_PRIOR`` times the rim's
+# scatter, if more); with several lamps, which fix the scale, it moves the pose where the
+# data determine it (its variance below ``OFFSET_DETERMINED`` of the prior's). One lamp's
+# marker would fix the scale too, but too noisily and with a bias near frontal views
+# (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance along
+# range by ``RIM_OFFSET_PRIOR`` times the rim's scatter. The rim points' scatter beyond their
+# stated sigma, and a marker that the pose cannot place within ``MARKER_CONSISTENT`` sigmas,
+# widen their own information by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
 RIM_OFFSET_FLOOR_PX = 0.5
 OFFSET_DETERMINED = 0.25
 MARKER_CONSISTENT = 2.0
 _REWEIGHTINGS = 2
+_MODE_REWEIGHTINGS = 1
+# Candidate prior sigmas (px) of the rim modes: none, then 0.005 to 5 px a factor sqrt(2) apart
+# (a likelihood this flat near its maximum costs nothing at that spacing).
+_MODE_SIGMA_GRID_PX = np.concatenate([[1e-4], 0.005 * 2.0 ** (np.arange(21) / 2.0)])
 
 
 @dataclass(frozen=True)
 class ModelErrorFit:
     """The pose fit allowing for model error: the pose ``step`` (as ``perturbed``'s delta),
-    its ``covariance``, the chi-square ``cost`` with the rim offset fitted (its prior included),
-    and the common rim offset ``rim_offset`` (px, outward positive; 0 where not determined)."""
+    its ``covariance``, the chi-square ``cost`` of the fit with only the common rim offset
+    (its prior included; the measure candidates are compared and gated by), the common rim
+    offset ``rim_offset`` (px, outward positive; 0 where not determined) and the rim modes'
+    estimated prior sigma ``mode_sigma`` (px)."""
 
     step: np.ndarray
     covariance: np.ndarray
     cost: float
     rim_offset: float
+    mode_sigma: float
 
 
 def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma: np.ndarray,
-                          offset_shape: np.ndarray, lamp_count: int, marker_count: int) -> ModelErrorFit:
+                          modes: np.ndarray, lamp_of_point: np.ndarray, lamp_count: int,
+                          marker_count: int) -> ModelErrorFit:
     """The linear update of a converged fit (whitened ``residuals`` and ``jacobian`` laid out as
     ``fit_kernels.Terms``: rim points, then 2 per marker, then 2 per up direction) by a common
-    rim offset, each rim point moved by it times its ``offset_shape`` (``measurement.rim_offset_shape``),
-    and by the residuals' own scatter; ValueError if the pose is not fully observed."""
+    rim offset, each lamp's rim ``modes`` (``measurement.rim_error_modes``, rows as the rim points,
+    ``lamp_of_point`` their lamp) and the residuals' own scatter; ValueError if the pose is not
+    fully observed."""
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
-    rims, markers = slice(0, rim_count), slice(rim_count, rim_count + 2 * marker_count)
-    # d residual / d offset: an outward offset moves every rim point out by it.
-    design = np.column_stack([jacobian, np.zeros(len(residuals))])
-    design[rims, 6] = -offset_shape / rim_sigma
-    offset_sigma = _rim_offset_sigma(residuals[rims], rim_sigma)
+    offset_sigma = _rim_offset_sigma(residuals[:rim_count], rim_sigma)
     estimated = lamp_count >= 2
     if estimated:
         offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
-    weights = np.ones(len(residuals))
-    rim_dof = max(rim_count - 5 * lamp_count - 1, 1)
-    for _ in range(_REWEIGHTINGS):
-        step, covariance = _weighted_fit(residuals, design, weights, offset_sigma, estimated)
-        predicted = residuals + design @ step
-        weights[rims] = 1.0 / max(1.0, float(predicted[rims] @ predicted[rims]) / rim_dof)
-        marker_chi2 = np.square(predicted[markers]).reshape(-1, 2).sum(axis=1)
-        weights[markers] = np.repeat(1.0 / np.where(marker_chi2 > MARKER_CONSISTENT ** 2, marker_chi2, 1.0), 2)
-    step, covariance = _weighted_fit(residuals, design, weights, offset_sigma, estimated)
-    predicted = residuals + design @ step
-    return ModelErrorFit(step=step[:6], covariance=0.5 * (covariance + covariance.T),
-                         cost=float(predicted @ predicted + (step[6] / offset_sigma) ** 2), rim_offset=float(step[6]))
+    step, covariance = np.empty(6), np.empty((6, 6))
+    cost, offset, mode_sigma = _model_error_fit(
+        np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float),
+        np.ascontiguousarray(rim_sigma, dtype=float), np.ascontiguousarray(modes, dtype=float),
+        np.ascontiguousarray(lamp_of_point, dtype=np.int64), lamp_count, marker_count, offset_sigma, estimated,
+        max(rim_count - 5 * lamp_count - 1, 1), _MODE_SIGMA_GRID_PX, step, covariance)
+    return ModelErrorFit(step=step, covariance=covariance, cost=cost, rim_offset=offset, mode_sigma=mode_sigma)
 
 
 def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float:
@@ -189,19 +196,132 @@ def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float
     return RIM_OFFSET_PRIOR * max(scatter_px, float(np.mean(rim_sigma)))
 
 
-def _weighted_fit(residuals: np.ndarray, design: np.ndarray, weights: np.ndarray, offset_sigma: float,
-                  estimated: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The Gauss-Newton step (pose, offset) of the weighted residuals with the offset's prior,
-    the offset left at 0 unless ``estimated`` and the data determine it, and the pose's covariance."""
-    information = design.T @ (design * weights[:, None])
-    information[6, 6] += 1.0 / offset_sigma ** 2
-    covariance = np.linalg.inv(information)
-    gradient = design.T @ (weights * residuals)
-    if estimated and covariance[6, 6] < OFFSET_DETERMINED * offset_sigma ** 2:
-        return -covariance @ gradient, covariance[:6, :6]
-    step = np.zeros(7)
-    step[:6] = -np.linalg.solve(information[:6, :6], gradient[:6])
-    return step, covariance[:6, :6]
+@kernel
+def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_count, marker_count, offset_sigma,
+                     estimated, rim_dof, mode_sigma_grid, step, covariance):
+    """``allow_for_model_error`` into ``step`` and ``covariance``, returning (cost, rim offset, mode
+    sigma). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps)."""
+    count, rims = residuals.shape[0], rim_sigma.shape[0]
+    per_lamp = modes.shape[1]
+    width = 7 + (per_lamp * lamp_count if estimated else 0)
+    design = np.zeros((count, width))
+    design[:, :6] = jacobian
+    for i in range(rims):
+        design[i, 6] = -modes[i, 0] / rim_sigma[i]
+        if estimated:
+            first = 7 + per_lamp * lamp_of_point[i]
+            for j in range(per_lamp):
+                design[i, first + j] = -modes[i, j] / rim_sigma[i]
+    offset_precision = 1.0 / (offset_sigma * offset_sigma)
+    # The fit with the common offset alone: its chi-square is the cost.
+    weights = np.ones(count)
+    for reweighting in range(_REWEIGHTINGS + 1):
+        gram, gradient = _weighted_normal_equations(design[:, :7], residuals, weights)
+        solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
+        predicted = residuals + design[:, :7] @ solution
+        if reweighting < _REWEIGHTINGS:
+            _reweight(predicted, weights, rims, marker_count, rim_dof)
+    cost = float(predicted @ predicted) + (solution[6] / offset_sigma) ** 2
+    offset = solution[6]
+    mode_sigma = 0.0
+    if estimated:
+        # The fit with each lamp's modes, from the weights the fit without them ended with (the
+        # modes take up part of that scatter), their prior sigma estimated at each reweighting.
+        _reweight(predicted, weights, rims, marker_count, rim_dof)
+        for reweighting in range(_MODE_REWEIGHTINGS + 1):
+            # From the lamps alone: an up direction that disagrees (an accelerating IMU) is no
+            # evidence of model error, and the lamps' shapes must not yield to it.
+            lamp_rows = rims + 2 * marker_count
+            gram, gradient = _weighted_normal_equations(design[:lamp_rows], residuals[:lamp_rows], weights[:lamp_rows])
+            mode_sigma = _likeliest_mode_sigma(gram, gradient, offset_precision, mode_sigma_grid)
+            gram, gradient = _weighted_normal_equations(design, residuals, weights)
+            for k in range(7, width):
+                gram[k, k] += 1.0 / (mode_sigma * mode_sigma)
+            solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
+            predicted = residuals + design @ solution
+            if reweighting < _MODE_REWEIGHTINGS:
+                _reweight(predicted, weights, rims, marker_count, rim_dof)
+    for i in range(6):
+        step[i] = solution[i]
+        for j in range(6):
+            covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
+    return cost, offset, mode_sigma
+
+
+@kernel
+def _weighted_normal_equations(design, residuals, weights):
+    """(D^T W D, D^T W r) of the whitened ``design`` and ``residuals`` under ``weights``."""
+    weighted = design * weights.reshape(-1, 1)
+    return weighted.T @ design, weighted.T @ residuals
+
+
+@kernel
+def _offset_rule_solution(information, gradient, offset_precision, offset_sigma, estimated):
+    """The Gauss-Newton step of all parameters of ``information`` (their priors in, except the
+    common offset's) and the inverse information with the offset's prior. The offset is left at
+    0 in the step unless ``estimated`` and the data determine it."""
+    information = information.copy()
+    information[6, 6] += offset_precision
+    inverse = np.linalg.inv(information)
+    if estimated and inverse[6, 6] < OFFSET_DETERMINED * offset_sigma * offset_sigma:
+        return -(inverse @ gradient), inverse
+    width = information.shape[0]
+    stepped = np.array([k for k in range(width) if k != 6])
+    reduced = np.empty((width - 1, width - 1))
+    for a in range(width - 1):
+        for b in range(width - 1):
+            reduced[a, b] = information[stepped[a], stepped[b]]
+    solved = np.linalg.solve(reduced, gradient[stepped])
+    solution = np.zeros(width)
+    for a in range(width - 1):
+        solution[stepped[a]] = -solved[a]
+    return solution, inverse
+
+
+@kernel
+def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
+    """The modes' prior sigma on ``grid`` that maximises the restricted likelihood of the weighted
+    residuals, the pose flat and the offset at its prior: with the pose and offset profiled out
+    (information M and gradient h of the modes), it minimises
+    log det(I + sigma^2 M) - h^T (M + I / sigma^2)^-1 h."""
+    width = gram.shape[0]
+    information = gram.copy()
+    information[6, 6] += offset_precision
+    kept = information[:7, :7]
+    cross = information[:7, 7:]
+    solved = np.linalg.solve(kept, np.concatenate((cross, gradient[:7].reshape(7, 1)), axis=1))
+    profiled = information[7:, 7:] - cross.T @ solved[:, :width - 7]
+    profiled_gradient = gradient[7:] - cross.T @ solved[:, width - 7]
+    values, vectors = np.linalg.eigh(0.5 * (profiled + profiled.T))
+    projected = vectors.T @ profiled_gradient
+    best, best_sigma = np.inf, grid[0]
+    for sigma in grid:
+        variance = sigma * sigma
+        objective = 0.0
+        for k in range(values.shape[0]):
+            value = max(values[k], 0.0)
+            objective += math.log(1.0 + variance * value) - projected[k] ** 2 * variance / (1.0 + variance * value)
+        if objective < best:
+            best, best_sigma = objective, sigma
+    return best_sigma
+
+
+@kernel
+def _reweight(predicted, weights, rims, marker_count, rim_dof):
+    """Rim points count for less by their scatter beyond their sigma, a marker the pose cannot place
+    within ``MARKER_CONSISTENT`` sigmas by its chi-square."""
+    chi_square = 0.0
+    for i in range(rims):
+        chi_square += predicted[i] * predicted[i]
+    rim_weight = 1.0 / max(1.0, chi_square / rim_dof)
+    for i in range(rims):
+        weights[i] = rim_weight
+    for k in range(marker_count):
+        a, b = rims + 2 * k, rims + 2 * k + 1
+        marker_chi_square = predicted[a] * predicted[a] + predicted[b] * predicted[b]
+        weight = 1.0 / marker_chi_square if marker_chi_square > MARKER_CONSISTENT ** 2 else 1.0
+        weights[a] = weight
+        weights[b] = weight
 
 
 def widened_toward_up(pose: Pose, up_in_camera: np.ndarray, pivot: np.ndarray, share: float = 1.0) -> np.ndarray:

@@ -20,7 +20,7 @@ from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import allow_for_model_error, perturbed
 from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, forecast, iterate, joined, linearize_into
 from vlp_ros.solvers.fit_kernels import linearize as linearize_terms
-from vlp_ros.solvers.measurement import LampMeasurement, rim_offset_shape
+from vlp_ros.solvers.measurement import LampMeasurement, rim_error_modes
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
 _MAX_ITERATIONS = 50
@@ -65,7 +65,8 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
         if not converged:
             return None
         joint = joined([m.terms for m in terms])
-        fit = allow_for_model_error(residuals, jacobian, joint.rim_sigma, rim_offset_shape(joint, pose.rotation, pose.position),
+        fit = allow_for_model_error(residuals, jacobian, joint.rim_sigma,
+                                    rim_error_modes(joint, pose.rotation, pose.position), joint.lamp_of_point,
                                     len(joint.centres), len(joint.marker_maps))
     except (np.linalg.LinAlgError, ValueError):
         return None
