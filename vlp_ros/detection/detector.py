@@ -384,13 +384,13 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    lit, unclipped, clipped, slope = _marker_rows(profile, box.background, float(options.saturation_level))
+    lit, unclipped, clipped, slope, gradient = _marker_rows(profile, box.background, float(options.saturation_level))
     if not lit:
         return None
     level, rows = _marker_levels(box.red, box.seed, profile, unclipped, clipped)
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
-                     level, rows, slope, shape_spread(box.rim.ellipse, focal_length))
+                     level, rows, slope, gradient, shape_spread(box.rim.ellipse, focal_length))
     # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
     if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
@@ -407,11 +407,12 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
 
 @kernel
 def _marker_rows(profile: np.ndarray, background: float,
-                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
+                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, each row's
-    level slope) of a row profile (NaN: unknown). The slope is the larger relative change of the
-    level to a neighbour; clipped rows count when a neighbour is clipped too (a lone clipped row is
-    the crest of a stripe blur has mixed with both its neighbours)."""
+    level slope and gradient) of a row profile (NaN: unknown). The slope is the larger relative change
+    of the level to a neighbour; the gradient the signed relative derivative, on unclipped rows
+    between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
+    clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours)."""
     lit, brightest = False, -np.inf
     for level in profile:
         if level > 0.0:
@@ -421,6 +422,7 @@ def _marker_rows(profile: np.ndarray, background: float,
     unclipped = np.zeros(profile.size, np.bool_)
     clipped = np.zeros(profile.size, np.bool_)
     slope = np.zeros(profile.size)
+    gradient = np.zeros(profile.size)
     for i in range(profile.size):
         # Dim rows still show the marker: anything clearly above the noise takes part.
         bright = profile[i] > _MIN_MARKER_ROW_FRACTION * brightest
@@ -430,7 +432,11 @@ def _marker_rows(profile: np.ndarray, background: float,
             if 0 <= j < profile.size and not math.isnan(profile[j]) and bright:
                 slope[i] = max(slope[i], abs(profile[j] - profile[i]) / profile[i])
                 clipped[i] = clipped[i] or (at_clip and profile[j] + background >= saturation_level)
-    return lit, unclipped, clipped, slope
+        if unclipped[i] and 0 < i < profile.size - 1:
+            below, above = profile[i - 1], profile[i + 1]
+            if below + background < saturation_level and above + background < saturation_level:
+                gradient[i] = 0.5 * (above - below) / profile[i]
+    return lit, unclipped, clipped, slope, gradient
 
 
 def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,
