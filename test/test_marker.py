@@ -157,9 +157,12 @@ def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_u
                   + shape_spread ** 2 * shape_effect @ shape_effect.T
                   + level_effect @ level_effect.T)
     sigma = float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
-    # Blur across rows whose level changes by L' shifts the fit by (J^T J)^-1 J^T (-blur^2 L'/L J_cy): undone.
+    # Blur mixing rows whose level changes by L' shifts the fit by (J^T J)^-1 J^T (-blur^2 L'/L J_cy),
+    # if all of the blur came after the shutter: half of it is undone, half counted in sigma.
     gradient = np.repeat(level_gradient[rows], data.shape[1])
-    centre = centre + blur ** 2 * (inverse @ fitted.T @ (gradient * fitted[:, 1]))[:2]
+    shift = -blur ** 2 * (inverse @ fitted.T @ (gradient * fitted[:, 1]))[:2]
+    centre = centre - 0.5 * shift
+    sigma = float(np.hypot(sigma, 0.5 * np.linalg.norm(shift)))
     return centre, sigma, float(radius), float(blur), root @ root
 
 

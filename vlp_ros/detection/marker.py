@@ -125,10 +125,10 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     clipped), ``rows_used`` whether the row takes part, ``level_slope`` how fast the level
     changes there (relative, per row, the larger change to a neighbour) and
     ``level_gradient`` its signed relative derivative L' / L (0 where unknown). Where the
-    level changes, blur mixes the marker's light across rows of other levels: the shift
-    this gives a linear change is undone (``_unmixed_centre``), and each row's marker
-    brightness is taken to be off by the slope times the blur besides, counted in the
-    covariance with ``_ROW_LEVEL_SPREAD``.
+    level changes, blur after the shutter mixes the marker's light across rows of other
+    levels: half the shift this gives a linear change is undone and half counted in the
+    sigma (``_row_mixing_shift``), and each row's marker brightness is taken to be off by
+    the slope times the blur besides, counted in the covariance with ``_ROW_LEVEL_SPREAD``.
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
@@ -629,9 +629,9 @@ def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.n
 
 
 @kernel
-def _unmixed_centre(mx: float, my: float, blur: float, gram: np.ndarray, row_vertical: np.ndarray, rows: np.ndarray,
-                    level_gradient: np.ndarray) -> tuple[float, float]:
-    """The centre freed of the shift that blur across rows of changing level gives it.
+def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, rows: np.ndarray,
+                      level_gradient: np.ndarray) -> tuple[float, float]:
+    """The shift (x, y) of the fitted centre if blur ``blur`` had mixed the rows after the shutter.
 
     Blur (sigma s) of a marker lit by a level L(y) that changes linearly over the blur gives
     k (L M + s^2 L' dM/dy), not the model's k L M (M the blurred disc): the model's error
@@ -649,7 +649,7 @@ def _unmixed_centre(mx: float, my: float, blur: float, gram: np.ndarray, row_ver
     for k in range(4):
         shift_x += inverse[0, k] * moment[k]
         shift_y += inverse[1, k] * moment[k]
-    return mx + blur * blur * shift_x, my + blur * blur * shift_y
+    return -blur * blur * shift_x, -blur * blur * shift_y
 
 
 @kernel
@@ -770,7 +770,13 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     for k in range(count):
         row_spread[k] = math.hypot(_ROW_LEVEL_SPREAD, blur * level_slope[rows[k]])
     sigma = _centre_sigma(gram, cross, row_terms, row_spread, inflation * cost / dof, spread)
-    mx, my = _unmixed_centre(mx, my, blur, gram, row_vertical, rows, level_gradient)
+    # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
+    # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
+    # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
+    # other half is counted as the centre's uncertainty, so either way the error stays within sigma.
+    shift_x, shift_y = _row_mixing_shift(blur, gram, row_vertical, rows, level_gradient)
+    mx, my = mx - 0.5 * shift_x, my - 0.5 * shift_y
+    sigma = math.hypot(sigma, 0.5 * math.hypot(shift_x, shift_y))
     shape_00 = root[0, 0] * root[0, 0] + root[0, 1] * root[1, 0]
     shape_01 = root[0, 0] * root[0, 1] + root[0, 1] * root[1, 1]
     shape_10 = root[1, 0] * root[0, 0] + root[1, 1] * root[1, 0]
