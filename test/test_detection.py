@@ -12,11 +12,12 @@ from vlp_ros.camera import CameraModel
 from vlp_ros.detection import DetectionOptions, detect_lamps
 from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
-from vlp_ros.detection.rows import steady_rows
 from vlp_ros.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
 from vlp_ros.lamp_map import Lamp
 from vlp_ros.pose import Pose
+from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.sim.scenarios import paper_scenario
 from vlp_ros.sim.sensor import SensorModel
 
 ROW_TIME = 1e-5
@@ -308,18 +309,6 @@ def test_search_quantiles_and_box_levels_equal_numpys():
             assert _box_levels(image) == (float(np.median(border)), float(image.max()))
 
 
-def test_steady_rows_match_the_neighbour_rule():
-    rng = np.random.default_rng(6)
-    for _ in range(100):
-        profile = np.round(rng.normal(10.0, 3.0, int(rng.integers(1, 40))), 1)
-        profile[rng.uniform(size=profile.size) < 0.3] = np.nan
-        padded = np.concatenate([[np.nan], profile, [np.nan]])
-        closest = np.fmin(np.abs(padded[:-2] - profile), np.abs(padded[2:] - profile))
-        with np.errstate(invalid='ignore'):
-            expected = closest <= 0.04 * np.abs(profile) + 0.1
-        assert np.array_equal(steady_rows(profile, 0.04, 0.1), expected)
-
-
 def rim_marker_lamp(cam, pose, at, diameter_px, marker_angle, peak_dn, phase):
     """The paper's marker: a dot of radius 0.1 r centred at 0.9 r, its edge touching the rim."""
     ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
@@ -410,3 +399,71 @@ def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, fallof
     assert np.max(np.abs(errors)) < 0.2
     assert np.all(np.abs(np.mean(errors, axis=0)) < 0.15)
     assert abs(np.mean(np.concatenate(distances))) < 0.1
+
+
+def drive_marker_lamp(cam, pose, at, marker_distance, marker_angle, peak_dn, phase):
+    """A robot's lamp (issue 13): 77 px across, 8-bit packets at 4 rows a chip, a marker of 0.1 r."""
+    ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
+    position = ray * HEIGHT / ray[2]
+    radius = 0.5 * 77.0 * np.linalg.norm(position) / cam.focal
+    lamp = Lamp('drive', 173, position, radius, marker_angle=marker_angle, marker_distance=marker_distance * radius)
+    return SimLamp(lamp, packet_waveform(173, 1.0 / (4 * ROW_TIME), 0.6, offset=phase), peak_dn=peak_dn,
+                   marker_radius=0.1 * radius)
+
+
+def as_jpeg(image, quality=92):
+    _, data = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return cv2.imdecode(data, cv2.IMREAD_COLOR)
+
+
+# A marker straddling the rim at the lamp's top or bottom (1.0 r) lies in rows beyond the lamp, whose
+# level is unknown: about 1 in 6 of its angles is missed (docs/detection.md, known limits).
+@pytest.mark.parametrize('marker_distance, peak_dn, blur, least_found', [
+    (0.9, 200.0, 0.8, 12), (0.9, 500.0, 0.8, 12), (0.5, 500.0, 0.8, 12), (0.9, 500.0, 2.0, 11), (1.0, 500.0, 0.8, 10)])
+def test_small_marker_under_stripes_of_few_rows_is_found_with_an_honest_sigma(marker_distance, peak_dn, blur,
+                                                                              least_found):
+    """The marker 8 rows tall, stripes 4-8 rows (a chip each), bright rows clipped, JPEG: most rows
+    through the marker are mixed by blur with a neighbour of another level. Such rows were left out,
+    and the marker was missed on 10 of 60 foreign robot frames (and 20 of 47 tone-lamp ones)."""
+    cam, pose = camera(), tilted_pose(tilt=10.0)
+    found, z = 0, []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        lamp = drive_marker_lamp(cam, pose, (320.0 + 5.0 * seed, 240.0 - 3.0 * seed), marker_distance,
+                                 0.53 * seed, peak_dn, rng.uniform(0.0, 1e-3))
+        sensor = SensorModel(row_time=ROW_TIME, exposure=1.33 * ROW_TIME, blur_sigma=blur)
+        frame = render_frame(cam, pose, [lamp], sensor, 0.0, rng)
+        observations = [o for o in detect_lamps(as_jpeg(frame.image)) if o.rim_usable]
+        if len(observations) != 1 or observations[0].marker is None:
+            continue
+        found += 1
+        error = observations[0].marker - frame.truth(173).marker_pixel
+        # A wrong marker gives a wrong yaw: never off by more than a few of its sigmas.
+        assert np.linalg.norm(error) < 4.5 * observations[0].marker_sigma
+        z.append(error / observations[0].marker_sigma)
+    assert found >= least_found
+    assert np.sqrt(np.mean(np.square(z))) < 1.6
+
+
+def test_marker_blurred_across_stripes_of_changing_level_is_placed_where_it_is():
+    """The simulator's blur look (2 px over stripes and all): every row's level differs from its
+    neighbours', and blur moved the fitted marker toward the dimmer rows by blur^2 x L'/L (up to
+    0.8 px). The marker was missed on 4 of 6 frames and, when found, 4 sigmas off in y."""
+    scenario = paper_scenario('1080p', points=3, postures=1, seed=1)
+    scenario = apply_look(replace(scenario, lamps=[replace(s, peak_dn=210.0) for s in scenario.lamps]), LOOKS['blur'], 1)
+    rng = np.random.default_rng(1)
+    found, z = 0, []
+    for index in range(6):
+        frame = scenario.render(index, rng)
+        truth = frame.lamps[0]
+        observations = [o for o in detect_lamps(transported(scenario, frame.image))
+                        if o.rim_usable and np.linalg.norm(o.center - truth.ellipse[:2]) < 2.0]
+        if len(observations) != 1 or observations[0].marker is None:
+            continue
+        found += 1
+        error = observations[0].marker - truth.marker_pixel
+        assert np.linalg.norm(error) < 4.5 * observations[0].marker_sigma
+        z.append(error / observations[0].marker_sigma)
+    assert found >= 5
+    # Honest on each axis: the shift was along y, where the rows change level.
+    assert np.all(np.sqrt(np.mean(np.square(z), axis=0)) < 1.5)

@@ -16,7 +16,7 @@ from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marke
 from vlp_ros.detection.point import fit_point
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
                                    fit_rim, outward_normals, row_crossings)
-from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile, steady_rows
+from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile
 from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
 from vlp_ros.small_arrays import median
@@ -32,10 +32,6 @@ _CLEAR_BLURS = 3.0
 _MIN_UNCLIPPED_SHARE = 0.25
 # Clipped lamps brighter than this over the clip level give no observation.
 _MAX_OVEREXPOSURE = 2.5
-# Rows whose neighbours differ by less than this (of their level), plus the floor (of the
-# brightest row's), count as one stripe.
-_STEADY_TOLERANCE = 0.04
-_STEADY_FLOOR = 0.01
 # Rows dimmer than this (of the brightest row) carry too little marker signal to use.
 _MIN_MARKER_ROW_FRACTION = 0.1
 # In clipped rows the marker's red channel clips with the lamp while its green and blue do not: its
@@ -374,24 +370,27 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
-    """The marker, fitted on lit rows that share their level with a neighbour: unclipped rows, and
-    rows inside a clipped stripe at the level that makes them agree with the unclipped ones.
+    """The marker, fitted on lit rows: unclipped rows, and clipped rows at the level that makes
+    them agree with the unclipped ones.
 
-    A row whose level differs from both neighbours' has been mixed with them by blur. A
-    marker at the rim of a saturated lamp often lies mostly in clipped rows, where the
+    A marker at the rim of a saturated lamp often lies mostly in clipped rows, where the
     lamp's level is unknown but the marker's redness is nearly one value (its red
-    channel clips with the lamp's): those rows carry it as well as unclipped ones.
+    channel clips with the lamp's): those rows carry it as well as unclipped ones. A
+    row whose level differs from its neighbours' has been mixed with them by blur, and
+    the marker's light with it: such rows take part with the uncertainty that mixing
+    brings (``fit_marker``'s ``level_slope``). A marker 8 rows tall under stripes of 4-8
+    rows has few rows of one level, and on the foreign robot frames was missed without them.
     """
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    lit, unclipped, clipped = _marker_rows(profile, box.background, float(options.saturation_level))
+    lit, unclipped, clipped, slope, gradient = _marker_rows(profile, box.background, float(options.saturation_level))
     if not lit:
         return None
     level, rows = _marker_levels(box.red, box.seed, profile, unclipped, clipped)
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
-                     level, rows, shape_spread(box.rim.ellipse, focal_length))
+                     level, rows, slope, gradient, shape_spread(box.rim.ellipse, focal_length))
     # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
     if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
@@ -408,28 +407,36 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
 
 @kernel
 def _marker_rows(profile: np.ndarray, background: float,
-                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray]:
-    """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on) of a row
-    profile (NaN: unknown). Clipped rows count only inside a clipped stripe (both neighbours clipped),
-    where blur mixes in no unclipped light."""
+                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, each row's
+    level slope and gradient) of a row profile (NaN: unknown). The slope is the larger relative change
+    of the level to a neighbour; the gradient the signed relative derivative, on unclipped rows
+    between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
+    clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours)."""
     lit, brightest = False, -np.inf
     for level in profile:
         if level > 0.0:
             lit = True
         if level > brightest:
             brightest = level
-    # Dim rows still show the marker: anything clearly above the noise takes part.
-    steady = steady_rows(profile, _STEADY_TOLERANCE, _STEADY_FLOOR * brightest)
     unclipped = np.zeros(profile.size, np.bool_)
     clipped = np.zeros(profile.size, np.bool_)
+    slope = np.zeros(profile.size)
+    gradient = np.zeros(profile.size)
     for i in range(profile.size):
+        # Dim rows still show the marker: anything clearly above the noise takes part.
         bright = profile[i] > _MIN_MARKER_ROW_FRACTION * brightest
         at_clip = profile[i] + background >= saturation_level
-        unclipped[i] = steady[i] and bright and not at_clip
-        if 0 < i < profile.size - 1:
-            clipped[i] = (at_clip and profile[i - 1] + background >= saturation_level
-                          and profile[i + 1] + background >= saturation_level)
-    return lit, unclipped, clipped
+        unclipped[i] = bright and not at_clip
+        for j in (i - 1, i + 1):
+            if 0 <= j < profile.size and not math.isnan(profile[j]) and bright:
+                slope[i] = max(slope[i], abs(profile[j] - profile[i]) / profile[i])
+                clipped[i] = clipped[i] or (at_clip and profile[j] + background >= saturation_level)
+        if unclipped[i] and 0 < i < profile.size - 1:
+            below, above = profile[i - 1], profile[i + 1]
+            if below + background < saturation_level and above + background < saturation_level:
+                gradient[i] = 0.5 * (above - below) / profile[i]
+    return lit, unclipped, clipped, slope, gradient
 
 
 def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,

@@ -134,24 +134,6 @@ def _clear_plateaus(brightness: np.ndarray, rows: np.ndarray, ellipse: np.ndarra
     return keep, plateau
 
 
-@kernel
-def steady_rows(profile: np.ndarray, tolerance: float, floor: float) -> np.ndarray:
-    """Rows that share their level with a neighbouring row within ``tolerance`` of it (plus ``floor``).
-
-    Where blur has mixed a row with a neighbour of another level, its level lies between
-    the two stripes' and matches neither neighbour; such a row's profile is not its own.
-    Rows of unknown (NaN) level are never steady. ``profile``: a float array.
-    """
-    steady = np.zeros(profile.size, np.bool_)
-    for i in range(profile.size):
-        below = abs(profile[i - 1] - profile[i]) if i > 0 else np.nan
-        above = abs(profile[i + 1] - profile[i]) if i + 1 < profile.size else np.nan
-        # The closer neighbour's difference; a neighbour of unknown level does not count.
-        closest = above if math.isnan(below) else below if math.isnan(above) else min(below, above)
-        steady[i] = closest <= tolerance * abs(profile[i]) + floor
-    return steady
-
-
 def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(left, right, crossed): where each row (y = ``rows``) enters and leaves the ellipse."""
     return chords(conic_of(np.asarray(ellipse, dtype=float)), np.asarray(rows, dtype=float).ravel())
