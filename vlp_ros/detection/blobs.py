@@ -105,12 +105,9 @@ def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_cont
         return []
     _, noise, threshold = levels
     _, mask = cv2.threshold(small, threshold, 1, cv2.THRESH_BINARY)
-    gap = int(np.ceil(max_stripe_rows / step)) + 1
-    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (1, gap + 1)))
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     height, width = image.shape[:2]
     blobs = []
-    for contour in contours:
+    for contour in _closed_contours(mask, int(np.ceil(max_stripe_rows / step)) + 1):
         x, y, w, h = cv2.boundingRect(contour)
         if min(w, h) * step < 0.5 * min_diameter:
             continue
@@ -121,3 +118,23 @@ def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_cont
                 min((x + w) * step + extra, width), min((y + h) * step + extra_y, height))
         blobs.append(Blob(bbox, noise))
     return blobs
+
+
+def _closed_contours(mask: np.ndarray, gap: int) -> tuple[np.ndarray, ...]:
+    """The outer contours of ``mask`` (0/1) closed by a vertical kernel ``gap`` + 1 tall, in its pixels.
+
+    Closing joins pixels of one column only, and never reaches a kernel's height beyond the rows that
+    hold mask pixels: it runs on their bounding box grown by that (and by a pixel of background for
+    the contours), which gives the same contours in the same order at a fraction of the whole image's
+    cost (a lamp or two cover a few percent of the search image).
+    """
+    x, y, w, h = cv2.boundingRect(mask)
+    if w == 0:
+        return ()
+    reach = gap + 1
+    x0, y0 = max(x - 1, 0), max(y - reach, 0)
+    x1, y1 = min(x + w + 1, mask.shape[1]), min(y + h + reach, mask.shape[0])
+    closed = cv2.morphologyEx(mask[y0:y1, x0:x1], cv2.MORPH_CLOSE,
+                              cv2.getStructuringElement(cv2.MORPH_RECT, (1, reach)))
+    contours, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(x0, y0))
+    return contours
