@@ -10,8 +10,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, decode_packet, decode_tone, read_lamp
+from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone, read_lamp
 from vlp_ros.beacon.evidence import EvidenceTracker
+from vlp_ros.beacon.tone import point_light_profile
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
 from vlp_ros.lamp_map import Lamp, LampMap
@@ -112,9 +113,13 @@ class Pipeline:
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon
         if beacon.mode == 'tone':
-            return read_lamp(image, observation, lambda profile: decode_tone(
-                profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance, exposure=beacon.exposure),
-                glow=False)
+            def decode(profile: RowProfile) -> BeaconReading:
+                return decode_tone(profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance,
+                                   exposure=beacon.exposure)
+            if not observation.rim_usable:
+                # A bare LED's core spans a few stripe periods; its glow carries them on every row it lights.
+                return decode(point_light_profile(image, observation))
+            return read_lamp(image, observation, decode, glow=False)
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),
