@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone, read_lamp
+from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone,
+                                     has_evidence, read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.tone import point_light_profile
 from vlp_ros.camera import CameraModel
@@ -73,6 +74,7 @@ class Pipeline:
         # Per-frame decoding needs these for every lamp: derive them once.
         self._known_ids = settings.lamps.ids
         self._frequencies = settings.lamps.frequencies()
+        self._point_lamps = any(lamp.is_point for lamp in settings.lamps)
         self.tracker = EvidenceTracker(known_ids=self._known_ids)
         self._recent: tuple[Pose, float] | None = None
         # Poses published against continuity (decisive evidence outside the recent pose's gate).
@@ -115,11 +117,16 @@ class Pipeline:
         if beacon.mode == 'tone':
             def decode(profile: RowProfile) -> BeaconReading:
                 return decode_tone(profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance,
-                                   exposure=beacon.exposure)
+                                   exposure=beacon.exposure, row_time_tolerance=beacon.row_time_tolerance)
             if not observation.rim_usable:
                 # A bare LED's core spans a few stripe periods; its glow carries them on every row it lights.
                 return decode(point_light_profile(image, observation))
-            return read_lamp(image, observation, decode, glow=False)
+            disc = read_lamp(image, observation, decode, glow=False)
+            if not self._point_lamps or has_evidence(disc):
+                return disc
+            # A bare LED's round core passes for a disc too small to hold two stripe periods.
+            light = decode(point_light_profile(image, observation))
+            return light if has_evidence(light) else disc
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),

@@ -28,6 +28,8 @@ from vlp_ros.observation import LampObservation
 # How far off (relative) the row time may be: every frequency then reads off by as much, so each lamp's band
 # widens by that share of its frequency (issue 14: nominal row times are 0.3-2 % off).
 ROW_TIME_TOLERANCE = 0.02
+# Beyond, the bands of a lamp and its octave meet.
+MAX_ROW_TIME_TOLERANCE = 0.3
 # Evidence (nats) by which the square wave must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
@@ -116,8 +118,8 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
     centres, lowest, highest, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
-    if not 0.0 <= row_time_tolerance < 0.5:
-        raise ValueError(f'row_time_tolerance must lie in [0, 0.5), got {row_time_tolerance}')
+    if not 0.0 <= row_time_tolerance < MAX_ROW_TIME_TOLERANCE:
+        raise ValueError(f'row_time_tolerance must lie in [0, {MAX_ROW_TIME_TOLERANCE}), got {row_time_tolerance}')
     low, high = _bands(tuple(centres.tolist()), tolerance_hz, row_time_tolerance)
     nyquist = 0.5 / row_time
     if not np.all(high < nyquist):
