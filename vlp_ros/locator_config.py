@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from vlp_ros.beacon.tone import MAX_ROW_TIME_TOLERANCE, ROW_TIME_TOLERANCE
 from vlp_ros.lamp_map import Lamp, LampMap
 from vlp_ros.mounting import Mounting, unit_quaternion_problem
 
@@ -45,6 +46,9 @@ PARAMETERS = (
     ParameterSpec('beacon.exposure', 'number', 0.0,
                   "camera's exposure time (s); 0 = unknown. Tone mode needs it for short exposures"),
     ParameterSpec('beacon.frequency_tolerance', 'number', 60.0, 'tone mode: largest accepted frequency error (Hz)'),
+    ParameterSpec('beacon.row_time_tolerance', 'number', ROW_TIME_TOLERANCE,
+                  'tone mode: how far (relative) beacon.row_time may be off; each lamp\'s band widens by that share '
+                  'of its frequency'),
     ParameterSpec('solver', 'string', 'perspective', 'pose solver: perspective (exact) or paper (weak perspective)'),
     ParameterSpec('prior.up_in_camera', 'number_array', [],
                   'fixed mount: where map +z points in the camera optical frame (3 numbers); empty = no prior'),
@@ -104,6 +108,7 @@ class BeaconSettings:
     row_time: float
     exposure: float | None
     frequency_tolerance: float
+    row_time_tolerance: float = ROW_TIME_TOLERANCE
 
 
 @dataclass(frozen=True)
@@ -256,7 +261,15 @@ def beacon_from_parameters(values: Mapping[str, Any]) -> BeaconSettings:
         id_bits=_integer(values, 'beacon.id_bits', 1, 16),
         row_time=_number(values, 'beacon.row_time', positive=True),
         exposure=_number(values, 'beacon.exposure', minimum=0.0) or None,
-        frequency_tolerance=_number(values, 'beacon.frequency_tolerance', positive=True))
+        frequency_tolerance=_number(values, 'beacon.frequency_tolerance', positive=True),
+        row_time_tolerance=_row_time_tolerance(values))
+
+
+def _row_time_tolerance(values: Mapping[str, Any]) -> float:
+    value = _number(values, 'beacon.row_time_tolerance', minimum=0.0)
+    if not value < MAX_ROW_TIME_TOLERANCE:
+        raise ConfigError('beacon.row_time_tolerance', f'must be below {MAX_ROW_TIME_TOLERANCE}, got {value}')
+    return value
 
 
 def mounting_from_parameters(values: Mapping[str, Any], map_frame: str) -> tuple[str | None, Mounting]:

@@ -10,8 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, decode_packet, decode_tone, read_lamp
+from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone,
+                                     has_evidence, read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
+from vlp_ros.beacon.tone import point_light_profile
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
 from vlp_ros.lamp_map import Lamp, LampMap
@@ -22,6 +24,7 @@ from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, explains_the_image
 from vlp_ros.solvers.fusion import solve_lamps
+from vlp_ros.solvers.joint_ids import claimed_once, odd_one_out, open_lamps, settle
 from vlp_ros.solvers.paper import solve_lamp_paper
 
 NO_LAMP = 'no_lamp'
@@ -72,6 +75,7 @@ class Pipeline:
         # Per-frame decoding needs these for every lamp: derive them once.
         self._known_ids = settings.lamps.ids
         self._frequencies = settings.lamps.frequencies()
+        self._point_lamps = any(lamp.is_point for lamp in settings.lamps)
         self.tracker = EvidenceTracker(known_ids=self._known_ids)
         self._recent: tuple[Pose, float] | None = None
         # Poses published against continuity (decisive evidence outside the recent pose's gate).
@@ -85,8 +89,7 @@ class Pipeline:
             return FrameResult(None, NO_LAMP)
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp)
-        pairs = [(obs, self.settings.lamps.get(i)) for obs, i in zip(observations, ids)
-                 if i is not None and i in self.settings.lamps and solvable(obs, self.settings.lamps.get(i))]
+        ids, pairs = self._identified_with_geometry(observations, ids, readings, camera, stamp, gravity_up)
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
         seen = [_seen_lamp(obs, i, reading, self.settings.lamps) for obs, i, reading in zip(observations, ids, readings)]
@@ -109,12 +112,51 @@ class Pipeline:
             self.track_restarts += choice.restarts_track
         return choice
 
+    def _identified_with_geometry(self, observations: list[LampObservation], ids: list[int | None],
+                                  readings: list[BeaconReading], camera: CameraModel, stamp: float,
+                                  gravity_up: np.ndarray | None) -> tuple[list[int | None],
+                                                                          list[tuple[LampObservation, Lamp]]]:
+        """Each lamp's ID and the (observation, lamp) pairs to solve from: the beacon's certain IDs, held
+        to one pose explaining every lamp, and lamps its readings leave open that such a pose identifies
+        (``solvers.joint_ids``)."""
+        lamps = self.settings.lamps
+
+        def pairs_of(lamp_ids: list[int | None]) -> list[tuple[LampObservation, Lamp]]:
+            return [(obs, lamps.get(i)) for obs, i in zip(observations, lamp_ids)
+                    if i is not None and i in lamps and solvable(obs, lamps.get(i))]
+
+        if self.settings.solver != 'perspective' or len(observations) < 2:
+            return ids, pairs_of(ids)
+
+        def solve(tried: list[tuple[LampObservation, Lamp]]) -> Choice:
+            return self._solve(*solver_view(tried, camera), stamp, gravity_up)
+
+        ids = claimed_once(ids)
+        certain = pairs_of(ids)
+        odd = odd_one_out(certain, solve)
+        if odd is not None:
+            ids = [None if obs is certain[odd][0] else i for obs, i in zip(observations, ids)]
+            certain = pairs_of(ids)
+        settled = settle(certain, open_lamps(observations, ids, readings, lamps, solvable), solve)
+        by_observation = {id(obs): lamp.id for obs, lamp in settled}
+        ids = [by_observation.get(id(obs), i) for obs, i in zip(observations, ids)]
+        return ids, certain + settled
+
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon
         if beacon.mode == 'tone':
-            return read_lamp(image, observation, lambda profile: decode_tone(
-                profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance, exposure=beacon.exposure),
-                glow=False)
+            def decode(profile: RowProfile) -> BeaconReading:
+                return decode_tone(profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance,
+                                   exposure=beacon.exposure, row_time_tolerance=beacon.row_time_tolerance)
+            if not observation.rim_usable:
+                # A bare LED's core spans a few stripe periods; its glow carries them on every row it lights.
+                return decode(point_light_profile(image, observation))
+            disc = read_lamp(image, observation, decode, glow=False)
+            if not self._point_lamps or has_evidence(disc):
+                return disc
+            # A bare LED's round core passes for a disc too small to hold two stripe periods.
+            light = decode(point_light_profile(image, observation))
+            return light if has_evidence(light) else disc
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),

@@ -42,8 +42,11 @@ def packet_setting_advice(chip_rate: float, row_time: float, exposure: float | N
     return advice
 
 
-def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, exposure: float | None) -> list[str]:
-    """What to change so that tone-mode frames are read reliably (empty: nothing); ``frequencies`` by lamp name."""
+def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, exposure: float | None,
+                        frequency_tolerance: float = 60.0,
+                        row_time_tolerance: float = ROW_TIME_TOLERANCE) -> list[str]:
+    """What to change so that tone-mode frames are read reliably and never wrongly (empty: nothing);
+    ``frequencies`` by lamp name, the tolerances as ``decode_tone``'s."""
     advice = []
     if exposure is None:
         advice.append('beacon.exposure is 0 (unknown): tone lamps are then identified only from about ten stripe '
@@ -57,12 +60,15 @@ def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, expos
         advice.append(f'fewer than {MIN_ROWS_PER_PERIOD:g} rows per stripe period at beacon.row_time '
                       f'{row_time * 1e6:g} us for {_listed(few_rows, "rows")}: these lamps need more stripe periods '
                       f'in view (a larger image of the lamp) to be identified')
-    crowded = _crowded_pairs(frequencies)
+    crowded = _crowded_pairs(frequencies, frequency_tolerance, row_time_tolerance)
     if crowded:
         pairs = ', '.join(crowded[:6]) + (' and more' if len(crowded) > 6 else '')
-        advice.append(f'tone lamps {pairs} lie closer than {200.0 * ROW_TIME_TOLERANCE:g} % apart: a row time '
-                      f'known to {100.0 * ROW_TIME_TOLERANCE:g} % reads each as the other, so they are not '
-                      f'identified; spread their frequencies')
+        advice.append(f'beacon.row_time_tolerance {row_time_tolerance:g}: tone lamps {pairs} lie less than 2 x '
+                      f'(beacon.frequency_tolerance + beacon.row_time_tolerance x frequency) apart, so their bands '
+                      f'meet: near the middle neither is identified, and a lamp between them that is not in the map '
+                      f'reads as one of them when it is alone in view (with other lamps in view the row time is '
+                      f'measured and it is not); spread their frequencies, or measure the row time and lower '
+                      f'beacon.row_time_tolerance')
     if exposure is not None:
         contrast = {name: abs(float(np.sinc(exposure * f))) for name, f in frequencies.items()}
         washed = {name: left for name, left in contrast.items() if left < MIN_TRANSMISSION}
@@ -73,11 +79,12 @@ def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, expos
     return advice
 
 
-def _crowded_pairs(frequencies: Mapping[str, float]) -> list[str]:
-    """Neighbouring lamps whose bands overlap under the decoder's row-time tolerance alone (no lamp tolerance)."""
+def _crowded_pairs(frequencies: Mapping[str, float], frequency_tolerance: float,
+                   row_time_tolerance: float) -> list[str]:
+    """Neighbouring lamps whose bands (decode_tone's) reach the midpoint between them."""
     ordered = sorted(frequencies.items(), key=lambda item: item[1])
     return [f'{low!r} and {high!r}' for (low, f_low), (high, f_high) in zip(ordered, ordered[1:])
-            if f_low * (1.0 + ROW_TIME_TOLERANCE) >= f_high * (1.0 - ROW_TIME_TOLERANCE)]
+            if frequency_tolerance + row_time_tolerance * f_high >= 0.5 * (f_high - f_low)]
 
 
 def _listed(values: Mapping[str, float], unit: str, percent: bool = False) -> str:

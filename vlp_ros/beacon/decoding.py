@@ -16,7 +16,7 @@ from vlp_ros.beacon.tone import decode_tone
 from vlp_ros.observation import LampObservation
 
 __all__ = ['BLUR_MIXES', 'BeaconReading', 'RowProfile', 'UNMAPPED', 'decode_packet', 'decode_tone', 'light_profile',
-           'read_lamp', 'row_profile']
+           'has_evidence', 'read_lamp', 'row_profile']
 
 
 def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[[RowProfile], BeaconReading],
@@ -37,7 +37,7 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
     that the glow shows unclipped, and the square wave fitted with the given exposure then misplaces the
     frequency (on the foreign frames, mapped lamps read as off the map, once near a harmonic)."""
     disc = decode(row_profile(image, observation))
-    if disc.lamp_id is not None or disc.unknown or not glow or _has_evidence(disc):
+    if disc.lamp_id is not None or disc.unknown or not glow or has_evidence(disc):
         return disc
     profile = light_profile(image, observation)
     light = decode(profile)
@@ -48,5 +48,6 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
     return light if light.lamp_id is not None or light.unknown else disc
 
 
-def _has_evidence(reading: BeaconReading) -> bool:
+def has_evidence(reading: BeaconReading) -> bool:
+    """Whether ``reading`` weighs its candidates at all (a reading without evidence adds nothing)."""
     return bool(np.any(reading.log_likelihoods != reading.log_likelihoods[0]))

@@ -19,14 +19,17 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import stdtr
 
-from vlp_ros.beacon.profile import RowProfile, relative_brightness
+from vlp_ros.beacon.profile import RowProfile, light_profile, relative_brightness
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
                                     no_evidence, reading)
 from vlp_ros.compiled import kernel
+from vlp_ros.observation import LampObservation
 
 # How far off (relative) the row time may be: every frequency then reads off by as much, so each lamp's band
 # widens by that share of its frequency (issue 14: nominal row times are 0.3-2 % off).
 ROW_TIME_TOLERANCE = 0.02
+# Beyond, the bands of a lamp and its octave meet.
+MAX_ROW_TIME_TOLERANCE = 0.3
 # Evidence (nats) by which the square wave must beat the envelope alone before its frequency counts.
 MIN_TONE_EVIDENCE = 25.0
 _PAD = 8
@@ -79,6 +82,15 @@ _MIN_TRANSMISSION = 0.1
 # small prior weight, so that mixing counts where it fits clearly better and leaves unmixed frames as they were.
 _MIX_LEVELS = np.linspace(0.0, 0.3, 5)
 _MIXED_WEIGHT = 0.01
+# A lamp without a rim (a bare LED) is read out to this many core radii: on the five-LED rig's photos its
+# glow still carries the stripes at 10 % of the core's level 4-8 core radii out (issue 14).
+POINT_LIGHT_REACH = 10.0
+# A row's brightness is known no better than the light's model (one radial shape times the row's level)
+# holds: rows worth at least this share of the best row's weight count alike. Where a bare LED's core clips
+# in its bright rows, only their glow measures them, with weights hundreds of times below the dark rows'
+# core; left so, the dark rows and the core's edges dominate the fit, and a 10 % glow under a clipped 2 cm
+# core read 12 of 30 LEDs off the map and one at its harmonic (none with the cap, nor at 1 % of it).
+_ROW_WEIGHT_SHARE = 0.1
 
 
 def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, float], tolerance_hz: float, *,
@@ -106,8 +118,8 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     if not frequencies:
         raise ValueError('tone decoding needs at least one lamp frequency')
     centres, lowest, highest, candidates, mapped, prior = _lamps(tuple(frequencies.items()), unmapped_weight)
-    if not 0.0 <= row_time_tolerance < 0.5:
-        raise ValueError(f'row_time_tolerance must lie in [0, 0.5), got {row_time_tolerance}')
+    if not 0.0 <= row_time_tolerance < MAX_ROW_TIME_TOLERANCE:
+        raise ValueError(f'row_time_tolerance must lie in [0, {MAX_ROW_TIME_TOLERANCE}), got {row_time_tolerance}')
     low, high = _bands(tuple(centres.tolist()), tolerance_hz, row_time_tolerance)
     nyquist = 0.5 / row_time
     if not np.all(high < nyquist):
@@ -152,6 +164,14 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     grid, log_density = likelihood.grid, likelihood.log_density
     log_mass = _log_band_masses(grid, duration, log_density, fit.dof, low, high, search)
     return reading(candidates, mapped, log_mass, prior, min_confidence)
+
+
+def point_light_profile(image: np.ndarray, observation: LampObservation) -> RowProfile:
+    """Brightness per row of a lamp without a rim (a bare LED: core and glow), from every row its light
+    reaches, for ``decode_tone``: the core alone spans a few stripe periods, its glow many."""
+    profile = light_profile(image, observation, reach=POINT_LIGHT_REACH)
+    cap = _ROW_WEIGHT_SHARE * float(profile.weights.max(initial=0.0))
+    return RowProfile(profile.values, np.minimum(profile.weights, cap), profile.saturated, profile.first_row)
 
 
 @lru_cache(maxsize=16)

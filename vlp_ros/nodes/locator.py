@@ -90,7 +90,8 @@ class Locator(Node):
         beacon = self.settings.beacon
         if beacon.mode == 'tone':
             frequencies = {lamp.name: lamp.frequency for lamp in self.settings.lamps}
-            advice = tone_setting_advice(frequencies, beacon.row_time, beacon.exposure)
+            advice = tone_setting_advice(frequencies, beacon.row_time, beacon.exposure, beacon.frequency_tolerance,
+                                         beacon.row_time_tolerance)
         else:
             advice = packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure, beacon.id_bits)
         for text in advice:

@@ -124,7 +124,8 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
 
 
 def bare_leds_scenario(args: argparse.Namespace, common: dict) -> Scenario:
-    """The five-LED rig's photos; the looks of disc lamps do not apply to its bare LEDs."""
+    """The five-LED rig's photos; of the looks only the camera's JPEG and row-time error apply to its bare
+    LEDs (their optics are the bare-LED look's)."""
     if args.photos is not None and args.photos < 1:
         raise UsageError(f'--photos must be at least 1, got {args.photos}')
     if args.led_core_radius is not None and not args.led_core_radius > 0.0:
@@ -133,7 +134,9 @@ def bare_leds_scenario(args: argparse.Namespace, common: dict) -> Scenario:
         raise UsageError(f'--led-glow must be in [0, 1), got {args.led_glow}')
     given = dict(core_radius=args.led_core_radius, glow_level=args.led_glow)
     look = PointLampLook(**{name: value for name, value in given.items() if value is not None})
-    scenario = bare_led_scenario(camera_kind=args.camera or '4k', photos=args.photos or 12, look=look, **common)
+    camera = chosen_look(args)
+    scenario = bare_led_scenario(camera_kind=args.camera or '4k', photos=args.photos or 12, look=look,
+                                 row_time_error=camera.row_time_error, jpeg_quality=camera.jpeg_quality, **common)
     return scenario.truncated(args.frames) if args.frames is not None else scenario
 
 

@@ -158,7 +158,7 @@ class BareLedScenario(Scenario):
             leds[lamp.name] = {'id': int(lamp.id), 'position': [round(float(v), 9) for v in lamp.position],
                                'radius': 0.0, 'frequency': float(lamp.frequency)}
         params['leds'] = leds
-        params['beacon'] = {'mode': 'tone', 'row_time': float(self.sensor.row_time),
+        params['beacon'] = {'mode': 'tone', 'row_time': float(self.nominal_row_time),
                             'exposure': float(self.sensor.exposure)}
         return params
 
@@ -174,10 +174,13 @@ def bare_led_camera(kind: str) -> tuple[CameraModel, int]:
 
 def bare_led_scenario(camera_kind: str = '4k', height: float = RIG_HEIGHT_M, photos: int = 12, seed: int = 0,
                       depth: float = 0.75, max_tilt_deg: float = 8.0, area: float = 0.6,
-                      bayer: str | None = None, look: PointLampLook = PointLampLook()) -> Scenario:
+                      bayer: str | None = None, look: PointLampLook = PointLampLook(),
+                      row_time_error: float = 0.0, jpeg_quality: int | None = None) -> Scenario:
     """Hand-held photos of the five-LED rig ``height`` m above: the camera anywhere in an
     ``area`` x ``area`` m square below its centre, its axis within ``max_tilt_deg`` of straight
-    up, any roll; kept only when every LED's core is inside the frame."""
+    up, any roll; kept only when every LED's core is inside the frame. The locator is told a row
+    time ``row_time_error`` off the sensor's (the photos' tones read 0.3-2 % off nominal);
+    ``jpeg_quality`` sends the photos as JPEG (they were JPEG)."""
     if not height > 0.0:
         raise ValueError(f'height must be positive, got {height}')
     if photos < 1:
@@ -192,7 +195,8 @@ def bare_led_scenario(camera_kind: str = '4k', height: float = RIG_HEIGHT_M, pho
     scale = 1.0 / binning
     poses = [_photo_pose(camera, lamps, look, scale, area, max_tilt_deg, rng) for _ in range(photos)]
     return BareLedScenario(f'bare_leds_{camera_kind}', camera, sensor, lamps, poses, [np.zeros(3)] * photos,
-                           BeaconDesign(0.0, 0, depth), independent_frames=True, look=look, scale=scale)
+                           BeaconDesign(0.0, 0, depth), independent_frames=True, jpeg_quality=jpeg_quality,
+                           row_time_error=row_time_error, look=look, scale=scale)
 
 
 def _photo_pose(camera: CameraModel, lamps: list[PointSimLamp], look: PointLampLook, scale: float, area: float,
