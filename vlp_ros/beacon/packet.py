@@ -118,10 +118,12 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     if levels.index.size < MIN_CHIPS:
         return no_evidence(candidates, mapped, prior, f'only {levels.index.size} chips visible')
     # Sharp chips first (quick, and all a sharp lamp needs); blurred ones weighed in when that leaves the ID open,
-    # on the grids around the found one too.
+    # on a grid searched thoroughly and on the grids around it.
     sharp = _packet_reading([levels], model_error, id_bits, (0.0,), candidates, mapped, prior, min_confidence, clipped)
     if sharp.lamp_id is not None or sharp.unknown or blur_mixes == (0.0,):
         return sharp
+    # Where blur rounds the chips, the quick grid search misplaces the grid (docs/beacon.md): searched thoroughly.
+    levels = chip_levels(z, w, period, timing_tolerance, margin, thorough=True) or levels
     grids = [levels] + nearby_grids(z, w, levels, margin, GRID_OFFSETS, GRID_SCALES)
     return _packet_reading(grids, model_error, id_bits, blur_mixes, candidates, mapped, prior, min_confidence,
                            clipped)
