@@ -171,3 +171,19 @@ def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift(mix):
     np.testing.assert_allclose(log_likelihoods, expected, rtol=1e-4, atol=1e-4)
     assert misfit == pytest.approx(rss0 - 2.0 * gains.max(), rel=1e-4)
     assert np.argmax(log_likelihoods) == 9
+
+
+def test_trying_grids_around_the_found_one_never_finds_a_wrong_id_in_chips_it_does_not_model():
+    """An exposure of two chips smears each chip over three (beyond the blur mixes): the found grid misfits, and
+    trying grids around it must not find one where another ID fits (12 of 264 such profiles were read as
+    other IDs before the found grid had to fit and the others to fit well)."""
+    row_time = 1.5e-5
+    for rows_per_chip in (4.0, 7.7):
+        rate = 1.0 / (rows_per_chip * row_time)
+        for lamp_id in MAP + [66, 126]:
+            for seed in range(3):
+                rng = np.random.default_rng([lamp_id, seed])
+                wave = packet_waveform(lamp_id, rate, 0.7, offset=rng.uniform(0.0, 24.0 / rate))
+                profile = flat_profile(wave, int(1.6 * 24 * rows_per_chip), row_time, 2.0 / rate, noise=0.5, rng=rng)
+                reading = decode_packet(profile, rate * 1.01, row_time, 8, MAP + [66], blur_mixes=packet.BLUR_MIXES)
+                assert reading.lamp_id in (None, lamp_id), (rows_per_chip, lamp_id, seed)

@@ -35,6 +35,9 @@ BLUR_MIXES = (0.0, 0.15, 0.3)
 # Grids with the chip edges moved by these shares of a chip, and the period scaled by these factors.
 GRID_OFFSETS = (-0.3, -0.15, 0.0, 0.15, 0.3)
 GRID_SCALES = (0.99, 1.0, 1.01)
+# The largest misfit per degree of freedom of a grid around the found one that counts: on the foreign frames
+# the best of them fitted to 0.07-0.55, the found grid to 0.73-1.78.
+NEARBY_MISFIT = 1.0
 # The default: sharp chips only. With BLUR_MIXES the benchmark's tracker rows have not been run yet.
 SHARP = (0.0,)
 # A best fit worse than this tail probability of its chi-square means the lamp is not sending packets.
@@ -115,10 +118,12 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
     if levels.index.size < MIN_CHIPS:
         return no_evidence(candidates, mapped, prior, f'only {levels.index.size} chips visible')
     # Sharp chips first (quick, and all a sharp lamp needs); blurred ones weighed in when that leaves the ID open,
-    # on the grids around the found one too.
+    # on a grid searched thoroughly and on the grids around it.
     sharp = _packet_reading([levels], model_error, id_bits, (0.0,), candidates, mapped, prior, min_confidence, clipped)
     if sharp.lamp_id is not None or sharp.unknown or blur_mixes == (0.0,):
         return sharp
+    # Where blur rounds the chips, the quick grid search misplaces the grid (docs/beacon.md): searched thoroughly.
+    levels = chip_levels(z, w, period, timing_tolerance, margin, thorough=True) or levels
     grids = [levels] + nearby_grids(z, w, levels, margin, GRID_OFFSETS, GRID_SCALES)
     return _packet_reading(grids, model_error, id_bits, blur_mixes, candidates, mapped, prior, min_confidence,
                            clipped)
@@ -127,25 +132,31 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
 def _packet_reading(grids: list[ChipLevels], model_error: float, id_bits: int, mixes: tuple[float, ...],
                     candidates: np.ndarray, mapped: np.ndarray, prior: np.ndarray,
                     min_confidence: float, clipped: bool) -> BeaconReading:
-    """The reading of the chips on ``grids`` (equally likely a priori: their likelihoods are averaged) under
-    ``mixes``. A grid counts only where its best fit fits (more strictly where the window is ``clipped``: there the
-    chips' levels are not linear in the light, so a misfit means the ceiling hid dark chips, and the fit then
-    leans to IDs whose chips were never seen); none that fits: no evidence."""
-    fitting, detail = [], 'the chips fit no packet'
-    for levels in grids:
+    """The reading of the chips on ``grids`` under ``mixes``: the grid search's own (the first) and the ones
+    around it that fit well, equally likely a priori (their likelihoods are averaged).
+
+    The first grid must fit (more strictly where the window is ``clipped``: there the chips' levels are not
+    linear in the light, so a misfit means the ceiling hid dark chips, and the fit then leans to IDs whose
+    chips were never seen); otherwise there is no evidence. A grid around it counts only if it fits within
+    NEARBY_MISFIT per degree of freedom: trying grids must not let a lamp the model does not describe find
+    one where a wrong ID fits (an exposure of two chips read 126 as 66 so, at 2.2 per degree of freedom).
+    """
+    first, *nearby = grids
+    weights = 1.0 / (first.variances + model_error ** 2)
+    log_likelihoods, misfit = _id_log_likelihoods(first.levels, weights, first.index, id_bits, mixes)
+    dof = first.index.size - 4
+    if misfit > _misfit_limit(dof):
+        return no_evidence(candidates, mapped, prior, 'the chips fit no packet')
+    if clipped and misfit > CLIPPED_MISFIT * dof:
+        return no_evidence(candidates, mapped, prior, 'clipped chips misfit: blur may have lifted dark chips to '
+                                                      'the ceiling')
+    fitting = [log_likelihoods]
+    good_fit = min(NEARBY_MISFIT, CLIPPED_MISFIT) if clipped else NEARBY_MISFIT
+    for levels in nearby:
         weights = 1.0 / (levels.variances + model_error ** 2)
         log_likelihoods, misfit = _id_log_likelihoods(levels.levels, weights, levels.index, id_bits, mixes)
-        dof = levels.index.size - 4
-        if misfit > _misfit_limit(dof):
-            continue
-        if clipped and misfit > CLIPPED_MISFIT * dof:
-            detail = 'clipped chips misfit: blur may have lifted dark chips to the ceiling'
-            continue
-        fitting.append(log_likelihoods)
-    if not fitting:
-        return no_evidence(candidates, mapped, prior, detail)
-    if len(fitting) == 1:
-        return reading(candidates, mapped, fitting[0], prior, min_confidence)
+        if misfit <= good_fit * (levels.index.size - 4):
+            fitting.append(log_likelihoods)
     stacked = np.array(fitting)
     top = stacked.max(axis=0)
     return reading(candidates, mapped, top + np.log(np.exp(stacked - top).mean(axis=0)), prior, min_confidence)
