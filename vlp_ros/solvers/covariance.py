@@ -217,7 +217,7 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
     weights = np.ones(count)
     predicted = residuals.copy()
     for reweighting in range(_REWEIGHTINGS + 1):
-        gram, gradient = _weighted_normal_equations(design, 7, count, residuals, weights)
+        gram, gradient = _normal_equations_of(design, 7, count, residuals, weights, lamp_of_point)
         solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
         _predict(design, residuals, solution, predicted)
         if reweighting < _REWEIGHTINGS:
@@ -233,9 +233,13 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
         # evidence of model error, and the lamps' shapes must not yield to it.
         lamp_rows = rims + 2 * marker_count
         for reweighting in range(_MODE_REWEIGHTINGS + 1):
-            gram, gradient = _weighted_normal_equations(design, width, lamp_rows, residuals, weights)
-            mode_sigma = _likeliest_mode_sigma(gram, gradient, offset_precision, mode_sigma_grid)
-            gram, gradient = _weighted_normal_equations(design, width, count, residuals, weights)
+            upper, gradient = np.zeros((width, width)), np.zeros(width)
+            _weighted_normal_equations(design, width, 0, lamp_rows, residuals, weights, lamp_of_point, per_lamp, upper,
+                                       gradient)
+            mode_sigma = _likeliest_mode_sigma(_symmetric(upper), gradient, offset_precision, mode_sigma_grid)
+            _weighted_normal_equations(design, width, lamp_rows, count, residuals, weights, lamp_of_point, per_lamp,
+                                       upper, gradient)
+            gram = _symmetric(upper)
             for k in range(7, width):
                 gram[k, k] += 1.0 / (mode_sigma * mode_sigma)
             solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
@@ -250,22 +254,48 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
 
 
 @kernel
-def _weighted_normal_equations(design, columns, rows, residuals, weights):
-    """(D^T W D, D^T W r) of the whitened ``design``'s first ``columns`` and ``residuals``, over the
-    first ``rows``, under ``weights``."""
-    gram, gradient = np.zeros((columns, columns)), np.zeros(columns)
-    for n in range(rows):
-        for i in range(columns):
+def _weighted_normal_equations(design, columns, start, stop, residuals, weights, lamp_of_point, per_lamp, gram,
+                               gradient):
+    """(D^T W D, D^T W r) of the whitened ``design``'s first ``columns`` and ``residuals`` over rows
+    ``start`` to ``stop``, under ``weights``, added to ``gram`` (upper triangle) and ``gradient``. A
+    rim point moves only the pose, the offset and its own lamp's modes; other rows only the pose."""
+    per_lamp = (design.shape[1] - 7) // max(lamp_of_point.shape[0] and (lamp_of_point.max() + 1), 1)
+    used = np.empty(7 + per_lamp, dtype=np.int64)
+    for n in range(start, stop):
+        count = 7
+        for k in range(7):
+            used[k] = k
+        if columns > 7 and n < lamp_of_point.shape[0]:
+            first = 7 + per_lamp * lamp_of_point[n]
+            for j in range(per_lamp):
+                used[7 + j] = first + j
+            count = 7 + per_lamp
+        for a in range(count):
+            i = used[a]
             weighted = weights[n] * design[n, i]
             if weighted == 0.0:
                 continue
             gradient[i] += weighted * residuals[n]
-            for j in range(i, columns):
-                gram[i, j] += weighted * design[n, j]
-    for i in range(columns):
+            for b in range(a, count):
+                gram[i, used[b]] += weighted * design[n, used[b]]
+
+
+@kernel
+def _normal_equations_of(design, columns, rows, residuals, weights, lamp_of_point):
+    """``_weighted_normal_equations`` of the pose and offset over the first ``rows``, as a full matrix."""
+    gram, gradient = np.zeros((columns, columns)), np.zeros(columns)
+    _weighted_normal_equations(design, columns, 0, rows, residuals, weights, lamp_of_point, 0, gram, gradient)
+    return _symmetric(gram), gradient
+
+
+@kernel
+def _symmetric(upper):
+    """The symmetric matrix whose upper triangle is ``upper``'s."""
+    full = upper.copy()
+    for i in range(full.shape[0]):
         for j in range(i):
-            gram[i, j] = gram[j, i]
-    return gram, gradient
+            full[i, j] = full[j, i]
+    return full
 
 
 @kernel
