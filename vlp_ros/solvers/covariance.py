@@ -215,30 +215,35 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
     offset_precision = 1.0 / (offset_sigma * offset_sigma)
     # The fit with the common offset alone: its chi-square is the cost.
     weights = np.ones(count)
+    predicted = residuals.copy()
     for reweighting in range(_REWEIGHTINGS + 1):
-        gram, gradient = _weighted_normal_equations(design[:, :7], residuals, weights)
+        gram, gradient = _normal_equations_of(design, 7, count, residuals, weights, lamp_of_point)
         solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
-        predicted = residuals + design[:, :7] @ solution
+        _predict(design, residuals, solution, predicted)
         if reweighting < _REWEIGHTINGS:
             _reweight(predicted, weights, rims, marker_count, rim_dof)
-    cost = float(predicted @ predicted) + (solution[6] / offset_sigma) ** 2
+    cost = float(np.sum(predicted * predicted)) + (solution[6] / offset_sigma) ** 2
     offset = solution[6]
     mode_sigma = 0.0
     if estimated:
         # The fit with each lamp's modes, from the weights the fit without them ended with (the
         # modes take up part of that scatter), their prior sigma estimated at each reweighting.
         _reweight(predicted, weights, rims, marker_count, rim_dof)
+        # From the lamps alone: an up direction that disagrees (an accelerating IMU) is no
+        # evidence of model error, and the lamps' shapes must not yield to it.
+        lamp_rows = rims + 2 * marker_count
         for reweighting in range(_MODE_REWEIGHTINGS + 1):
-            # From the lamps alone: an up direction that disagrees (an accelerating IMU) is no
-            # evidence of model error, and the lamps' shapes must not yield to it.
-            lamp_rows = rims + 2 * marker_count
-            gram, gradient = _weighted_normal_equations(design[:lamp_rows], residuals[:lamp_rows], weights[:lamp_rows])
-            mode_sigma = _likeliest_mode_sigma(gram, gradient, offset_precision, mode_sigma_grid)
-            gram, gradient = _weighted_normal_equations(design, residuals, weights)
+            upper, gradient = np.zeros((width, width)), np.zeros(width)
+            _weighted_normal_equations(design, width, 0, lamp_rows, residuals, weights, lamp_of_point, per_lamp, upper,
+                                       gradient)
+            mode_sigma = _likeliest_mode_sigma(_symmetric(upper), gradient, offset_precision, mode_sigma_grid)
+            _weighted_normal_equations(design, width, lamp_rows, count, residuals, weights, lamp_of_point, per_lamp,
+                                       upper, gradient)
+            gram = _symmetric(upper)
             for k in range(7, width):
                 gram[k, k] += 1.0 / (mode_sigma * mode_sigma)
             solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
-            predicted = residuals + design @ solution
+            _predict(design, residuals, solution, predicted)
             if reweighting < _MODE_REWEIGHTINGS:
                 _reweight(predicted, weights, rims, marker_count, rim_dof)
     for i in range(6):
@@ -249,10 +254,58 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
 
 
 @kernel
-def _weighted_normal_equations(design, residuals, weights):
-    """(D^T W D, D^T W r) of the whitened ``design`` and ``residuals`` under ``weights``."""
-    weighted = design * weights.reshape(-1, 1)
-    return weighted.T @ design, weighted.T @ residuals
+def _weighted_normal_equations(design, columns, start, stop, residuals, weights, lamp_of_point, per_lamp, gram,
+                               gradient):
+    """(D^T W D, D^T W r) of the whitened ``design``'s first ``columns`` and ``residuals`` over rows
+    ``start`` to ``stop``, under ``weights``, added to ``gram`` (upper triangle) and ``gradient``. A
+    rim point moves only the pose, the offset and its own lamp's modes; other rows only the pose."""
+    per_lamp = (design.shape[1] - 7) // max(lamp_of_point.shape[0] and (lamp_of_point.max() + 1), 1)
+    used = np.empty(7 + per_lamp, dtype=np.int64)
+    for n in range(start, stop):
+        count = 7
+        for k in range(7):
+            used[k] = k
+        if columns > 7 and n < lamp_of_point.shape[0]:
+            first = 7 + per_lamp * lamp_of_point[n]
+            for j in range(per_lamp):
+                used[7 + j] = first + j
+            count = 7 + per_lamp
+        for a in range(count):
+            i = used[a]
+            weighted = weights[n] * design[n, i]
+            if weighted == 0.0:
+                continue
+            gradient[i] += weighted * residuals[n]
+            for b in range(a, count):
+                gram[i, used[b]] += weighted * design[n, used[b]]
+
+
+@kernel
+def _normal_equations_of(design, columns, rows, residuals, weights, lamp_of_point):
+    """``_weighted_normal_equations`` of the pose and offset over the first ``rows``, as a full matrix."""
+    gram, gradient = np.zeros((columns, columns)), np.zeros(columns)
+    _weighted_normal_equations(design, columns, 0, rows, residuals, weights, lamp_of_point, 0, gram, gradient)
+    return _symmetric(gram), gradient
+
+
+@kernel
+def _symmetric(upper):
+    """The symmetric matrix whose upper triangle is ``upper``'s."""
+    full = upper.copy()
+    for i in range(full.shape[0]):
+        for j in range(i):
+            full[i, j] = full[j, i]
+    return full
+
+
+@kernel
+def _predict(design, residuals, solution, predicted):
+    """The residuals after the step ``solution`` (over the design's first columns), into ``predicted``."""
+    for n in range(residuals.shape[0]):
+        total = residuals[n]
+        for k in range(solution.shape[0]):
+            total += design[n, k] * solution[k]
+        predicted[n] = total
 
 
 @kernel
@@ -287,11 +340,11 @@ def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
     width = gram.shape[0]
     information = gram.copy()
     information[6, 6] += offset_precision
-    kept = information[:7, :7]
-    cross = information[:7, 7:]
-    solved = np.linalg.solve(kept, np.concatenate((cross, gradient[:7].reshape(7, 1)), axis=1))
-    profiled = information[7:, 7:] - cross.T @ solved[:, :width - 7]
-    profiled_gradient = gradient[7:] - cross.T @ solved[:, width - 7]
+    cross = np.ascontiguousarray(information[:7, 7:])
+    solved = np.linalg.solve(np.ascontiguousarray(information[:7, :7]),
+                             np.concatenate((cross, gradient[:7].reshape(7, 1)), axis=1))
+    profiled = np.ascontiguousarray(information[7:, 7:]) - cross.T @ np.ascontiguousarray(solved[:, :width - 7])
+    profiled_gradient = gradient[7:] - cross.T @ np.ascontiguousarray(solved[:, width - 7])
     values, vectors = np.linalg.eigh(0.5 * (profiled + profiled.T))
     projected = vectors.T @ profiled_gradient
     best, best_sigma = np.inf, grid[0]
