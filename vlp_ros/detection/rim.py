@@ -242,23 +242,8 @@ def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: f
                                         ellipse, float(blur))
     if fractions.size < _MIN_EDGE_ROWS:
         return np.full(levels.rows.size, 0.5)
-    kept = np.ones(fractions.size, bool)
-    for _ in range(3):
-        intercept, slope = _straight_line(radius[kept], fractions[kept])
-        residual = fractions - (intercept + slope * radius)
-        scale = max(_MAD_TO_SIGMA * median(np.abs(residual[kept])), 1e-3)
-        kept = np.abs(residual) <= 3.0 * scale
-        if np.count_nonzero(kept) < _MIN_EDGE_ROWS:
-            return np.full(levels.rows.size, 0.5)
-    # A uniform disc on a dark ceiling has its edge at half of every row's rise; unless the rows tell
-    # otherwise beyond doubt, that stays exact: the line's own noise would move all rim points alike.
-    x = radius[kept]
-    residual = fractions[kept] - (intercept + slope * x)
-    variance = float(residual @ residual) / max(len(residual) - 2, 1)
-    # The line's deviation from (0.5, 0) weighed by the normal matrix [[n, sum x], [sum x, sum x^2]].
-    offset = intercept - 0.5
-    chi_square = (offset * offset * len(x) + 2.0 * offset * slope * float(x.sum()) + slope * slope * float(x @ x))
-    if chi_square < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION * variance:
+    departs, intercept, slope = _fraction_line(radius, fractions)
+    if not departs:
         return np.full(levels.rows.size, 0.5)
     row_radius = _chord_middle_radius(levels.rows, conic_of(ellipse), ellipse)
     fraction = intercept + slope * row_radius
@@ -267,17 +252,67 @@ def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: f
     return fraction
 
 
-def _straight_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """(intercept, slope) of the least-squares line through (x, y): np.linalg.lstsq's answer in closed
-    form, at a tenth of its per-call cost (it ran three times a lamp). When all x are equal (a shape that
-    is no disc), the smallest such line, as lstsq's."""
-    centre_x, centre_y = float(x.sum()) / len(x), float(y.sum()) / len(y)
-    dx = x - centre_x
-    spread = float(dx @ dx)
+@kernel
+def _fraction_line(radius: np.ndarray, fractions: np.ndarray) -> tuple[bool, float, float]:
+    """``edge_level_fraction``'s robust line of the fractions in the radius: (whether it departs from
+    a uniform disc's (0.5, 0), intercept, slope), three rounds of least squares each dropping the values
+    over 3 robust sigmas off; no departure when fewer than ``_MIN_EDGE_ROWS`` values remain.
+
+    A uniform disc on a dark ceiling has its edge at half of every row's rise; unless the rows tell
+    otherwise beyond doubt, that stays exact: the line's own noise would move all rim points alike.
+    (Compiled: in numpy, np.linalg.lstsq and the rounds' small array calls cost 0.1-0.4 ms a lamp.)
+    """
+    n = fractions.size
+    kept = np.ones(n, np.bool_)
+    deviation = np.empty(n)
+    intercept = slope = 0.0
+    count = n
+    for _ in range(3):
+        intercept, slope = _least_squares_line(radius, fractions, kept)
+        for i in range(n):
+            deviation[i] = abs(fractions[i] - (intercept + slope * radius[i]))
+        scale = max(_MAD_TO_SIGMA * median(deviation[kept]), 1e-3)
+        count = 0
+        for i in range(n):
+            kept[i] = deviation[i] <= 3.0 * scale
+            count += kept[i]
+        if count < _MIN_EDGE_ROWS:
+            return False, 0.5, 0.0
+    # The line's deviation from (0.5, 0) weighed by the normal matrix [[n, sum x], [sum x, sum x^2]],
+    # against the residuals' variance.
+    squares = total_x = total_xx = 0.0
+    for i in range(n):
+        if kept[i]:
+            residual = fractions[i] - (intercept + slope * radius[i])
+            squares += residual * residual
+            total_x += radius[i]
+            total_xx += radius[i] * radius[i]
+    variance = squares / max(count - 2, 1)
+    offset = intercept - 0.5
+    chi_square = offset * offset * count + 2.0 * offset * slope * total_x + slope * slope * total_xx
+    return not chi_square < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION * variance, intercept, slope
+
+
+@kernel
+def _least_squares_line(x: np.ndarray, y: np.ndarray, kept: np.ndarray) -> tuple[float, float]:
+    """(intercept, slope) of the least-squares line through the ``kept`` points (x, y) (np.linalg.lstsq's:
+    when all their x are equal, as for a shape that is no disc, the smallest such line)."""
+    count = centre_x = centre_y = 0.0
+    for i in range(x.size):
+        if kept[i]:
+            count += 1.0
+            centre_x += x[i]
+            centre_y += y[i]
+    centre_x, centre_y = centre_x / count, centre_y / count
+    spread = covariance = 0.0
+    for i in range(x.size):
+        if kept[i]:
+            spread += (x[i] - centre_x) * (x[i] - centre_x)
+            covariance += (x[i] - centre_x) * (y[i] - centre_y)
     if not spread > 0.0:
         scale = centre_y / (1.0 + centre_x * centre_x)
         return scale, scale * centre_x
-    slope = float(dx @ (y - centre_y)) / spread
+    slope = covariance / spread
     return centre_y - slope * centre_x, slope
 
 
