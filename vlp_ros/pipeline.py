@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone,
-                                     has_evidence, read_lamp)
+                                     read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
-from vlp_ros.beacon.tone import point_light_profile
+from vlp_ros.beacon.tone import agreeing, point_light_profile
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
 from vlp_ros.lamp_map import Lamp, LampMap
@@ -161,11 +161,11 @@ class Pipeline:
                 # A bare LED's core spans a few stripe periods; its glow carries them on every row it lights.
                 return decode(point_light_profile(image, observation))
             disc = read_lamp(image, observation, decode, glow=False)
-            if not self._point_lamps or has_evidence(disc):
+            if not self._point_lamps:
                 return disc
-            # A bare LED's round core passes for a disc too small to hold two stripe periods.
-            light = decode(point_light_profile(image, observation))
-            return light if has_evidence(light) else disc
+            # A bare LED's round core passes for a disc, whose few rows may read its tone wrongly (a clipped
+            # 3.5 kHz core as JPEG once read 2 kHz): its glow is read too, and must agree.
+            return agreeing(decode(point_light_profile(image, observation)), disc)
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),
