@@ -10,7 +10,12 @@ import pytest
 
 from vlp_ros.beacon.encoding import tone_waveform
 from vlp_ros.lamp_map import Lamp
+from vlp_ros.observation import LampObservation
+from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline import Pipeline
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.candidates import Choice, Reason
+from vlp_ros.solvers.joint_ids import OpenLamp, settle
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.point_lamps import PointLampLook, PointSimLamp, bare_led_scenario, render_point_lamps
 
@@ -75,3 +80,39 @@ def test_a_lamp_not_in_the_map_whose_tone_takes_a_mapped_id_is_told_apart_by_the
     # Main: the doubly claimed ID left every photo without a pose. Where three lamps and the stranger
     # are certain (one photo here) nothing tells which is the stranger: no pose.
     assert len(posed) >= PHOTOS - 1
+
+
+def _lamp(lamp_id: int) -> Lamp:
+    return Lamp(f'l{lamp_id}', lamp_id, np.array([0.5 * lamp_id, 0.0, 2.5]), 0.0, frequency=1000.0 * lamp_id)
+
+
+def _observation() -> LampObservation:
+    frame = bare_led_scenario('1080p', photos=1, seed=1).render(0, None)
+    return detect_lamps(frame.image)[0]
+
+
+def test_a_lamp_two_of_whose_candidates_fit_the_pose_stays_open() -> None:
+    # A pose that explains anything: geometry that cannot tell the candidates apart settles nothing.
+    anywhere = Choice(Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4), Reason.MULTI_LAMP)
+    observation = _observation()
+    certain = [(observation, _lamp(1)), (observation, _lamp(2))]
+    lamp = OpenLamp(observation, (_lamp(3), _lamp(4)), 1.0)
+    assert settle(certain, [lamp], lambda pairs: anywhere) == []
+    assert [lamp.id for _, lamp in settle(certain, [OpenLamp(observation, (_lamp(3),), 1.0)],
+                                          lambda pairs: anywhere)] == [3]
+
+
+def test_without_a_certain_pose_an_assignment_counts_only_if_the_right_one_was_tried() -> None:
+    observation = _observation()
+
+    def fits_three(pairs) -> Choice:
+        # The certain lamps alone give no pose; with lamp 3 in the open lamp's place, one.
+        if any(lamp.id == 3 for _, lamp in pairs):
+            return Choice(Pose(np.eye(3), np.zeros(3)), Reason.MULTI_LAMP)
+        return Choice(None, Reason.AMBIGUOUS)
+
+    certain = [(observation, _lamp(1)), (observation, _lamp(2)), (observation, _lamp(5))]
+    covered = OpenLamp(observation, (_lamp(3), _lamp(4)), 1.0)
+    assert [lamp.id for _, lamp in settle(certain, [covered], fits_three)] == [3]
+    # A reading that leaves 1 % to candidates not tried: the right one may be among those.
+    assert settle(certain, [replace(covered, coverage=0.99)], fits_three) == []

@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone,
-                                     has_evidence, read_lamp)
+                                     read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
-from vlp_ros.beacon.tone import point_light_profile
+from vlp_ros.beacon.tone import agreeing, point_light_profile
 from vlp_ros.camera import CameraModel
 from vlp_ros.detection import detect_lamps
 from vlp_ros.lamp_map import Lamp, LampMap
@@ -89,7 +89,7 @@ class Pipeline:
             return FrameResult(None, NO_LAMP)
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp)
-        ids, pairs = self._identified_with_geometry(observations, ids, readings, camera, stamp, gravity_up)
+        ids, pairs, solved = self._identified_with_geometry(observations, ids, readings, camera, stamp, gravity_up)
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
         seen = [_seen_lamp(obs, i, reading, self.settings.lamps) for obs, i, reading in zip(observations, ids, readings)]
@@ -97,7 +97,8 @@ class Pipeline:
             outcome = UNKNOWN_ID if unknown else NO_ID
             return FrameResult(None, outcome, decoded, unknown, len(observations), seen=seen)
         # Detection and decoding read the raw image; the solvers see lamps through a model they take.
-        choice = self.locate(*solver_view(pairs, camera), stamp, gravity_up)
+        choice = solved.get(_key(pairs)) or self._solve(*solver_view(pairs, camera), stamp, gravity_up)
+        self._continue_track(choice, stamp)
         if choice.pose is None:
             return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail, seen)
         return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value, seen)
@@ -107,29 +108,37 @@ class Pipeline:
         """The pose from identified lamps of the frame at ``stamp``, which then continues (or
         restarts) the track; ``process`` after detection and identification."""
         choice = self._solve(pairs, camera, stamp, gravity_up)
+        self._continue_track(choice, stamp)
+        return choice
+
+    def _continue_track(self, choice: Choice, stamp: float) -> None:
         if choice.pose is not None:
             self._recent = (choice.pose, stamp)
             self.track_restarts += choice.restarts_track
-        return choice
 
     def _identified_with_geometry(self, observations: list[LampObservation], ids: list[int | None],
                                   readings: list[BeaconReading], camera: CameraModel, stamp: float,
                                   gravity_up: np.ndarray | None) -> tuple[list[int | None],
-                                                                          list[tuple[LampObservation, Lamp]]]:
+                                                                          list[tuple[LampObservation, Lamp]],
+                                                                          dict[tuple, Choice]]:
         """Each lamp's ID and the (observation, lamp) pairs to solve from: the beacon's certain IDs, held
         to one pose explaining every lamp, and lamps its readings leave open that such a pose identifies
-        (``solvers.joint_ids``)."""
+        (``solvers.joint_ids``); and the choices solved on the way, by ``_key`` of their pairs."""
         lamps = self.settings.lamps
 
         def pairs_of(lamp_ids: list[int | None]) -> list[tuple[LampObservation, Lamp]]:
             return [(obs, lamps.get(i)) for obs, i in zip(observations, lamp_ids)
                     if i is not None and i in lamps and solvable(obs, lamps.get(i))]
 
+        solved: dict[tuple, Choice] = {}
         if self.settings.solver != 'perspective' or len(observations) < 2:
-            return ids, pairs_of(ids)
+            return ids, pairs_of(ids), solved
 
         def solve(tried: list[tuple[LampObservation, Lamp]]) -> Choice:
-            return self._solve(*solver_view(tried, camera), stamp, gravity_up)
+            key = _key(tried)
+            if key not in solved:
+                solved[key] = self._solve(*solver_view(tried, camera), stamp, gravity_up)
+            return solved[key]
 
         ids = claimed_once(ids)
         certain = pairs_of(ids)
@@ -140,7 +149,7 @@ class Pipeline:
         settled = settle(certain, open_lamps(observations, ids, readings, lamps, solvable), solve)
         by_observation = {id(obs): lamp.id for obs, lamp in settled}
         ids = [by_observation.get(id(obs), i) for obs, i in zip(observations, ids)]
-        return ids, certain + settled
+        return ids, certain + settled, solved
 
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon
@@ -152,11 +161,11 @@ class Pipeline:
                 # A bare LED's core spans a few stripe periods; its glow carries them on every row it lights.
                 return decode(point_light_profile(image, observation))
             disc = read_lamp(image, observation, decode, glow=False)
-            if not self._point_lamps or has_evidence(disc):
+            if not self._point_lamps:
                 return disc
-            # A bare LED's round core passes for a disc too small to hold two stripe periods.
-            light = decode(point_light_profile(image, observation))
-            return light if has_evidence(light) else disc
+            # A bare LED's round core passes for a disc, whose few rows may read its tone wrongly (a clipped
+            # 3.5 kHz core as JPEG once read 2 kHz): its glow is read too, and must agree.
+            return agreeing(decode(point_light_profile(image, observation)), disc)
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),
@@ -198,6 +207,11 @@ class Pipeline:
             # The paper's two mirror solutions are told apart by the same hints as ours (by default).
             return self.paper_choice(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))
+
+
+def _key(pairs: list[tuple[LampObservation, Lamp]]) -> tuple:
+    """Which lamps, seen where, a solve was given."""
+    return tuple((id(observation), lamp.id) for observation, lamp in pairs)
 
 
 def _seen_lamp(observation: LampObservation, lamp_id: int | None, reading: BeaconReading, lamps: LampMap) -> SeenLamp:

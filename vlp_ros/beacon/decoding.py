@@ -11,7 +11,7 @@ import numpy as np
 
 from vlp_ros.beacon.packet import BLUR_MIXES, decode_packet
 from vlp_ros.beacon.profile import RowProfile, light_profile, row_profile
-from vlp_ros.beacon.reading import UNMAPPED, BeaconReading
+from vlp_ros.beacon.reading import UNMAPPED, BeaconReading, has_evidence
 from vlp_ros.beacon.tone import decode_tone
 from vlp_ros.observation import LampObservation
 
@@ -47,7 +47,3 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
             return blurred
     return light if light.lamp_id is not None or light.unknown else disc
 
-
-def has_evidence(reading: BeaconReading) -> bool:
-    """Whether ``reading`` weighs its candidates at all (a reading without evidence adds nothing)."""
-    return bool(np.any(reading.log_likelihoods != reading.log_likelihoods[0]))

@@ -84,6 +84,11 @@ def reading(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndar
                          d.unknown, d.detail)
 
 
+def has_evidence(reading: BeaconReading) -> bool:
+    """Whether ``reading`` weighs its candidates at all (a reading without evidence adds nothing)."""
+    return bool(np.any(reading.log_likelihoods != reading.log_likelihoods[0]))
+
+
 def no_evidence(candidates: np.ndarray, mapped: np.ndarray, log_prior: np.ndarray, detail: str) -> BeaconReading:
     """A reading that adds nothing (flat likelihood), with why."""
     return BeaconReading(None, 0.0, candidates, np.zeros(len(candidates)), log_prior, mapped, False, detail)

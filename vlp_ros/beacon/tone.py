@@ -20,8 +20,8 @@ import numpy as np
 from scipy.special import stdtr
 
 from vlp_ros.beacon.profile import RowProfile, light_profile, relative_brightness
-from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior,
-                                    no_evidence, reading)
+from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, has_evidence,
+                                    log_prior, no_evidence, reading)
 from vlp_ros.compiled import kernel
 from vlp_ros.observation import LampObservation
 
@@ -172,6 +172,21 @@ def point_light_profile(image: np.ndarray, observation: LampObservation) -> RowP
     profile = light_profile(image, observation, reach=POINT_LIGHT_REACH)
     cap = _ROW_WEIGHT_SHARE * float(profile.weights.max(initial=0.0))
     return RowProfile(profile.values, np.minimum(profile.weights, cap), profile.saturated, profile.first_row)
+
+
+def agreeing(light: BeaconReading, disc: BeaconReading) -> BeaconReading:
+    """One lamp's reading from its light (``point_light_profile``) checked against its disc's: the light's
+    when the disc weighs no other candidate highest, the disc's when the light has no evidence, and
+    none when the two favour different candidates."""
+    if not has_evidence(light):
+        return disc
+    if has_evidence(disc) and _favourite(disc) != _favourite(light):
+        return no_evidence(light.candidates, light.mapped, light.log_prior, 'its disc and its glow read different tones')
+    return light
+
+
+def _favourite(reading: BeaconReading) -> int:
+    return int(reading.candidates[np.argmax(reading.log_likelihoods + reading.log_prior)])
 
 
 @lru_cache(maxsize=16)

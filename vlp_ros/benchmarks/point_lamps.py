@@ -79,10 +79,12 @@ def run_setup(setup: Setup, imu: bool, camera: str, photos: int, seed: int) -> T
         tally.in_view += len(truths)
         tally.detected += sum(any(np.linalg.norm(o.center - t.center_pixel) < DETECTED_PX for o in observations)
                               for t in truths)
-        in_view_ids = {t.lamp_id for t in truths}
-        right = sum(i in in_view_ids for i in result.decoded_ids)
+        # Each ID against the LED at whose light it was read (the nearest to the observation's centre).
+        read = [(seen.lamp_id, min(frame.lamps, key=lambda t: np.linalg.norm(seen.observation.center - t.center_pixel)))
+                for seen in result.seen if seen.lamp_id is not None]
+        right = sum(lamp_id == truth.lamp_id for lamp_id, truth in read)
         tally.right += right
-        tally.wrong += len(result.decoded_ids) - right
+        tally.wrong += len(read) - right
         tally.unknown += result.unknown_ids
         tally.outcomes[result.outcome] += 1
         tally.frames_with_three += right >= 3

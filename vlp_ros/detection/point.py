@@ -60,7 +60,8 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
 
     A clipped row's maximum is not its level, and where it leaves the clip depends on how
     far its stripe overexposes it: clipped rows are used only when the unclipped ones give
-    too few crossings, and their scatter (stripe by stripe) then widens the centre's sigma.
+    too few crossings or no round core (the dark stripes alone may span too few of its rows),
+    and their scatter (stripe by stripe) then widens the centre's sigma.
     """
     points, rows, clipped = _half_maximum_crossings(brightness, background, noise_factor * noise,
                                                     saturation_level)
@@ -69,8 +70,13 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
     width = points[1::2, 0] - points[0::2, 0]
     narrow = width[width <= 0.5 * (width.min() + width.max())]
     core = width <= _CORE_WIDTH_FACTOR * median(narrow)
-    if np.count_nonzero(core & ~clipped) >= _MIN_POINTS // 2:
-        core &= ~clipped
+    unclipped = core & ~clipped
+    fit = _core_fit(points, rows, unclipped, min_radius) if np.count_nonzero(unclipped) >= _MIN_POINTS // 2 else None
+    return fit if fit is not None or not np.any(core & clipped) else _core_fit(points, rows, core, min_radius)
+
+
+def _core_fit(points: np.ndarray, rows: np.ndarray, core: np.ndarray, min_radius: float) -> PointFit | None:
+    """``fit_point``'s circle through the crossings of the ``core`` rows, or None if they are not round."""
     pairs = np.flatnonzero(core)
     core_points = points[np.ravel(np.column_stack([2 * pairs, 2 * pairs + 1]))]
     core_rows = rows[pairs]

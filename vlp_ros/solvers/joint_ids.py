@@ -10,7 +10,10 @@ ceiling, so a second candidate that fits is a map or geometry that cannot tell t
 the certain lamps give no pose (too few of them), every assignment of the open lamps' candidates is
 solved, and one is taken only if it is the only one that explains the image with residuals to
 spare (at least two more than the pose needs: three point lamps alone explain any assignment
-exactly).
+exactly), and only when the candidates tried hold all but 1e-4 of each open lamp's posterior:
+the pose is then the assignment's own, and on a symmetric map a wrong assignment is explained
+by a pose turned about the lamps as well as the right one is (a disc without its marker leaves
+the yaw free), so the right one must be among those tried for the count to mean anything.
 
 Certain IDs are held to the same rule. Two lamps that claim one ID (a lamp not in the map whose
 tone, 2 % off, lies in a mapped lamp's band) are both reopened, and so is the one lamp without
@@ -40,6 +43,8 @@ _MAX_ASSIGNMENTS = 27
 # The joint pose with a settled lamp must lie within this squared Mahalanobis distance (under the
 # certain lamps' covariance) of their pose: chi-square(6) at 1 - 1e-4.
 _SAME_POSE = float(chi2.ppf(1.0 - 1e-4, 6))
+# Without a pose from the certain lamps, the candidates tried must hold this much of each open lamp's posterior.
+_COVERED = 1.0 - 1e-4
 # Residuals beyond the six a pose takes, so that a wrong assignment can fail to be explained.
 _SPARE_RESIDUALS = 2
 
@@ -53,6 +58,7 @@ class OpenLamp:
 
     observation: LampObservation
     candidates: tuple[Lamp, ...]
+    coverage: float
 
 
 def claimed_once(ids: list[int | None]) -> list[int | None]:
@@ -75,13 +81,13 @@ def open_lamps(observations: list[LampObservation], ids: list[int | None], readi
             continue
         posterior = np.exp(log_post - log_post.max())
         posterior /= posterior.sum()
-        order = np.argsort(-posterior)
-        candidates = tuple(lamps.get(int(reading.candidates[k])) for k in order
-                           if reading.mapped[k] and posterior[k] >= PLAUSIBLE
-                           and int(reading.candidates[k]) not in taken and int(reading.candidates[k]) in lamps
-                           and usable(observation, lamps.get(int(reading.candidates[k]))))[:_MAX_CANDIDATES]
-        if candidates:
-            found.append(OpenLamp(observation, candidates))
+        order = [k for k in np.argsort(-posterior)
+                 if reading.mapped[k] and posterior[k] >= PLAUSIBLE and int(reading.candidates[k]) not in taken
+                 and int(reading.candidates[k]) in lamps
+                 and usable(observation, lamps.get(int(reading.candidates[k])))][:_MAX_CANDIDATES]
+        if order:
+            found.append(OpenLamp(observation, tuple(lamps.get(int(reading.candidates[k])) for k in order),
+                                  float(posterior[order].sum())))
     return found
 
 
@@ -126,7 +132,7 @@ def _explained_near(choice: Choice, anchor: Choice) -> bool:
 
 def _settled_by_assignment(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pair]:
     options = [[(o.observation, lamp) for lamp in o.candidates] for o in lamps]
-    if np.prod([len(o) for o in options]) > _MAX_ASSIGNMENTS:
+    if np.prod([len(o) for o in options]) > _MAX_ASSIGNMENTS or min(o.coverage for o in lamps) < _COVERED:
         return []
     explaining = []
     for assignment in itertools.product(*options):
