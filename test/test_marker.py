@@ -151,8 +151,8 @@ def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_u
     fitted, shape = jac[:, :4], jac[:, 4:]
     _, inverse = cv2.invert(fitted.T @ fitted, flags=cv2.DECOMP_SVD)
     shape_effect = inverse @ fitted.T @ shape
-    # Each row's level is off by 5 %, and by the blur times its slope where blur mixes stripes.
-    level_effect = inverse @ row_terms.T * np.hypot(0.05, blur * level_slope[rows])
+    # Each row's level is off by 5 %, and by a quarter of the blur times its slope where blur mixes stripes.
+    level_effect = inverse @ row_terms.T * np.hypot(0.05, 0.25 * blur * level_slope[rows])
     covariance = (reference_inflation(residual.reshape(len(rows), -1), rows) * cost / dof * inverse
                   + shape_spread ** 2 * shape_effect @ shape_effect.T
                   + level_effect @ level_effect.T)

@@ -40,6 +40,14 @@ _BLUR_BOUNDS = (0.3, 4.0)
 _MIN_MARKER_ROWS = 3
 # Relative error of a row's marker brightness taken as the ratio times the row's measured level.
 _ROW_LEVEL_SPREAD = 0.05
+# Where blur after the shutter mixes rows, a row's marker brightness is further off by about
+# s^2 L' dM/dy over L M: this times the blur times the row's relative change of level. The term
+# peaks at 1 / sqrt(2 pi) = 0.4 on the marker's blurred edge; mixing need not be there at all
+# (optical blur acts before the shutter). 1.0 left the simulated robot's markers (optical blur
+# only) at z RMS 0.08 / 0.37 and the locator's NEES at 3.0-4.0, 0.5 at 3.45; 0.25 gives them
+# 0.18 / 0.99, the foreign markers 0.2-0.4 / 0.66-0.87, and the blur look's (2 px, all after the
+# shutter) 0.45 / 1.83: a compromise, until the stripes' own blur is measured.
+_MIXING_SPREAD = 0.25
 # The marker's shape differs from its lamp's by up to this factor times the perspective estimate, plus the floor.
 _SHAPE_MARGIN = 1.5
 _SHAPE_FLOOR = 0.005
@@ -127,8 +135,9 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     ``level_gradient`` its signed relative derivative L' / L (0 where unknown). Where the
     level changes, blur after the shutter mixes the marker's light across rows of other
     levels: half the shift this gives a linear change is undone and half counted in the
-    sigma (``_row_mixing_shift``), and each row's marker brightness is taken to be off by
-    the slope times the blur besides, counted in the covariance with ``_ROW_LEVEL_SPREAD``.
+    sigma (``_row_mixing_shift``). Each row's marker brightness is taken to be off by that
+    mixing's term besides (``_MIXING_SPREAD`` x the slope x the blur), counted in the
+    covariance with ``_ROW_LEVEL_SPREAD``.
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
@@ -768,7 +777,7 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     inflation = _correlation_inflation(data, marker, disc_term, coef_0, coef_1, rows, width)
     row_spread = np.empty(count)
     for k in range(count):
-        row_spread[k] = math.hypot(_ROW_LEVEL_SPREAD, blur * level_slope[rows[k]])
+        row_spread[k] = math.hypot(_ROW_LEVEL_SPREAD, _MIXING_SPREAD * blur * level_slope[rows[k]])
     sigma = _centre_sigma(gram, cross, row_terms, row_spread, inflation * cost / dof, spread)
     # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
     # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
