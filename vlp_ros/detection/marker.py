@@ -40,14 +40,6 @@ _BLUR_BOUNDS = (0.3, 4.0)
 _MIN_MARKER_ROWS = 3
 # Relative error of a row's marker brightness taken as the ratio times the row's measured level.
 _ROW_LEVEL_SPREAD = 0.05
-# Where blur after the shutter mixes rows, a row's marker brightness is further off by about
-# s^2 L' dM/dy over L M: this times the blur times the row's relative change of level. The term
-# peaks at 1 / sqrt(2 pi) = 0.4 on the marker's blurred edge; mixing need not be there at all
-# (optical blur acts before the shutter). 1.0 left the simulated robot's markers (optical blur
-# only) at z RMS 0.08 / 0.37 and the locator's NEES at 3.0-4.0, 0.5 at 3.45; 0.25 gives them
-# 0.18 / 0.99, the foreign markers 0.2-0.4 / 0.66-0.87, and the blur look's (2 px, all after the
-# shutter) 0.45 / 1.83: a compromise, until the stripes' own blur is measured.
-_MIXING_SPREAD = 0.25
 # The marker's shape differs from its lamp's by up to this factor times the perspective estimate, plus the floor.
 _SHAPE_MARGIN = 1.5
 _SHAPE_FLOOR = 0.005
@@ -122,22 +114,18 @@ def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
 
 
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
-               margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_slope: np.ndarray,
-               level_gradient: np.ndarray, shape_spread: float) -> MarkerFit | None:
+               margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
+               shape_spread: float) -> MarkerFit | None:
     """Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
 
     ``lamp_ellipse`` is in the same pixels; it gives the marker's shape and the
     lamp's own disc term. ``margin`` (px) widens the window beyond the seed radius.
     Per row of ``red``: ``row_level`` is the lamp's brightness above background (the
     marker is lit by the lamp, so its redness is one ratio times that: rows must not be
-    clipped), ``rows_used`` whether the row takes part, ``level_slope`` how fast the level
-    changes there (relative, per row, the larger change to a neighbour) and
-    ``level_gradient`` its signed relative derivative L' / L (0 where unknown). Where the
-    level changes, blur after the shutter mixes the marker's light across rows of other
-    levels: half the shift this gives a linear change is undone and half counted in the
-    sigma (``_row_mixing_shift``). Each row's marker brightness is taken to be off by that
-    mixing's term besides (``_MIXING_SPREAD`` x the slope x the blur), counted in the
-    covariance with ``_ROW_LEVEL_SPREAD``.
+    clipped), ``rows_used`` whether the row takes part, ``level_gradient`` the level's
+    signed relative derivative L' / L (0 where unknown). Where the level changes, blur after
+    the shutter mixes the marker's light across rows of other levels: half the shift this
+    gives a linear change is undone and half counted in the sigma (``_row_mixing_shift``).
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
@@ -145,7 +133,7 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
         red, float(seed.center[0]), float(seed.center[1]), float(seed.radius),
         np.asarray(lamp_ellipse, dtype=np.float64), float(blur_guess), float(margin),
         np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
-        np.asarray(level_slope, dtype=np.float64), np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
+        np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
     if not found:
         return None
     return MarkerFit(np.array([cx, cy]), sigma, radius, blur, np.array([[s00, s01], [s10, s11]]))
@@ -573,13 +561,13 @@ def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, row_spread: np.ndarray,
-                  noise_variance: float, shape_spread: float) -> float:
+def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
+                  shape_spread: float) -> float:
     """Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
 
     The shape is held at the lamp's, and each row's marker brightness at the ratio
     times the row's measured level. Their true deviations (``shape_spread``, and
-    ``row_spread`` (relative) of each row's level) move the centre by the fit's sensitivity
+    ``_ROW_LEVEL_SPREAD`` of a row's level) move the centre by the fit's sensitivity
     to them: a consider covariance. Both matter most when only part of the marker is lit.
     ``gram`` (4x4): the Jacobian's (centre, radius, blur); ``cross`` (4x2): its columns against
     the two shape stretches'; ``row_terms`` (rows, 4): each row's marker term against them.
@@ -598,8 +586,9 @@ def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, ro
             effect = 0.0
             for k in range(4):
                 effect += inverse[axis, k] * row_terms[r, k]
-            level += (row_spread[r] * effect) ** 2
-        variance += noise_variance * inverse[axis, axis] + shape_spread ** 2 * shape + level
+            level += effect * effect
+        variance += (noise_variance * inverse[axis, axis] + shape_spread ** 2 * shape
+                     + _ROW_LEVEL_SPREAD ** 2 * level)
     return math.sqrt(0.5 * variance)
 
 
@@ -663,8 +652,8 @@ def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, r
 
 @kernel
 def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, ellipse: np.ndarray,
-         blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_slope: np.ndarray,
-         level_gradient: np.ndarray, spread: float) -> tuple:
+         blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
+         spread: float) -> tuple:
     """fit_marker's work: (found, cx, cy, radius, blur, sigma, shape (4, row-major))."""
     failed = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     half = seed_radius + margin
@@ -775,10 +764,7 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
                                                 jac)[:3]
     coef_0, coef_1 = _amplitudes(gram_00, gram_01, disc_norm2, project_0, project_1)[:2]
     inflation = _correlation_inflation(data, marker, disc_term, coef_0, coef_1, rows, width)
-    row_spread = np.empty(count)
-    for k in range(count):
-        row_spread[k] = math.hypot(_ROW_LEVEL_SPREAD, _MIXING_SPREAD * blur * level_slope[rows[k]])
-    sigma = _centre_sigma(gram, cross, row_terms, row_spread, inflation * cost / dof, spread)
+    sigma = _centre_sigma(gram, cross, row_terms, inflation * cost / dof, spread)
     # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
     # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
     # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
