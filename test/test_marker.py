@@ -102,8 +102,7 @@ def reference_inflation(residual, rows):
     return factor
 
 
-def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, level_slope, level_gradient,
-                  shape_spread):
+def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, level_gradient, shape_spread):
     """(centre, sigma, radius, blur, shape) or None, as fit_marker computed them in numpy."""
     half = seed.radius + margin
     x0 = max(int(np.floor(seed.center[0] - half)), 0)
@@ -151,11 +150,10 @@ def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_u
     fitted, shape = jac[:, :4], jac[:, 4:]
     _, inverse = cv2.invert(fitted.T @ fitted, flags=cv2.DECOMP_SVD)
     shape_effect = inverse @ fitted.T @ shape
-    # Each row's level is off by 5 %, and by the blur times its slope where blur mixes stripes.
-    level_effect = inverse @ row_terms.T * np.hypot(0.05, blur * level_slope[rows])
+    level_effect = inverse @ row_terms.T
     covariance = (reference_inflation(residual.reshape(len(rows), -1), rows) * cost / dof * inverse
                   + shape_spread ** 2 * shape_effect @ shape_effect.T
-                  + level_effect @ level_effect.T)
+                  + 0.05 ** 2 * level_effect @ level_effect.T)
     sigma = float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
     # Blur mixing rows whose level changes by L' shifts the fit by (J^T J)^-1 J^T (-blur^2 L'/L J_cy),
     # if all of the blur came after the shutter: half of it is undone, half counted in sigma.
@@ -219,12 +217,10 @@ def test_fit_marker_matches_the_numpy_formulation(recorded_fits):
 
 def test_fit_marker_rejects_what_the_numpy_formulation_rejects(recorded_fits):
     """Too few usable rows, and a window without any: None, as before."""
-    red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, slope, gradient, spread = recorded_fits[0]
+    red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, gradient, spread = recorded_fits[0]
     for used in (np.zeros_like(rows_used), np.arange(rows_used.size) == int(seed.center[1])):
-        assert reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, used, slope, gradient,
-                             spread) is None
-        assert fit_marker(red, seed, lamp_ellipse, blur_guess, margin, row_level, used, slope, gradient,
-                          spread) is None
+        assert reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, used, gradient, spread) is None
+        assert fit_marker(red, seed, lamp_ellipse, blur_guess, margin, row_level, used, gradient, spread) is None
 
 
 def test_redness_matches_numpy():

@@ -377,20 +377,20 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     lamp's level is unknown but the marker's redness is nearly one value (its red
     channel clips with the lamp's): those rows carry it as well as unclipped ones. A
     row whose level differs from its neighbours' has been mixed with them by blur, and
-    the marker's light with it: such rows take part with the uncertainty that mixing
-    brings (``fit_marker``'s ``level_slope``). A marker 8 rows tall under stripes of 4-8
+    the marker's light with it: such rows take part, and ``fit_marker`` counts the shift
+    that mixing brings (``level_gradient``). A marker 8 rows tall under stripes of 4-8
     rows has few rows of one level, and on the foreign robot frames was missed without them.
     """
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    lit, unclipped, clipped, slope, gradient = _marker_rows(profile, box.background, float(options.saturation_level))
+    lit, unclipped, clipped, gradient = _marker_rows(profile, box.background, float(options.saturation_level))
     if not lit:
         return None
     level, rows = _marker_levels(box.red, box.seed, profile, unclipped, clipped)
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
-                     level, rows, slope, gradient, shape_spread(box.rim.ellipse, focal_length))
+                     level, rows, gradient, shape_spread(box.rim.ellipse, focal_length))
     # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
     if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
@@ -407,11 +407,10 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
 
 @kernel
 def _marker_rows(profile: np.ndarray, background: float,
-                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
     """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, each row's
-    level slope and gradient) of a row profile (NaN: unknown). The slope is the larger relative change
-    of the level to a neighbour; the gradient the signed relative derivative, on unclipped rows
-    between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
+    level gradient) of a row profile (NaN: unknown). The gradient is the level's signed relative
+    derivative, on unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
     clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours)."""
     lit, brightest = False, -np.inf
     for level in profile:
@@ -421,7 +420,6 @@ def _marker_rows(profile: np.ndarray, background: float,
             brightest = level
     unclipped = np.zeros(profile.size, np.bool_)
     clipped = np.zeros(profile.size, np.bool_)
-    slope = np.zeros(profile.size)
     gradient = np.zeros(profile.size)
     for i in range(profile.size):
         # Dim rows still show the marker: anything clearly above the noise takes part.
@@ -430,13 +428,12 @@ def _marker_rows(profile: np.ndarray, background: float,
         unclipped[i] = bright and not at_clip
         for j in (i - 1, i + 1):
             if 0 <= j < profile.size and not math.isnan(profile[j]) and bright:
-                slope[i] = max(slope[i], abs(profile[j] - profile[i]) / profile[i])
                 clipped[i] = clipped[i] or (at_clip and profile[j] + background >= saturation_level)
         if unclipped[i] and 0 < i < profile.size - 1:
             below, above = profile[i - 1], profile[i + 1]
             if below + background < saturation_level and above + background < saturation_level:
                 gradient[i] = 0.5 * (above - below) / profile[i]
-    return lit, unclipped, clipped, slope, gradient
+    return lit, unclipped, clipped, gradient
 
 
 def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,

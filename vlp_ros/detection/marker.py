@@ -114,21 +114,18 @@ def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
 
 
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
-               margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_slope: np.ndarray,
-               level_gradient: np.ndarray, shape_spread: float) -> MarkerFit | None:
+               margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
+               shape_spread: float) -> MarkerFit | None:
     """Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
 
     ``lamp_ellipse`` is in the same pixels; it gives the marker's shape and the
     lamp's own disc term. ``margin`` (px) widens the window beyond the seed radius.
     Per row of ``red``: ``row_level`` is the lamp's brightness above background (the
     marker is lit by the lamp, so its redness is one ratio times that: rows must not be
-    clipped), ``rows_used`` whether the row takes part, ``level_slope`` how fast the level
-    changes there (relative, per row, the larger change to a neighbour) and
-    ``level_gradient`` its signed relative derivative L' / L (0 where unknown). Where the
-    level changes, blur after the shutter mixes the marker's light across rows of other
-    levels: half the shift this gives a linear change is undone and half counted in the
-    sigma (``_row_mixing_shift``), and each row's marker brightness is taken to be off by
-    the slope times the blur besides, counted in the covariance with ``_ROW_LEVEL_SPREAD``.
+    clipped), ``rows_used`` whether the row takes part, ``level_gradient`` the level's
+    signed relative derivative L' / L (0 where unknown). Where the level changes, blur after
+    the shutter mixes the marker's light across rows of other levels: half the shift this
+    gives a linear change is undone and half counted in the sigma (``_row_mixing_shift``).
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
@@ -136,7 +133,7 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
         red, float(seed.center[0]), float(seed.center[1]), float(seed.radius),
         np.asarray(lamp_ellipse, dtype=np.float64), float(blur_guess), float(margin),
         np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
-        np.asarray(level_slope, dtype=np.float64), np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
+        np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
     if not found:
         return None
     return MarkerFit(np.array([cx, cy]), sigma, radius, blur, np.array([[s00, s01], [s10, s11]]))
@@ -564,13 +561,13 @@ def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, row_spread: np.ndarray,
-                  noise_variance: float, shape_spread: float) -> float:
+def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
+                  shape_spread: float) -> float:
     """Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
 
     The shape is held at the lamp's, and each row's marker brightness at the ratio
     times the row's measured level. Their true deviations (``shape_spread``, and
-    ``row_spread`` (relative) of each row's level) move the centre by the fit's sensitivity
+    ``_ROW_LEVEL_SPREAD`` of a row's level) move the centre by the fit's sensitivity
     to them: a consider covariance. Both matter most when only part of the marker is lit.
     ``gram`` (4x4): the Jacobian's (centre, radius, blur); ``cross`` (4x2): its columns against
     the two shape stretches'; ``row_terms`` (rows, 4): each row's marker term against them.
@@ -589,8 +586,9 @@ def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, ro
             effect = 0.0
             for k in range(4):
                 effect += inverse[axis, k] * row_terms[r, k]
-            level += (row_spread[r] * effect) ** 2
-        variance += noise_variance * inverse[axis, axis] + shape_spread ** 2 * shape + level
+            level += effect * effect
+        variance += (noise_variance * inverse[axis, axis] + shape_spread ** 2 * shape
+                     + _ROW_LEVEL_SPREAD ** 2 * level)
     return math.sqrt(0.5 * variance)
 
 
@@ -654,8 +652,8 @@ def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, r
 
 @kernel
 def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, ellipse: np.ndarray,
-         blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_slope: np.ndarray,
-         level_gradient: np.ndarray, spread: float) -> tuple:
+         blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
+         spread: float) -> tuple:
     """fit_marker's work: (found, cx, cy, radius, blur, sigma, shape (4, row-major))."""
     failed = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     half = seed_radius + margin
@@ -766,10 +764,7 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
                                                 jac)[:3]
     coef_0, coef_1 = _amplitudes(gram_00, gram_01, disc_norm2, project_0, project_1)[:2]
     inflation = _correlation_inflation(data, marker, disc_term, coef_0, coef_1, rows, width)
-    row_spread = np.empty(count)
-    for k in range(count):
-        row_spread[k] = math.hypot(_ROW_LEVEL_SPREAD, blur * level_slope[rows[k]])
-    sigma = _centre_sigma(gram, cross, row_terms, row_spread, inflation * cost / dof, spread)
+    sigma = _centre_sigma(gram, cross, row_terms, inflation * cost / dof, spread)
     # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
     # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
     # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
