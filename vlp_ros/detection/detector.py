@@ -363,11 +363,12 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     if fraction is None:
         return None
     points, _, clipped = _rim_points(box, levels, options, fraction)
+    model_sigma = edge_model_sigma(variance)
     if len(points) < options.min_rim_points or clipped.any():
-        return replace(rim, model_sigma=edge_model_sigma(variance))
+        return replace(rim, model_sigma=model_sigma)
     fit = fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
                   _MIN_RIM_SIGMA, near=rim.ellipse)
-    return replace(fit, model_sigma=edge_model_sigma(variance))
+    return replace(fit, model_sigma=model_sigma)
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:

@@ -390,9 +390,13 @@ def _band_levels(brightness: np.ndarray, row: int, edge: float, inward: float, l
     return True, inside / count, outside / count
 
 
-# Prior sigma (px) of a rim's smooth error patterns per px^2 of the edge's blur variance: 0.11 px for
-# the simulator's clean 4K look (optics 0.7 px with the pixel: 0.58 px^2 of variance), 0.6 px at 2 px.
-EDGE_MODEL_PER_BLUR_VARIANCE = 0.2
+# A rim's smooth error patterns: none below a blur of ``SHARP_BLUR_PX`` (the simulator's clean 4K look
+# and the independent renderer's clean drive, 0.72-0.86 px with the pixel, fit within 0.01 px and
+# 0.13 px), then ``EDGE_MODEL_PER_BLUR_VARIANCE`` px per px^2 of blur variance beyond it (0.4-0.75 px for
+# the 2.1-2.5 px of that renderer's soft hand-held rims, measured there at 0.1-0.45 px offset and
+# 0.2-0.9 px second harmonic).
+SHARP_BLUR_PX = 1.0
+EDGE_MODEL_PER_BLUR_VARIANCE = 0.15
 
 
 def edge_model_sigma(blur_variance_px2: float) -> float:
@@ -400,15 +404,14 @@ def edge_model_sigma(blur_variance_px2: float) -> float:
     the disc's edge in smooth patterns round the rim (an offset and the first two harmonics:
     ``measurement.rim_error_modes``), given the edge's blur variance.
 
-    Every departure of the light from a uniform disc with a step edge moves the crossing of a
-    Gaussian-blurred edge by the blur variance times the light's relative change across it: a
-    diffuser's falloff or a glare halo (its slope over the row's rise), the stripes of a rolling
-    shutter mixed into a row from its neighbours above and below (their curvature), the edge's
-    own curvature. The corrections for these (``blur_shifts``, ``edge_level_fraction``) hold to
-    first order only; what remains scales the same way. Measured on an independent renderer's
-    frames at the true pose: within 0.13 px on sharp uniform discs, 0.1-0.45 px offset and up to
-    0.9 px in the second harmonic under 1.6 px of blur, 30 % falloff and glare."""
-    return EDGE_MODEL_PER_BLUR_VARIANCE * blur_variance_px2
+    Any departure of the light from a uniform disc with a step edge moves the crossing of a
+    blurred edge by the blur variance times the light's relative change across it: a diffuser's
+    falloff or a glare halo (its slope over the row's rise), the stripes of neighbouring rows
+    that blur mixes into a row's ends differently than into its middle (the edge's slope times
+    the stripes' relative slope), a blur that is no Gaussian. The detector's corrections for
+    these (``blur_shifts``, ``edge_level_fraction``) hold while the blur stays within a pixel;
+    beyond it what they leave grows with the variance."""
+    return EDGE_MODEL_PER_BLUR_VARIANCE * max(blur_variance_px2 - SHARP_BLUR_PX ** 2, 0.0)
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:

@@ -166,7 +166,7 @@ def widened_where_up_disagrees(candidates: list[PoseCandidate], up: Sequence[UpM
     for candidate in candidates:
         pose = candidate.pose
         for measurement in up:
-            innovation = measurement.innovation(pose)
+            innovation = measurement.innovation(pose, candidate.separating_covariance)
             if innovation > UP_DOUBT:
                 # Only the disagreement beyond what noise explains (2, its mean) is in doubt.
                 excess = 1.0 - 2.0 / innovation
