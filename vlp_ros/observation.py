@@ -15,7 +15,10 @@ class LampObservation:
     ``rim_points``. ``rim_sigma`` is the measured standard deviation (px) of rim
     points across the edge; ``marker_sigma`` that of the marker centroid per axis.
     ``bbox`` = (x0, y0, x1, y1), x1 and y1 exclusive; ``disc_mask`` and
-    ``marker_mask`` are boolean arrays over that box.
+    ``marker_mask`` are boolean arrays over that box. ``rim_model_sigma`` is the prior sigma
+    (px) of the smooth patterns (offset, first and second harmonic round the rim) by which a
+    soft edge's rim points may depart from the disc's edge (``detection.rim.edge_model_sigma``),
+    0 where the detector could not tell the edge's blur.
 
     ``rim_usable`` is False for a lamp whose light has no elliptic rim (a bare LED with
     its glow, a lamp too small, soft or overexposed for an ellipse): then ``center`` is
@@ -37,6 +40,7 @@ class LampObservation:
     marker_mask: np.ndarray | None = None
     rim_usable: bool = True
     center_sigma: float | None = None
+    rim_model_sigma: float = 0.0
 
     @property
     def center(self) -> np.ndarray:

@@ -15,7 +15,7 @@ from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness_and_peaks, shape_spread
 from vlp_ros.detection.point import fit_point
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
-                                   fit_rim, outward_normals, row_crossings)
+                                   edge_model_sigma, fit_rim, outward_normals, row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile
 from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.observation import LampObservation
@@ -363,10 +363,12 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     if fraction is None:
         return None
     points, _, clipped = _rim_points(box, levels, options, fraction)
+    model_sigma = edge_model_sigma(variance)
     if len(points) < options.min_rim_points or clipped.any():
-        return rim
-    return fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
-                   _MIN_RIM_SIGMA, near=rim.ellipse)
+        return replace(rim, model_sigma=model_sigma)
+    fit = fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
+                  _MIN_RIM_SIGMA, near=rim.ellipse)
+    return replace(fit, model_sigma=model_sigma)
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
@@ -537,7 +539,7 @@ def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
         marker_sigma = marker.sigma
         marker_mask = _chord_mask(conic_of(marker.ellipse(shift)), *bbox)
     return LampObservation(ellipse=ellipse, rim_points=rim.points + shift, rim_sigma=rim.sigma,
-                           marker=marker_centre, marker_sigma=marker_sigma,
+                           rim_model_sigma=rim.model_sigma, marker=marker_centre, marker_sigma=marker_sigma,
                            bbox=bbox, disc_mask=disc_mask, marker_mask=marker_mask)
 
 

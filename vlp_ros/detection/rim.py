@@ -55,13 +55,16 @@ _FRACTION_BOUNDS = (0.25, 0.75)
 
 @dataclass(frozen=True)
 class RimFit:
-    """The ellipse through the kept rim points, their RMS distance across the edge (px), and
-    how many points were left after grazing rows were dropped (before outlier rejection)."""
+    """The ellipse through the kept rim points, their RMS distance across the edge (px), how
+    many points were left after grazing rows were dropped (before outlier rejection), and the
+    prior sigma (px) of the smooth patterns round the rim by which the edge may depart from the
+    model's (``edge_model_sigma``; 0 where the ramps do not tell the blur)."""
 
     ellipse: np.ndarray
     points: np.ndarray
     sigma: float
     candidates: int
+    model_sigma: float = 0.0
 
 
 def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
@@ -385,6 +388,30 @@ def _band_levels(brightness: np.ndarray, row: int, edge: float, inward: float, l
         outside += brightness[row, outer]
     count = end - start + 1
     return True, inside / count, outside / count
+
+
+# A rim's smooth error patterns: none below a blur of ``SHARP_BLUR_PX`` (the simulator's clean 4K look
+# and the independent renderer's clean drive, 0.72-0.86 px with the pixel, fit within 0.01 px and
+# 0.13 px), then ``EDGE_MODEL_PER_BLUR_VARIANCE`` px per px^2 of blur variance beyond it (0.4-0.75 px for
+# the 2.1-2.5 px of that renderer's soft hand-held rims, measured there at 0.1-0.45 px offset and
+# 0.2-0.9 px second harmonic).
+SHARP_BLUR_PX = 1.0
+EDGE_MODEL_PER_BLUR_VARIANCE = 0.15
+
+
+def edge_model_sigma(blur_variance_px2: float) -> float:
+    """How far (px, one sigma per mode) the half-level crossings of a blurred edge may depart from
+    the disc's edge in smooth patterns round the rim (an offset and the first two harmonics:
+    ``measurement.rim_error_modes``), given the edge's blur variance.
+
+    Any departure of the light from a uniform disc with a step edge moves the crossing of a
+    blurred edge by the blur variance times the light's relative change across it: a diffuser's
+    falloff or a glare halo (its slope over the row's rise), the stripes of neighbouring rows
+    that blur mixes into a row's ends differently than into its middle (the edge's slope times
+    the stripes' relative slope), a blur that is no Gaussian. The detector's corrections for
+    these (``blur_shifts``, ``edge_level_fraction``) hold while the blur stays within a pixel;
+    beyond it what they leave grows with the variance."""
+    return EDGE_MODEL_PER_BLUR_VARIANCE * max(blur_variance_px2 - SHARP_BLUR_PX ** 2, 0.0)
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:

@@ -23,6 +23,14 @@ class PoseCandidate:
     pose: Pose
     cost: float
     residual_count: int = 0
+    # The covariance the measurements give without the rims' model-error prior (None: the pose's):
+    # what tells candidates apart, which a covariance widened alike for all of them cannot.
+    fit_covariance: np.ndarray | None = None
+
+    @property
+    def separating_covariance(self) -> np.ndarray | None:
+        """The covariance by which this candidate is told apart from others."""
+        return self.pose.covariance if self.fit_covariance is None else self.fit_covariance
 
 
 class Reason(str, Enum):
@@ -69,7 +77,7 @@ def coincide(better: PoseCandidate, other: PoseCandidate) -> bool:
     error = other.pose.error_vector(better.pose)
     if better.pose.covariance is None or other.pose.covariance is None:
         return bool(np.all(np.abs(error) < 1e-12))
-    return inverse_form(better.pose.covariance, error) <= COINCIDENT_MAHALANOBIS2
+    return inverse_form(better.separating_covariance, error) <= COINCIDENT_MAHALANOBIS2
 
 
 def distinct(candidates: list[PoseCandidate]) -> list[PoseCandidate]:

@@ -154,37 +154,45 @@ class ModelErrorFit:
     """The pose fit allowing for model error: the pose ``step`` (as ``perturbed``'s delta),
     its ``covariance``, the chi-square ``cost`` of the fit with only the common rim offset
     (its prior included; the measure candidates are compared and gated by), the common rim
-    offset ``rim_offset`` (px, outward positive; 0 where not determined) and the rim modes'
-    estimated prior sigma ``mode_sigma`` (px)."""
+    offset ``rim_offset`` (px, outward positive; 0 where not determined), the rim modes'
+    estimated prior sigma ``mode_sigma`` (px), and ``fit_covariance``: the covariance before
+    the modes were marginalised with their given prior (None where they were not)."""
 
     step: np.ndarray
     covariance: np.ndarray
     cost: float
     rim_offset: float
     mode_sigma: float
+    fit_covariance: np.ndarray | None = None
 
 
 def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma: np.ndarray,
                           modes: np.ndarray, lamp_of_point: np.ndarray, lamp_count: int,
-                          marker_count: int) -> ModelErrorFit:
+                          marker_count: int, mode_prior_sigma: np.ndarray | None = None) -> ModelErrorFit:
     """The linear update of a converged fit (whitened ``residuals`` and ``jacobian`` laid out as
     ``fit_kernels.Terms``: rim points, then 2 per marker, then 2 per up direction) by a common
     rim offset, each lamp's rim ``modes`` (``measurement.rim_error_modes``, rows as the rim points,
     ``lamp_of_point`` their lamp) and the residuals' own scatter; ValueError if the pose is not
-    fully observed."""
+    fully observed. ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows
+    of its modes (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate
+    the modes' sigma (one lamp), the modes are marginalised with it, widening the covariance
+    along what they trade with and leaving the pose where the fit put it."""
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
     offset_sigma = _rim_offset_sigma(residuals[:rim_count], rim_sigma)
     estimated = lamp_count >= 2
     if estimated:
         offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
-    step, covariance = np.empty(6), np.empty((6, 6))
-    cost, offset, mode_sigma = _model_error_fit(
+    step, covariance, fit_covariance = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+    cost, offset, mode_sigma, marginalised = _model_error_fit(
         np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float),
         np.ascontiguousarray(rim_sigma, dtype=float), np.ascontiguousarray(modes, dtype=float),
         np.ascontiguousarray(lamp_of_point, dtype=np.int64), lamp_count, marker_count, offset_sigma, estimated,
-        max(rim_count - 5 * lamp_count - 1, 1), _MODE_SIGMA_GRID_PX, step, covariance)
-    return ModelErrorFit(step=step, covariance=covariance, cost=cost, rim_offset=offset, mode_sigma=mode_sigma)
+        max(rim_count - 5 * lamp_count - 1, 1), _MODE_SIGMA_GRID_PX,
+        np.zeros(lamp_count) if mode_prior_sigma is None else np.ascontiguousarray(mode_prior_sigma, dtype=float),
+        step, covariance, fit_covariance)
+    return ModelErrorFit(step=step, covariance=covariance, cost=cost, rim_offset=offset, mode_sigma=mode_sigma,
+                         fit_covariance=fit_covariance if marginalised else None)
 
 
 def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float:
@@ -198,17 +206,19 @@ def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float
 
 @kernel
 def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_count, marker_count, offset_sigma,
-                     estimated, rim_dof, mode_sigma_grid, step, covariance):
-    """``allow_for_model_error`` into ``step`` and ``covariance``, returning (cost, rim offset, mode
-    sigma). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps)."""
+                     estimated, rim_dof, mode_sigma_grid, mode_prior_sigma, step, covariance, fit_covariance):
+    """``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning (cost,
+    rim offset, mode sigma, whether the modes were marginalised with their given prior). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
+    or one with a prior sigma of its modes)."""
     count, rims = residuals.shape[0], rim_sigma.shape[0]
     per_lamp = modes.shape[1]
-    width = 7 + (per_lamp * lamp_count if estimated else 0)
+    marginalised = not estimated and rims > 0 and mode_prior_sigma.max() > 0.0
+    width = 7 + (per_lamp * lamp_count if estimated or marginalised else 0)
     design = np.zeros((count, width))
     design[:, :6] = jacobian
     for i in range(rims):
         design[i, 6] = -modes[i, 0] / rim_sigma[i]
-        if estimated:
+        if estimated or marginalised:
             first = 7 + per_lamp * lamp_of_point[i]
             for j in range(per_lamp):
                 design[i, first + j] = -modes[i, j] / rim_sigma[i]
@@ -225,6 +235,12 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
     cost = float(np.sum(predicted * predicted)) + (solution[6] / offset_sigma) ** 2
     offset = solution[6]
     mode_sigma = 0.0
+    if marginalised:
+        for i in range(6):
+            for j in range(6):
+                fit_covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
+        inverse = _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp,
+                                      mode_prior_sigma, offset_precision)
     if estimated:
         # The fit with each lamp's modes, from the weights the fit without them ended with (the
         # modes take up part of that scatter), their prior sigma estimated at each reweighting.
@@ -250,7 +266,25 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
         step[i] = solution[i]
         for j in range(6):
             covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
-    return cost, offset, mode_sigma
+    return cost, offset, mode_sigma, marginalised
+
+
+@kernel
+def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
+                        offset_precision):
+    """The inverse information of the pose, the offset and each lamp's modes under their prior sigmas
+    (a lamp without one: its modes fixed at 0), the rim points weighted as the fit left them."""
+    upper, gradient = np.zeros((width, width)), np.zeros(width)
+    _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
+    information = _symmetric(upper)
+    information[6, 6] += offset_precision
+    for lamp in range(mode_prior_sigma.shape[0]):
+        sigma = mode_prior_sigma[lamp]
+        precision = 1.0 / (sigma * sigma) if sigma > 0.0 else 1e30
+        for j in range(per_lamp):
+            k = 7 + per_lamp * lamp + j
+            information[k, k] += precision
+    return np.linalg.inv(information)
 
 
 @kernel

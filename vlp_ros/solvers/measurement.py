@@ -46,6 +46,8 @@ class LampMeasurement:
     marker_pixel: np.ndarray | None
     marker_sigma: float
     marker_ray: np.ndarray | None
+    # The prior sigma (px) of the rim's smooth error patterns (``LampObservation.rim_model_sigma``).
+    rim_model_sigma: float = 0.0
 
     @classmethod
     def from_observation(cls, observation: LampObservation, lamp: Lamp,
@@ -72,7 +74,8 @@ class LampMeasurement:
                                camera.pinhole_pixel_inverse)
         return cls(lamp=lamp, camera=camera, rim_rays=rays, rim_pixel_jacobian=lens,
                    rim_sigma=float(observation.rim_sigma), marker_pixel=marker,
-                   marker_sigma=float(observation.marker_sigma), marker_ray=marker_ray)
+                   marker_sigma=float(observation.marker_sigma), marker_ray=marker_ray,
+                   rim_model_sigma=float(observation.rim_model_sigma))
 
     def thinned(self, max_rim_points: int) -> LampMeasurement:
         """The same measurement on every k-th rim point, at most ``max_rim_points`` of them."""

@@ -166,7 +166,7 @@ def widened_where_up_disagrees(candidates: list[PoseCandidate], up: Sequence[UpM
     for candidate in candidates:
         pose = candidate.pose
         for measurement in up:
-            innovation = measurement.innovation(pose)
+            innovation = measurement.innovation(pose, candidate.separating_covariance)
             if innovation > UP_DOUBT:
                 # Only the disagreement beyond what noise explains (2, its mean) is in doubt.
                 excess = 1.0 - 2.0 / innovation
@@ -273,13 +273,16 @@ def _chi_square(measurements: Sequence[Measurement], pose: Pose) -> float:
 
 def _turning_about(candidate: PoseCandidate, lamp: Lamp) -> PoseCandidate:
     pose = candidate.pose
-    pose.covariance = with_rotation_curvature(pose.covariance, lamp.position - pose.position)
+    lever = lamp.position - pose.position
+    pose.covariance = with_rotation_curvature(pose.covariance, lever)
+    if candidate.fit_covariance is not None:
+        candidate.fit_covariance = with_rotation_curvature(candidate.fit_covariance, lever)
     return candidate
 
 
 def _straddle_frontal(better: PoseCandidate, other: PoseCandidate) -> bool:
     separation = other.pose.error_vector(better.pose)
-    return inverse_form(better.pose.covariance, separation) < FRONTAL_SEPARATION_M2
+    return inverse_form(better.separating_covariance, separation) < FRONTAL_SEPARATION_M2
 
 
 def _midpoint(a: PoseCandidate, b: PoseCandidate, measurement: LampMeasurement) -> PoseCandidate:

@@ -67,13 +67,14 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
         joint = joined([m.terms for m in terms])
         fit = allow_for_model_error(residuals, jacobian, joint.rim_sigma,
                                     rim_error_modes(joint, pose.rotation, pose.position), joint.lamp_of_point,
-                                    len(joint.centres), len(joint.marker_maps))
+                                    len(joint.centres), len(joint.marker_maps),
+                                    np.array([m.rim_model_sigma for m in measurements if len(m.terms.centres)]))
     except (np.linalg.LinAlgError, ValueError):
         return None
     pose = Pose(*perturbed(pose, fit.step), fit.covariance)
     if not all(m.lamp_center_in_camera(pose.rotation, pose.position)[2] > 0.0 for m in measurements):
         return None
-    return PoseCandidate(pose=pose, cost=fit.cost, residual_count=count)
+    return PoseCandidate(pose=pose, cost=fit.cost, residual_count=count, fit_covariance=fit.fit_covariance)
 
 
 def forecast_minimum(initial: Pose, measurements: Sequence[Measurement]) -> float:

@@ -65,16 +65,19 @@ class UpMeasurement:
         to the pose perturbation of ``covariance.perturbed`` (the position columns are zero)."""
         return linearize(self.terms, rotation, position)
 
-    def innovation(self, pose: Pose) -> float:
+    def innovation(self, pose: Pose, covariance: np.ndarray | None = None) -> float:
         """Chi-square (2 dof) of this measurement against the rest of a fit that included it,
-        at that fit's ``pose`` (covariance set): r^T (I - J P J^T)^-1 r, the residual over
-        its own variance after the fit has absorbed part of it. It is the measurement's
-        disagreement with what the lamps alone say about the up direction, in sigmas
-        squared; 0 along directions the lamps do not observe at all (nothing to disagree with)."""
-        if pose.covariance is None:
+        at that fit's ``pose`` with the fit's ``covariance`` (None: the pose's):
+        r^T (I - J P J^T)^-1 r, the residual over its own variance after the fit has absorbed
+        part of it. It is the measurement's disagreement with what the lamps alone say about
+        the up direction, in sigmas squared; 0 along directions the lamps do not observe at all
+        (nothing to disagree with). P must be the fit's own posterior (a covariance widened
+        for model error is not: ``PoseCandidate.separating_covariance``)."""
+        covariance = pose.covariance if covariance is None else covariance
+        if covariance is None:
             raise ValueError('the pose has no covariance')
         residual, jacobian = self.linearize(pose.rotation, pose.position)
-        return _innovation(jacobian, np.ascontiguousarray(pose.covariance, dtype=float), residual, _PSEUDO_INVERSE_RCOND)
+        return _innovation(jacobian, np.ascontiguousarray(covariance, dtype=float), residual, _PSEUDO_INVERSE_RCOND)
 
 
 @kernel
@@ -152,5 +155,6 @@ def with_agreeing_up(solve: Callable[[Sequence[UpMeasurement]], list[PoseCandida
     with (innovation over ``UP_INNOVATION_GATE``): an accelerating IMU's "gravity" would
     otherwise pull the pose away from what the lamps show."""
     candidates = solve(up)
-    agreeing = [m for m in up if any(m.innovation(c.pose) <= UP_INNOVATION_GATE for c in candidates)]
+    agreeing = [m for m in up if any(m.innovation(c.pose, c.separating_covariance) <= UP_INNOVATION_GATE
+                                     for c in candidates)]
     return candidates if len(agreeing) == len(up) else solve(agreeing)
