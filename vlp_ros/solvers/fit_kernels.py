@@ -68,9 +68,17 @@ class Terms(NamedTuple):
         return len(self.rays) + 2 * len(self.marker_maps) + 2 * len(self.up_directions)
 
 
+def _fields(first: str, last: str) -> slice:
+    """The positions of the fields of ``Terms`` from ``first`` to ``last``."""
+    return slice(Terms._fields.index(first), Terms._fields.index(last) + 1)
+
+
 # Fields that come and go together: a lamp's rim points (and the lamp), markers, up directions.
-_KINDS = (('rays', 'lens', 'rim_sigma', 'lamp_of_point', 'centres', 'radii_squared'),
-          ('marker_maps', 'marker_pixels', 'marker_sigma'), ('up_directions', 'up_tangents', 'up_sigma'))
+_KINDS = (_fields('rays', 'radii_squared'), _fields('marker_maps', 'marker_sigma'),
+          _fields('up_directions', 'up_sigma'))
+_CAMERA = _fields('intrinsics', 'distortion')
+_LAMP_OF_POINT = Terms._fields.index('lamp_of_point')
+_NONE = Terms()
 
 
 def joined(parts: Sequence[Terms]) -> Terms:
@@ -78,19 +86,22 @@ def joined(parts: Sequence[Terms]) -> Terms:
     seen through the first camera that has lamps or projected points."""
     if len(parts) == 1:
         return parts[0]
-    fields = {}
+    # By field position rather than name: this runs several times per solve, where getattr and
+    # keyword construction cost more than the arrays' work.
+    fields = list(_NONE)
     for kind in _KINDS:
-        having = [t for t in parts if len(getattr(t, kind[0]))]
+        having = [t for t in parts if len(t[kind.start])]
         if len(having) == 1:
             # The common case (one lamp term, one up term): nothing to copy.
-            fields.update((name, getattr(having[0], name)) for name in kind)
+            fields[kind] = having[0][kind]
         elif having:
-            fields.update((name, np.concatenate([getattr(t, name) for t in having])) for name in kind)
-            if kind[0] == 'rays':
+            fields[kind] = [np.concatenate([t[i] for t in having]) for i in range(kind.start, kind.stop)]
+            if kind.start == 0:
                 offsets = np.cumsum([0] + [len(t.centres) for t in having[:-1]])
-                fields['lamp_of_point'] = np.concatenate([t.lamp_of_point + o for t, o in zip(having, offsets)])
+                fields[_LAMP_OF_POINT] = np.concatenate([t.lamp_of_point + o for t, o in zip(having, offsets)])
     camera = next((t for t in parts if len(t.centres) or len(t.marker_maps)), parts[0])
-    return Terms(intrinsics=camera.intrinsics, distortion=camera.distortion, **fields)
+    fields[_CAMERA] = camera[_CAMERA]
+    return Terms._make(fields)
 
 
 def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

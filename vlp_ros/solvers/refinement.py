@@ -61,10 +61,10 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
     if count < 6:
         raise ValueError(f'{count} residuals cannot determine a 6-DoF pose')
     try:
-        pose, residuals, jacobian, converged = _levenberg_marquardt(initial, terms, _MAX_ITERATIONS, give_up)
+        joint = joined([m.terms for m in terms])
+        pose, residuals, jacobian, converged = _levenberg_marquardt(initial, joint, _MAX_ITERATIONS, give_up)
         if not converged:
             return None
-        joint = joined([m.terms for m in terms])
         fit = allow_for_model_error(residuals, jacobian, joint.rim_sigma,
                                     rim_error_modes(joint, pose.rotation, pose.position), joint.lamp_of_point,
                                     len(joint.centres), len(joint.marker_maps),
@@ -94,16 +94,16 @@ def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: 
     ``max_iterations`` (a cheap probe of where a start leads); None if not reached, or if
     ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations."""
     try:
-        pose, residuals, _, converged = _levenberg_marquardt(initial, measurements, max_iterations, give_up)
+        pose, residuals, _, converged = _levenberg_marquardt(initial, joined([m.terms for m in measurements]),
+                                                             max_iterations, give_up)
     except np.linalg.LinAlgError:
         return None
     return (pose, float(residuals @ residuals)) if converged else None
 
 
-def _levenberg_marquardt(pose: Pose, measurements: Sequence[Measurement], max_iterations: int,
+def _levenberg_marquardt(pose: Pose, terms: Terms, max_iterations: int,
                          give_up: Callable[[Pose, float], bool] | None = None
                          ) -> tuple[Pose, np.ndarray, np.ndarray, bool]:
-    terms = joined([m.terms for m in measurements])
     rotation, position = np.array(pose.rotation, dtype=float), np.array(pose.position, dtype=float)
     residuals, jacobian = np.empty(terms.residual_count), np.empty((terms.residual_count, 6))
     cost = linearize_into(rotation, position, *terms, residuals, jacobian)
