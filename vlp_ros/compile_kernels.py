@@ -4,7 +4,8 @@ Numba compiles a kernel on its first call for the argument types it gets (about
 half a second per kernel, a minute for all of them); a node would pay that on
 its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
 every kind the nodes meet (colour and mono8, one and several lamps, packet and
-tone beacons), so the machine code is cached beside the modules
+tone beacons, sharp lamps and the realistic look's clipped, glaring ones, read over
+their glow), so the machine code is cached beside the modules
 (``vlp_ros.compiled``). ``make build`` runs this for the installed package and
 for the source tree the tests import; the locator runs ``warm_up`` before it
 subscribes, which then only loads the machine code (about a second), so that its
@@ -21,6 +22,7 @@ import numpy as np
 from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
 from vlp_ros.pipeline import Pipeline
 from vlp_ros.sim.imu import specific_force
+from vlp_ros.sim.looks import LOOKS, apply_look
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
 
@@ -60,6 +62,8 @@ def warm_up() -> None:
     """Every kernel the pipeline calls compiled, or loaded from the cache, for the types the nodes give it."""
     run_scenario(paper_scenario('1080p', points=3, postures=1), frames=3)
     run_scenario(robot_scenario(), frames=3)
+    # Clipped, blurred lamps with glare: the beacon reads them over their light (glow included).
+    run_scenario(apply_look(paper_scenario('4k', points=3, postures=1), LOOKS['realistic']), frames=1)
     read_tone_lamps(trials=4)
 
 
