@@ -116,3 +116,27 @@ def spin_until(node, condition: Callable[[], bool], timeout: float) -> bool:
             return True
         rclpy.spin_once(node, timeout_sec=0.05)
     return condition()
+
+
+def located_through_the_nodes(test_node, start_process: Callable[..., RosProcess], bag: Path, params: Path,
+                              topics, imu: bool, group: str) -> list:
+    """Every frame of the recording at ``bag`` played by the installed replay into the installed
+    locator (``params``), one frame at a time; each frame's outcome against the bag's truth, once
+    every frame was answered with its own stamp."""
+    from vlp_ros.evaluation.demo import PoseListener, outcomes_from_answers
+    from vlp_ros.evaluation.recording import ground_truth
+    truth = ground_truth(bag, topics.ground_truth)
+    listener = PoseListener(test_node)
+    locator = start_process('locator', '--ros-args', '--params-file', params)
+    # Subscribed once its kernels are loaded, which takes as long as the machine is busy.
+    assert spin_until(test_node, lambda: test_node.count_subscribers(topics.image) > 0, 120.0), locator.output()
+    # Every frame waits for its answer however slow the machine: an answer the replay stops waiting for
+    # lets the next frame in, and a third one then replaces that one in the locator's queue unseen.
+    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '60', '--topics', topics.image,
+                           topics.camera_info, *([topics.imu] if imu else []))
+    assert spin_until(test_node, lambda: replay.popen.poll() is not None, 900.0), replay.output()
+    assert replay.popen.returncode == 0 and 'unanswered: 0' in replay.stderr(), replay.output()
+    spin_until(test_node, lambda: set(listener.outcomes) == set(truth), 10.0)
+    assert set(listener.outcomes) == set(truth), 'every frame answered once, with its own stamp'
+    assert set(listener.poses) <= set(truth)
+    return outcomes_from_answers(truth, listener, group)

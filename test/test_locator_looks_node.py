@@ -14,12 +14,11 @@ import math
 
 import numpy as np
 import pytest
-from conftest import spin_until
+from conftest import located_through_the_nodes
 
 from vlp_ros.benchmarks.accuracy import SetupRun, availability
-from vlp_ros.evaluation.demo import PoseListener, outcomes_from_answers
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
+from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.looks import LOOKS, apply_look
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import (Scenario, as_stills, paper_scenario, robot_drive_scenario, robot_scenario,
@@ -54,19 +53,7 @@ def test_a_look_through_the_locator_gives_no_wrong_fix(start_process, test_node,
            on_frame=lambda frame: in_view.append(any(t.fully_inside for t in scenario.mapped_truths(frame))))
     write_params(params, scenario, imu=imu)
     topics = RecordingTopics(image='/image_raw/compressed' if scenario.jpeg_quality else '/image_raw')
-    truth = ground_truth(bag, topics.ground_truth)
-
-    listener = PoseListener(test_node)
-    locator = start_process('locator', '--ros-args', '--params-file', params)
-    assert spin_until(test_node, lambda: test_node.count_subscribers(topics.image) > 0, 120.0), locator.output()
-    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '60', '--topics', topics.image,
-                           topics.camera_info, *([topics.imu] if imu else []))
-    assert spin_until(test_node, lambda: replay.popen.poll() is not None, 900.0), replay.output()
-    assert replay.popen.returncode == 0 and 'unanswered: 0' in replay.stderr(), replay.output()
-    spin_until(test_node, lambda: set(listener.outcomes) == set(truth), 10.0)
-    assert set(listener.outcomes) == set(truth), 'every frame answered once'
-
-    outcomes = outcomes_from_answers(truth, listener, case)
+    outcomes = located_through_the_nodes(test_node, start_process, bag, params, topics, imu, case)
     located = [o for o in outcomes if o.estimate is not None]
     errors = [o.estimate.position_error(o.truth) for o in located]
     assert not errors or max(errors) < WRONG_FIX_M, f'a wrong fix: {max(errors):.2f} m'

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from conftest import spin_until
+from conftest import located_through_the_nodes
 
-from vlp_ros.evaluation.demo import TOPICS, PoseListener, outcomes_from_answers
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
+from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
 from vlp_ros.sim.recording import record, write_params
@@ -24,16 +23,8 @@ def test_the_rigs_measured_look_as_jpeg_is_located_through_the_locator(test_node
     bag, params = tmp_path / scenario.name, tmp_path / 'params.yaml'
     record(scenario, bag, 'sqlite3', True, np.random.default_rng(7))
     write_params(params, scenario, imu=True)
-    truth = ground_truth(bag, RecordingTopics().ground_truth)
-
-    listener = PoseListener(test_node)
-    locator = start_process('locator', '--ros-args', '--params-file', params)
-    assert spin_until(test_node, lambda: test_node.count_publishers('vlp/processed') > 0, 60.0), locator.output()
-    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '30', '--topics',
-                           COMPRESSED_TOPIC, TOPICS.camera_info, TOPICS.imu)
-    assert spin_until(test_node, lambda: len(listener.outcomes) == FRAMES, 180.0), (locator.output(), replay.output())
-    assert replay.wait(30.0) == 0, replay.output()
-    outcomes = outcomes_from_answers(truth, listener, scenario.name)
+    topics = RecordingTopics(image=COMPRESSED_TOPIC)
+    outcomes = located_through_the_nodes(test_node, start_process, bag, params, topics, True, scenario.name)
 
     # On main the glow was not read: no photo of this look had three IDs, so none had a pose.
     located = [o for o in outcomes if o.estimate is not None]

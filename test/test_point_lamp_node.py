@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from conftest import spin_until
+from conftest import located_through_the_nodes
 
-from vlp_ros.evaluation.demo import TOPICS, PoseListener, outcomes_from_answers
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
+from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
 from vlp_ros.sim.recording import record, write_params
 
@@ -26,19 +25,9 @@ def test_bare_led_photos_are_located_from_point_lamps(test_node, start_process, 
     bag, params = tmp_path / scenario.name, tmp_path / 'params.yaml'
     record(scenario, bag, 'sqlite3', False, np.random.default_rng(7))
     write_params(params, scenario, imu=False)
-    truth = ground_truth(bag, RecordingTopics().ground_truth)
+    outcomes = located_through_the_nodes(test_node, start_process, bag, params, RecordingTopics(), False,
+                                         scenario.name)
 
-    listener = PoseListener(test_node)
-    locator = start_process('locator', '--ros-args', '--params-file', params)
-    assert spin_until(test_node, lambda: test_node.count_publishers('vlp/processed') > 0, 60.0), locator.output()
-    # Each photo waits for the locator's answer; a 4K frame takes ~0.1 s alone, longer on a busy machine.
-    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '30', '--topics', TOPICS.image,
-                           TOPICS.camera_info)
-    assert spin_until(test_node, lambda: len(listener.outcomes) == FRAMES, 180.0), (locator.output(), replay.output())
-    assert replay.wait(30.0) == 0, replay.output()
-    outcomes = outcomes_from_answers(truth, listener, scenario.name)
-
-    assert set(listener.outcomes) == set(truth), 'every photo answered once'
     located = [o for o in outcomes if o.estimate is not None]
     assert len(located) >= FRAMES // 2, [o.reason for o in outcomes]
     errors = [o.estimate.position_error(o.truth) for o in located]
