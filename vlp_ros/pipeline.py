@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_packet, decode_tone,
-                                     read_lamp)
+from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_clipped_packet, decode_packet,
+                                     decode_tone, read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.tone import agreeing, point_light_profile
 from vlp_ros.camera import CameraModel
@@ -170,7 +170,9 @@ class Pipeline:
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),
             decode_glow=lambda profile: decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits,
-                                                      self._known_ids, blur_mixes=BLUR_MIXES))
+                                                      self._known_ids, blur_mixes=BLUR_MIXES),
+            decode_clipped=lambda profile: decode_clipped_packet(profile, beacon.chip_rate, beacon.row_time,
+                                                                 beacon.id_bits, self._known_ids))
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
         s = self.settings

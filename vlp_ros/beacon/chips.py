@@ -131,11 +131,23 @@ def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float 
 
 def _on_grid(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float | None,
              sigma2: float) -> ChipLevels | None:
-    interior = period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
-    index, levels, variances, start = _levels(sums, rows, period, phase % period, interior, sigma2)
+    index, levels, variances, start = _levels(sums, rows, period, phase % period, _interior(period, margin),
+                                              sigma2)
     if index.size == 0:
         return None
     return ChipLevels(index, levels, variances, period, start)
+
+
+def _interior(period: float, margin: float | None) -> float:
+    """Rows left out at each end of a chip: ``margin``, at most what leaves a row (None: a quarter chip)."""
+    return period / 4.0 if margin is None else min(margin, 0.5 * (period - 1.0))
+
+
+def interior_bounds(levels: ChipLevels, margin: float | None, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where each chip of ``levels`` begins and ends the rows it averages (within the window's ``size`` rows)."""
+    interior = _interior(levels.period, margin)
+    start = levels.phase + levels.period * levels.index
+    return (np.clip(start + interior, 0.0, size), np.clip(start + levels.period - interior, 0.0, size))
 
 
 @kernel

@@ -9,18 +9,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from vlp_ros.beacon.packet import BLUR_MIXES, decode_packet
+from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_packet
 from vlp_ros.beacon.profile import RowProfile, light_profile, row_profile
 from vlp_ros.beacon.reading import UNMAPPED, BeaconReading, has_evidence
 from vlp_ros.beacon.tone import decode_tone
 from vlp_ros.observation import LampObservation
 
-__all__ = ['BLUR_MIXES', 'BeaconReading', 'RowProfile', 'UNMAPPED', 'decode_packet', 'decode_tone', 'light_profile',
+__all__ = ['BLUR_MIXES', 'BeaconReading', 'RowProfile', 'UNMAPPED', 'decode_clipped_packet', 'decode_packet', 'decode_tone', 'light_profile',
            'has_evidence', 'read_lamp', 'row_profile']
 
 
 def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[[RowProfile], BeaconReading],
-              glow: bool = True, decode_glow: Callable[[RowProfile], BeaconReading] | None = None) -> BeaconReading:
+              glow: bool = True, decode_glow: Callable[[RowProfile], BeaconReading] | None = None,
+              decode_clipped: Callable[[RowProfile], BeaconReading] | None = None) -> BeaconReading:
     """One lamp's reading, as the locator takes it: ``decode`` of the disc's interior first (quick, and all a
     sharp, unclipped lamp needs). When the disc holds no evidence at all (its chips fit no packet, as a
     clipped, blurred disc's do) and ``glow`` is set, every row the lamp's light reaches (glow, glare, the
@@ -35,9 +36,19 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
 
     Tone mode reads the disc only (``glow=False``, docs/beacon.md): blur across rows rounds the stripes
     that the glow shows unclipped, and the square wave fitted with the given exposure then misplaces the
-    frequency (on the foreign frames, mapped lamps read as off the map, once near a harmonic)."""
-    disc = decode(row_profile(image, observation))
-    if disc.lamp_id is not None or disc.unknown or not glow or has_evidence(disc):
+    frequency (on the foreign frames, mapped lamps read as off the map, once near a harmonic).
+
+    ``decode_clipped`` (packet mode: ``decode_clipped_packet``) reads a disc that ``decode`` leaves without an ID
+    again with its clipped chips censored; only a certain reading of it is taken, like the glow's."""
+    disc_profile = row_profile(image, observation)
+    disc = decode(disc_profile)
+    if disc.lamp_id is not None or disc.unknown:
+        return disc
+    if decode_clipped is not None:
+        clipped = decode_clipped(disc_profile)
+        if clipped.lamp_id is not None or clipped.unknown:
+            return clipped
+    if not glow or has_evidence(disc):
         return disc
     profile = light_profile(image, observation)
     light = decode(profile)
