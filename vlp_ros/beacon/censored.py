@@ -32,12 +32,37 @@ _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 # Envelope (3, quadratic in the chip index) and contrast-times-envelope (2, linear: kept positive at
 # both ends of the window, so positive all along it).
 _PARAMETERS = 5
+# Relative step of the periods the run middles are tried on (a 50-chip window drifts 0.025 chips a step).
+_PERIOD_STEP = 5e-4
 
 
 @lru_cache(maxsize=4)
 def _signs(id_bits: int) -> np.ndarray:
     """Every ID's packet as chip signs (+1 bright, -1 dark), (2^id_bits, L)."""
     return np.array([packet_chips(i, id_bits) for i in range(2 ** id_bits)], dtype=float) * 2.0 - 1.0
+
+
+def clipped_run_grids(share: np.ndarray, period: float, tolerance: float) -> list[tuple[float, float]]:
+    """Chip grids (period, where a chip begins, in rows) from where the rows cross half clipped.
+
+    Blur erodes a dark run and widens a bright one by the same rows at both ends, so the middles of the runs
+    between crossings lie on chip edges (runs of even length) or chip middles (odd): on a lattice of half
+    chips. The period within +-``tolerance`` (relative) that puts them best on such a lattice, and its two
+    readings (chips beginning on the lattice, or half a chip off it); none with fewer than three runs."""
+    above = share > 0.5
+    edges = np.flatnonzero(above[1:] != above[:-1])
+    # Sub-row crossing positions (row r covers [r, r + 1)): where the share passes 0.5 between row middles.
+    crossings = edges + 0.5 + (0.5 - share[edges]) / (share[edges + 1] - share[edges])
+    middles = 0.5 * (crossings[1:] + crossings[:-1])
+    if len(middles) < 3:
+        return []
+    steps = max(int(math.ceil(tolerance / _PERIOD_STEP)), 1)
+    periods = period * (1.0 + _PERIOD_STEP * np.arange(-steps, steps + 1))
+    phasors = np.exp(4j * np.pi * middles[None, :] / periods[:, None]).sum(axis=1)
+    best = int(np.argmax(np.abs(phasors)))
+    found = periods[best]
+    lattice = (np.angle(phasors[best]) / (4.0 * np.pi) * found) % (0.5 * found)
+    return [(found, lattice), (found, lattice + 0.5 * found)]
 
 
 def raw_chips(z: np.ndarray, w: np.ndarray, share: np.ndarray, levels: ChipLevels,

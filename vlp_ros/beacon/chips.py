@@ -110,6 +110,14 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
     return _on_grid(sums, rows, period, phase, margin, sigma2)
 
 
+def levels_on_grid(z: np.ndarray, w: np.ndarray, period: float, phase: float,
+                   margin: float | None) -> ChipLevels | None:
+    """Chip levels of modulation ``z`` (weights ``w``) on the grid whose chips begin at ``phase`` + k ``period``
+    rows (None: no chip holds enough rows)."""
+    sums, rows = _cumulative(z, w)
+    return _on_grid(sums, rows, period, phase, margin, max(_noise_variance(z, w), 1e-12))
+
+
 def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float | None,
                  offsets: tuple[float, ...], scales: tuple[float, ...]) -> list[ChipLevels]:
     """Chip levels on the grids around ``found``'s: its chip edges moved by each of ``offsets`` (in chips) and
