@@ -21,6 +21,7 @@ import numpy as np
 from vlp_ros.beacon.chips import ChipLevels, interior_bounds
 from vlp_ros.beacon.encoding import packet_chips
 from vlp_ros.compiled import kernel
+from vlp_ros.detection.marker import _solve4
 
 # A chip whose interior rows have more than this share of their pixels clipped is censored.
 CENSORED_SHARE = 0.5
@@ -218,29 +219,9 @@ def _mills(u: float) -> float:
 
 @kernel
 def _solve(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
-    """matrix^-1 vector for a small symmetric positive semi-definite matrix (Cholesky, a tiny ridge against a
-    singular one: a hypothesis whose template the envelope explains)."""
-    size = len(vector)
-    ridge = 1e-12
-    for a in range(size):
-        ridge += 1e-9 * matrix[a, a]
-    lower = np.zeros((size, size))
-    for a in range(size):
-        for b in range(a + 1):
-            total = matrix[a, b] + (ridge if a == b else 0.0)
-            for c in range(b):
-                total -= lower[a, c] * lower[b, c]
-            lower[a, b] = math.sqrt(max(total, 1e-300)) if a == b else total / lower[b, b]
-    forward = np.zeros(size)
-    for a in range(size):
-        total = vector[a]
-        for c in range(a):
-            total -= lower[a, c] * forward[c]
-        forward[a] = total / lower[a, a]
-    result = np.zeros(size)
-    for a in range(size - 1, -1, -1):
-        total = forward[a]
-        for c in range(a + 1, size):
-            total -= lower[c, a] * result[c]
-        result[a] = total / lower[a, a]
-    return result
+    """matrix^-1 vector for a small symmetric positive semi-definite matrix, a tiny ridge against a singular
+    one (a hypothesis whose template the envelope explains)."""
+    ridged = matrix.copy()
+    for a in range(len(vector)):
+        ridged[a, a] += 1e-9 * matrix[a, a] + 1e-12
+    return _solve4(ridged, vector)
