@@ -29,6 +29,16 @@ def test_availability_counts_frames_with_a_lamp_and_gaps_recovered_within_three_
     assert a.rate == pytest.approx(0.4)
 
 
+def test_a_gap_the_recording_ends_too_soon_after_to_tell_is_not_judged():
+    # After the gap at 2 no pose on frames 3, 4 and 6; after the gap at 5 the recording ends after two frames
+    # with a lamp, both without a pose: too soon to tell, so not counted either way.
+    in_view = [True, True, False, True, True, False, True, True]
+    posed = [False, True, False, False, False, False, False, False]
+    run = accuracy.SetupRun({'perspective': [outcome(p) for p in posed]}, [], in_view)
+    a = accuracy.availability(run, 'perspective')
+    assert (a.gaps, a.recovered) == (1, 0)
+
+
 def test_targets_need_poses_and_name_their_issue():
     run = accuracy.SetupRun({'perspective': [outcome(False)] * 3}, [], [True] * 3)
     a = accuracy.availability(run, 'perspective')

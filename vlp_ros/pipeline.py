@@ -23,6 +23,7 @@ from vlp_ros.pinhole_view import solver_view
 from vlp_ros.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, explains_the_image
+from vlp_ros.solvers.continuity_ids import settled_by_continuity
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.joint_ids import claimed_once, odd_one_out, open_lamps, settle
 from vlp_ros.solvers.paper import solve_lamp_paper
@@ -90,6 +91,8 @@ class Pipeline:
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp)
         ids, pairs, solved = self._identified_with_geometry(observations, ids, readings, camera, stamp, gravity_up)
+        if not pairs:
+            ids, pairs = self._identified_by_continuity(observations, ids, camera, stamp, gravity_up, solved)
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
         seen = [_seen_lamp(obs, i, reading, self.settings.lamps) for obs, i, reading in zip(observations, ids, readings)]
@@ -150,6 +153,28 @@ class Pipeline:
         by_observation = {id(obs): lamp.id for obs, lamp in settled}
         ids = [by_observation.get(id(obs), i) for obs, i in zip(observations, ids)]
         return ids, certain + settled, solved
+
+    def _identified_by_continuity(self, observations: list[LampObservation], ids: list[int | None],
+                                  camera: CameraModel, stamp: float, gravity_up: np.ndarray | None,
+                                  solved: dict[tuple, Choice]) -> tuple[list[int | None],
+                                                                         list[tuple[LampObservation, Lamp]]]:
+        """When no lamp is identified otherwise: the lamps that only one lamp of the map can be, this close
+        to the recent pose (``solvers.continuity_ids``), as IDs and pairs to solve from."""
+        hints = self._hints(stamp, gravity_up)
+        if self.settings.solver != 'perspective' or not hints.continuity_counts:
+            return ids, []
+
+        def solve(tried: list[tuple[LampObservation, Lamp]]) -> Choice:
+            key = _key(tried)
+            if key not in solved:
+                solved[key] = self._solve(*solver_view(tried, camera), stamp, gravity_up)
+            return solved[key]
+
+        settled = [settled_by_continuity(obs, evidence, self.settings.lamps, hints.recent_pose,
+                                         hints.recent_gate(), solve)
+                   for obs, evidence in zip(observations, self.tracker.evidence)]
+        ids = [lamp.id if lamp is not None else i for lamp, i in zip(settled, ids)]
+        return ids, [(obs, lamp) for obs, lamp in zip(observations, settled) if lamp is not None]
 
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon

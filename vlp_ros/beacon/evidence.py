@@ -80,6 +80,8 @@ class EvidenceTracker:
         self.reach = reach
         self.tracks: list[_Track] = []
         self.decisions: list[Decision] = []
+        # Per observation of the latest update: its track's evidence so far, as one reading.
+        self.evidence: list[BeaconReading] = []
         self._stamp: float | None = None
 
     def update(self, observations: Sequence[LampObservation], readings: Sequence[BeaconReading],
@@ -92,7 +94,7 @@ class EvidenceTracker:
         self._stamp = stamp
         self.tracks = [t for t in self.tracks if stamp - t.last_seen <= self.max_gap]
         matches = self._associate(observations, stamp)
-        self.decisions = []
+        self.decisions, self.evidence = [], []
         for k, (observation, reading) in enumerate(zip(observations, readings)):
             track = matches.get(k)
             if track is None:
@@ -105,7 +107,11 @@ class EvidenceTracker:
                 track.restart(reading)
             track.follow(observation, stamp)
             track.frames += 1
-            self.decisions.append(self._decide(track))
+            decision = self._decide(track)
+            self.decisions.append(decision)
+            self.evidence.append(BeaconReading(decision.lamp_id, decision.confidence, track.candidates,
+                                               track.log_likelihoods, track.log_prior, track.mapped,
+                                               decision.unknown, decision.detail))
         return [d.lamp_id for d in self.decisions]
 
     def _associate(self, observations: Sequence[LampObservation], stamp: float) -> dict[int, _Track]:

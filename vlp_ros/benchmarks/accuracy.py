@@ -265,8 +265,9 @@ def targets_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str, Error
 class Availability:
     """How often a row answered where it could: ``in_view`` frames show a mapped lamp fully,
     ``posed`` of them got a pose (``elsewhere``: poses on the other frames); ``reasons`` why
-    the rest got none; ``gaps`` spans without such a lamp that the recording resumes after,
-    ``recovered`` of them with a pose within FRAMES_AFTER_GAP frames with a lamp;
+    the rest got none; ``gaps`` spans without such a lamp that the recording resumes after (for
+    FRAMES_AFTER_GAP frames with a lamp, or fewer with a pose), ``recovered`` of them with a pose
+    within FRAMES_AFTER_GAP frames with a lamp;
     ``beyond_bound``: poses whose NEES is outside the 99.9 % chi-square bound."""
 
     frames: int
@@ -287,11 +288,13 @@ def availability(run: SetupRun, solver: str) -> Availability:
     outcomes = run.outcomes[solver]
     posed = [o.estimate is not None for o in outcomes]
     in_view = run.in_view
-    starts = [k for k in range(1, len(in_view)) if in_view[k] and not in_view[k - 1]]
-    recovered = 0
-    for start in starts:
+    starts, recovered = [], 0
+    for start in (k for k in range(1, len(in_view)) if in_view[k] and not in_view[k - 1]):
         window = [k for k in range(start, len(in_view)) if in_view[k]][:FRAMES_AFTER_GAP]
-        recovered += any(posed[k] for k in window)
+        # A gap the recording ends too soon after to tell is not judged, unless it was recovered.
+        if len(window) == FRAMES_AFTER_GAP or any(posed[k] for k in window):
+            starts.append(start)
+            recovered += any(posed[k] for k in window)
     nees_values = [nees_or_nan(o.estimate, o.truth) for o in outcomes if o.estimate is not None]
     return Availability(
         frames=len(outcomes), in_view=sum(in_view), posed=sum(p and v for p, v in zip(posed, in_view)),
