@@ -1,8 +1,8 @@
 """Clipped, blurred lamps through the installed executables over DDS (issue 14: saturation with blur): the
 simulator's realistic hand-held stills (lamp 2.2 x the ceiling, blur 1.6 px, glare, falloff, two clutter
-lamps) -> replay -> locator. Main identified the lamp on none of these 9 stills (its Gaussian chip fit
-refuses a clipped disc); read with its clipped chips censored, the lamp is identified on 5 of them in the
-core, and never a wrong fix."""
+lamps) -> replay -> locator. In the core (one noise draw), main got a pose on 3 of these 9 stills (its
+Gaussian chip fit refuses a clipped disc, whose glow then rarely carries the ID); read with its clipped
+chips censored, 5 of them; never a wrong fix."""
 from __future__ import annotations
 
 import numpy as np
