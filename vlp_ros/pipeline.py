@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import (BLUR_MIXES, BeaconReading, RowProfile, decode_clipped_packet, decode_packet,
+from vlp_ros.beacon.decoding import (BeaconReading, RowProfile, decode_clipped_packet, decode_glow, decode_packet,
                                      decode_tone, read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.tone import agreeing, point_light_profile
@@ -194,8 +194,8 @@ class Pipeline:
         # Packet decoding is benchmarked without the exposure (docs/beacon.md): it is not passed.
         return read_lamp(image, observation, lambda profile: decode_packet(
             profile, beacon.chip_rate, beacon.row_time, beacon.id_bits, self._known_ids),
-            decode_glow=lambda profile: decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits,
-                                                      self._known_ids, blur_mixes=BLUR_MIXES),
+            decode_glow=lambda profile: decode_glow(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits,
+                                                    self._known_ids),
             decode_clipped=lambda profile: decode_clipped_packet(profile, beacon.chip_rate, beacon.row_time,
                                                                  beacon.id_bits, self._known_ids))
 

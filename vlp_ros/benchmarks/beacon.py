@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.beacon.decoding import BLUR_MIXES, BeaconReading, decode_packet, decode_tone, read_lamp, row_profile
+from vlp_ros.beacon.decoding import BeaconReading, decode_glow, decode_packet, decode_tone, read_lamp, row_profile
 from vlp_ros.beacon.camera_settings import MIN_ROWS_PER_PERIOD, MIN_TRANSMISSION
 from vlp_ros.beacon.encoding import packet_chips, packet_length, packet_waveform, tone_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
@@ -243,10 +243,11 @@ def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
     scene = lamp_scene(rng, lamp_id, rows, waveform, condition, row_time, exposure)
     nominal_rate = chip_rate * (1.0 + rng.uniform(-0.02, 0.02))
     nominal_row_time = row_time * (1.0 + rng.uniform(-0.01, 0.01)) / (1.0 + condition.look.row_time_error)
-    def decode(profile: RowProfile, blur_mixes: tuple[float, ...] = (0.0,)) -> BeaconReading:
+    def decode(profile: RowProfile) -> BeaconReading:
         return decode_packet(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS,
-                             unmapped_weight=unmapped_weight, blur_mixes=blur_mixes)
-    return scene, decode, lambda profile: decode(profile, BLUR_MIXES)
+                             unmapped_weight=unmapped_weight)
+    return scene, decode, lambda profile: decode_glow(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS,
+                                                      unmapped_weight=unmapped_weight)
 
 
 def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, timer: Timer) -> None:
