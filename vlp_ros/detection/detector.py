@@ -365,11 +365,11 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
         return rim
     marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
     levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * math.sqrt(variance), marker)
-    fraction = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance))
-    if fraction is None:
+    level = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance))
+    if level is None:
         return None
-    points, _, clipped = _rim_points(box, levels, options, fraction)
-    model_sigma = math.hypot(edge_model_sigma(variance),
+    points, _, clipped = _rim_points(box, levels, options, level.fraction)
+    model_sigma = math.hypot(edge_model_sigma(variance, level.departure),
                              clipped_edge_model_sigma(clipped_row_share(box, options), math.sqrt(variance)))
     if len(points) < options.min_rim_points or clipped.any():
         return replace(rim, model_sigma=model_sigma)

@@ -221,8 +221,18 @@ def _ramps(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, bac
     return left[:count], right[:count], across[:count]
 
 
+@dataclass(frozen=True)
+class EdgeLevel:
+    """``edge_level_fraction``'s answer: the fraction per row, and ``departure`` (px): how far the
+    rows' crossings may still lie off the disc's edge for the light's departure from a uniform disc
+    on a dark ceiling (``edge_departure``)."""
+
+    fraction: np.ndarray
+    departure: float = 0.0
+
+
 def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: float, ellipse: np.ndarray,
-                        blur: float) -> np.ndarray | None:
+                        blur: float) -> EdgeLevel | None:
     """Where between background and each row's plateau the disc's edge lies: the step's midpoint,
     as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling), per row of ``levels``;
     None when it leaves ``_FRACTION_BOUNDS`` (the light is no disc on a ceiling: a bare LED's glow).
@@ -241,18 +251,47 @@ def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: f
     ellipse = np.asarray(ellipse, dtype=float)
     plateau_of = np.full(brightness.shape[0], np.nan)
     plateau_of[levels.rows] = levels.plateau
-    radius, fractions = _edge_fractions(brightness, levels.rows, plateau_of, float(background), conic_of(ellipse),
-                                        ellipse, float(blur))
+    radius, fractions, lifts = _edge_fractions(brightness, levels.rows, plateau_of, float(background),
+                                               conic_of(ellipse), ellipse, float(blur))
     if fractions.size < _MIN_EDGE_ROWS:
-        return np.full(levels.rows.size, 0.5)
+        return EdgeLevel(np.full(levels.rows.size, 0.5))
     departs, intercept, slope = _fraction_line(radius, fractions)
+    departure = edge_departure(blur, median(fractions), median(lifts), departs)
     if not departs:
-        return np.full(levels.rows.size, 0.5)
+        return EdgeLevel(np.full(levels.rows.size, 0.5), departure)
     row_radius = _chord_middle_radius(levels.rows, conic_of(ellipse), ellipse)
     fraction = intercept + slope * row_radius
     if fraction.min() < _FRACTION_BOUNDS[0] or fraction.max() > _FRACTION_BOUNDS[1]:
         return None
-    return fraction
+    return EdgeLevel(fraction, departure)
+
+
+# A share q of the row's rise added to one side of a step blurred by s moves its half-level crossing by
+# s Phi^-1(1/2 + q / 2), about sqrt(2 pi) s q / 2 for small q.
+_CROSSING_PER_LEVEL = math.sqrt(2.0 * math.pi)
+# Of a departure that ``edge_level_fraction`` corrects, the share left in smooth patterns round the rim:
+# on the simulator's sharp 4K discs under 30 % falloff (fraction 0.37-0.40, 0.25-0.38 px corrected),
+# 0.01-0.03 px of offset and 0.01-0.045 px of second harmonic at the true pose.
+CORRECTED_DEPARTURE_SHARE = 0.08
+UNCORRECTED_LIFT_SHARE = 0.35
+
+
+def edge_departure(blur: float, level: float, lift: float, corrected: bool) -> float:
+    """How far (px, one sigma per smooth pattern round the rim) a lamp's crossings may lie off its edge
+    for what the light shows of its departure from a uniform disc on a dark ceiling, given the edge's
+    ``blur`` (px), the median ``level`` of the edge's midpoint over the row's rise (0.5 uniform), the
+    median ``lift`` of the ceiling next to the edge over the rise (0 dark), and whether the crossings were
+    ``corrected`` to the measured level.
+
+    A glare halo lifts the ceiling beside the edge and the disc inside it alike, which moves the step's
+    midpoint little but its level on either side, and the halo's slope and its stripes move each row's
+    crossing differently: on the simulator's sharp 4K discs under a 20 % halo (lift 0.04-0.08), 0.02-0.06 px
+    of offset and up to 0.06 px of second harmonic, with the level indistinguishable from a half (0.51-0.53
+    against 0.49-0.51 clean) and so left uncorrected. Uncorrected, half the lift counts whole; a
+    level the crossings were corrected to leaves ``CORRECTED_DEPARTURE_SHARE`` of its move. A uniform disc on
+    a dark ceiling (lift 0, the level not told from a half) gives 0."""
+    moved = CORRECTED_DEPARTURE_SHARE * abs(level - 0.5) if corrected else 0.0
+    return _CROSSING_PER_LEVEL * blur * max(UNCORRECTED_LIFT_SHARE * max(lift, 0.0), moved)
 
 
 @kernel
@@ -337,12 +376,13 @@ def _chord_middle_radius(rows: np.ndarray, conic: np.ndarray, ellipse: np.ndarra
 @kernel
 def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.ndarray, background: float,
                     conic: np.ndarray, ellipse: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
-    """``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius``."""
+    """``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius`` and the
+    ceiling's level next to the edge (its outer band traced back to it) over the row's rise."""
     middle = _chord_middle_radius(rows, conic, ellipse)
     width = brightness.shape[1]
     left, right, crossed = chords(conic, rows.astype(np.float64))
     near, far = _EDGE_BANDS[0] * blur, _EDGE_BANDS[1] * blur
-    values, radius = np.empty(2 * rows.size), np.empty(2 * rows.size)
+    values, radius, lifts = np.empty(2 * rows.size), np.empty(2 * rows.size), np.empty(2 * rows.size)
     count = 0
     for i in range(rows.size):
         rise = plateau_of[rows[i]] - background
@@ -368,9 +408,10 @@ def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.nda
             inside = inside_1 - (inside_2 - inside_1) * back
             outside = outside_1 - (outside_2 - outside_1) * back
             values[count] = (0.5 * (inside + outside) - background) / rise
+            lifts[count] = (outside - background) / rise
             radius[count] = middle[i]
             count += 1
-    return radius[:count], values[:count]
+    return radius[:count], values[:count], lifts[:count]
 
 
 @kernel
@@ -399,10 +440,12 @@ SHARP_BLUR_PX = 1.0
 EDGE_MODEL_PER_BLUR_VARIANCE = 0.15
 
 
-def edge_model_sigma(blur_variance_px2: float) -> float:
+def edge_model_sigma(blur_variance_px2: float, departure_px: float = 0.0) -> float:
     """How far (px, one sigma per mode) the half-level crossings of a blurred edge may depart from
     the disc's edge in smooth patterns round the rim (an offset and the first two harmonics:
-    ``measurement.rim_error_modes``), given the edge's blur variance.
+    ``measurement.rim_error_modes``), given the edge's blur variance and what the light shows of its
+    departure from a uniform disc (``edge_departure``): the larger of the two, as a sharp edge's
+    crossings, which the blur term leaves exact, still move with glare and falloff.
 
     Any departure of the light from a uniform disc with a step edge moves the crossing of a
     blurred edge by the blur variance times the light's relative change across it: a diffuser's
@@ -411,7 +454,7 @@ def edge_model_sigma(blur_variance_px2: float) -> float:
     the stripes' relative slope), a blur that is no Gaussian. The detector's corrections for
     these (``blur_shifts``, ``edge_level_fraction``) hold while the blur stays within a pixel;
     beyond it what they leave grows with the variance."""
-    return EDGE_MODEL_PER_BLUR_VARIANCE * max(blur_variance_px2 - SHARP_BLUR_PX ** 2, 0.0)
+    return max(EDGE_MODEL_PER_BLUR_VARIANCE * max(blur_variance_px2 - SHARP_BLUR_PX ** 2, 0.0), departure_px)
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:
