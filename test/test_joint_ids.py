@@ -135,3 +135,23 @@ def test_where_the_grid_explains_every_lamp_read_as_its_neighbour_the_readings_d
     assert [lamp.id for _, lamp in settle([], read(0.999), fits_right_or_shifted)] == list(right)
     # Readings that lean less (0.7 each: the shifted assignment holds 3 % of the two) leave every lamp open.
     assert settle([], read(0.7), fits_right_or_shifted) == []
+
+
+def test_more_open_lamps_than_assignments_can_be_tried_are_settled_by_the_most_certain_ones_pose() -> None:
+    # Five open tone lamps of three candidates each: 243 assignments. The three most certain are settled
+    # by assignment, the other two against their pose (main: none identified, no pose).
+    observation = _observation()
+    right = (3, 5, 7, 9, 11)
+    anchor_pose = Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4)
+
+    def fits_right(pairs) -> Choice:
+        explained = all(lamp.id == r for (_, lamp), r in zip(pairs, right))
+        return Choice(anchor_pose if explained else None, Reason.MULTI_LAMP)
+
+    def disc(lamp_id: int) -> Lamp:
+        # Discs: three point lamps alone would explain any assignment.
+        return replace(_lamp(lamp_id), radius=0.075)
+
+    lamps = [OpenLamp(observation, (disc(r), disc(r - 1), disc(r + 1)), (p, 0.6 * (1.0 - p), 0.4 * (1.0 - p)))
+             for r, p in zip(right, (0.999, 0.9985, 0.998, 0.9975, 0.997))]
+    assert [lamp.id for _, lamp in settle([], lamps, fits_right)] == list(right)

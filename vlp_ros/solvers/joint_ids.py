@@ -10,7 +10,8 @@ to one (two lamps cannot stand at one place of the ceiling, so a second candidat
 map or geometry that cannot tell them apart; then only the reading can). When the certain lamps
 give no pose (too few of them), every assignment of the open lamps' candidates is solved (residuals
 to spare: at least two more than the pose needs, since three point lamps alone explain any
-assignment exactly), and one is taken only if it holds all but 1e-4 of the posterior (the product
+assignment exactly; with more than 27 assignments, those of the most certain lamps, the others
+then settled against their pose), and one is taken only if it holds all but 1e-4 of the posterior (the product
 of its lamps' readings: they are independent) of the assignments that explain the image, and only
 when the candidates tried hold all but 1e-4 of each open lamp's posterior: the pose is then the
 assignment's own, and on a symmetric map a wrong assignment is explained by a pose turned about the
@@ -132,9 +133,30 @@ def settle(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pa
     if not lamps:
         return []
     anchor = solve(certain) if certain else None
-    if anchor is not None and anchor.pose is not None and anchor.pose.covariance is not None:
+    if _anchors(anchor):
         return _settled_by_pose(certain, lamps, solve, anchor)
-    return _settled_by_assignment(certain, lamps, solve)
+    first, rest = _within_budget(lamps)
+    settled = _settled_by_assignment(certain, first, solve)
+    if not settled or not rest:
+        return settled
+    anchor = solve([*certain, *settled])
+    return settled + _settled_by_pose([*certain, *settled], rest, solve, anchor) if _anchors(anchor) else settled
+
+
+def _anchors(choice: Choice | None) -> bool:
+    return choice is not None and choice.pose is not None and choice.pose.covariance is not None
+
+
+def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp]]:
+    """The most certain open lamps whose assignments number at most ``_MAX_ASSIGNMENTS``, and the others
+    (settled against the first ones' pose): five open tone lamps of three candidates each are 243."""
+    ranked = sorted(lamps, key=lambda o: -max(o.posterior))
+    count = 1
+    for k, open_lamp in enumerate(ranked):
+        count *= len(open_lamp.candidates)
+        if count > _MAX_ASSIGNMENTS:
+            return ranked[:k], ranked[k:]
+    return ranked, []
 
 
 def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, anchor: Choice) -> list[Pair]:
@@ -158,7 +180,7 @@ def _explained_near(choice: Choice, anchor: Choice) -> bool:
 
 def _settled_by_assignment(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pair]:
     options = [[((o.observation, lamp), p) for lamp, p in zip(o.candidates, o.posterior)] for o in lamps]
-    if np.prod([len(o) for o in options]) > _MAX_ASSIGNMENTS or min(o.coverage for o in lamps) < _COVERED:
+    if not options or min(o.coverage for o in lamps) < _COVERED:
         return []
     explaining = []
     for assignment in itertools.product(*options):
