@@ -96,9 +96,9 @@ def test_a_lamp_two_of_whose_candidates_fit_the_pose_stays_open() -> None:
     anywhere = Choice(Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4), Reason.MULTI_LAMP)
     observation = _observation()
     certain = [(observation, _lamp(1)), (observation, _lamp(2))]
-    lamp = OpenLamp(observation, (_lamp(3), _lamp(4)), 1.0)
+    lamp = OpenLamp(observation, (_lamp(3), _lamp(4)), (0.5, 0.5))
     assert settle(certain, [lamp], lambda pairs: anywhere) == []
-    assert [lamp.id for _, lamp in settle(certain, [OpenLamp(observation, (_lamp(3),), 1.0)],
+    assert [lamp.id for _, lamp in settle(certain, [OpenLamp(observation, (_lamp(3),), (1.0,))],
                                           lambda pairs: anywhere)] == [3]
 
 
@@ -112,7 +112,46 @@ def test_without_a_certain_pose_an_assignment_counts_only_if_the_right_one_was_t
         return Choice(None, Reason.AMBIGUOUS)
 
     certain = [(observation, _lamp(1)), (observation, _lamp(2)), (observation, _lamp(5))]
-    covered = OpenLamp(observation, (_lamp(3), _lamp(4)), 1.0)
+    covered = OpenLamp(observation, (_lamp(3), _lamp(4)), (0.5, 0.5))
     assert [lamp.id for _, lamp in settle(certain, [covered], fits_three)] == [3]
     # A reading that leaves 1 % to candidates not tried: the right one may be among those.
-    assert settle(certain, [replace(covered, coverage=0.99)], fits_three) == []
+    assert settle(certain, [replace(covered, posterior=(0.5, 0.49))], fits_three) == []
+
+
+def test_where_the_grid_explains_every_lamp_read_as_its_neighbour_the_readings_decide() -> None:
+    # A regular grid whose IDs run along it: moved by one spacing, a pose explains the lamps read each as
+    # its neighbour as well as the right assignment (issue 14's tone stills: 3 lamps at 0.996-0.999 each,
+    # their neighbours holding the rest, gave no pose on main).
+    observation = _observation()
+    right, shifted = (3, 5, 7, 9), (2, 4, 6, 8)
+
+    def fits_right_or_shifted(pairs) -> Choice:
+        explained = tuple(lamp.id for _, lamp in pairs) in (right, shifted)
+        return Choice(Pose(np.eye(3), np.zeros(3)) if explained else None, Reason.MULTI_LAMP)
+
+    def read(p_right: float) -> list[OpenLamp]:
+        return [OpenLamp(observation, (_lamp(r), _lamp(s)), (p_right, 1.0 - p_right)) for r, s in zip(right, shifted)]
+
+    assert [lamp.id for _, lamp in settle([], read(0.999), fits_right_or_shifted)] == list(right)
+    # Readings that lean less (0.7 each: the shifted assignment holds 3 % of the two) leave every lamp open.
+    assert settle([], read(0.7), fits_right_or_shifted) == []
+
+
+def test_more_open_lamps_than_assignments_can_be_tried_are_settled_by_the_most_certain_ones_pose() -> None:
+    # Five open tone lamps of three candidates each: 243 assignments. The three most certain are settled
+    # by assignment, the other two against their pose (main: none identified, no pose).
+    observation = _observation()
+    right = (3, 5, 7, 9, 11)
+    anchor_pose = Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4)
+
+    def fits_right(pairs) -> Choice:
+        explained = all(lamp.id == r for (_, lamp), r in zip(pairs, right))
+        return Choice(anchor_pose if explained else None, Reason.MULTI_LAMP)
+
+    def disc(lamp_id: int) -> Lamp:
+        # Discs: three point lamps alone would explain any assignment.
+        return replace(_lamp(lamp_id), radius=0.075)
+
+    lamps = [OpenLamp(observation, (disc(r), disc(r - 1), disc(r + 1)), (p, 0.6 * (1.0 - p), 0.4 * (1.0 - p)))
+             for r, p in zip(right, (0.999, 0.9985, 0.998, 0.9975, 0.997))]
+    assert [lamp.id for _, lamp in settle([], lamps, fits_right)] == list(right)

@@ -5,15 +5,19 @@ explains every lamp with it.
 The lamps identified with certainty give a pose first. Each open lamp is then tried as every
 candidate its reading leaves plausible: a candidate counts only if the joint pose with it still
 explains the image and coincides with the certain lamps' pose within their covariance, and the
-lamp is identified only if exactly one candidate does (two lamps cannot stand at one place of the
-ceiling, so a second candidate that fits is a map or geometry that cannot tell them apart). When
-the certain lamps give no pose (too few of them), every assignment of the open lamps' candidates is
-solved, and one is taken only if it is the only one that explains the image with residuals to
-spare (at least two more than the pose needs: three point lamps alone explain any assignment
-exactly), and only when the candidates tried hold all but 1e-4 of each open lamp's posterior:
-the pose is then the assignment's own, and on a symmetric map a wrong assignment is explained
-by a pose turned about the lamps as well as the right one is (a disc without its marker leaves
-the yaw free), so the right one must be among those tried for the count to mean anything.
+lamp is identified only if the candidates that do leave all but 1e-4 of their readings' posterior
+to one (two lamps cannot stand at one place of the ceiling, so a second candidate that fits is a
+map or geometry that cannot tell them apart; then only the reading can). When the certain lamps
+give no pose (too few of them), every assignment of the open lamps' candidates is solved (residuals
+to spare: at least two more than the pose needs, since three point lamps alone explain any
+assignment exactly; with more than 27 assignments, those of the most certain lamps, the others
+then settled against their pose), and one is taken only if it holds all but 1e-4 of the posterior (the product
+of its lamps' readings: they are independent) of the assignments that explain the image, and only
+when the candidates tried hold all but 1e-4 of each open lamp's posterior: the pose is then the
+assignment's own, and on a symmetric map a wrong assignment is explained by a pose turned about the
+lamps as well as the right one is (a disc without its marker leaves the yaw free), or moved by one
+spacing of a regular grid (each lamp read as its neighbour), so the right one must be among those
+tried, and the readings must tell it from the others that fit.
 
 Certain IDs are held to the same rule. Two lamps that claim one ID (a lamp not in the map whose
 tone, 2 % off, lies in a mapped lamp's band) are both reopened, and so is the one lamp without
@@ -26,6 +30,7 @@ import itertools
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from scipy.stats import chi2
@@ -35,7 +40,7 @@ from vlp_ros.lamp_map import Lamp, LampMap
 from vlp_ros.observation import LampObservation
 from vlp_ros.solvers.candidates import Choice, Reason
 
-# A candidate whose posterior (the reading alone) is below this is not tried.
+# A candidate whose posterior (the reading alone) is below this is not tried, unless needed to cover _COVERED.
 PLAUSIBLE = 1e-3
 # At most this many candidates per open lamp, and assignments tried when no certain pose exists.
 _MAX_CANDIDATES = 3
@@ -43,22 +48,30 @@ _MAX_ASSIGNMENTS = 27
 # The joint pose with a settled lamp must lie within this squared Mahalanobis distance (under the
 # certain lamps' covariance) of their pose: chi-square(6) at 1 - 1e-4.
 _SAME_POSE = float(chi2.ppf(1.0 - 1e-4, 6))
-# Without a pose from the certain lamps, the candidates tried must hold this much of each open lamp's posterior.
+# Without a pose from the certain lamps, the candidates tried must hold this much of each open lamp's posterior;
+# the candidate (or assignment) taken must hold this much of the posterior of those the geometry explains.
 _COVERED = 1.0 - 1e-4
 # Residuals beyond the six a pose takes, so that a wrong assignment can fail to be explained.
 _SPARE_RESIDUALS = 2
 
 Pair = tuple[LampObservation, Lamp]
 Solver = Callable[[list[Pair]], Choice]
+Option = TypeVar('Option')
 
 
 @dataclass(frozen=True)
 class OpenLamp:
-    """A detected lamp without a certain ID and the lamps of the map its reading leaves plausible."""
+    """A detected lamp without a certain ID, the lamps of the map its reading leaves plausible and their
+    posterior probabilities (the reading alone)."""
 
     observation: LampObservation
     candidates: tuple[Lamp, ...]
-    coverage: float
+    posterior: tuple[float, ...]
+
+    @property
+    def coverage(self) -> float:
+        """The share of the reading's posterior that the candidates hold."""
+        return float(sum(self.posterior))
 
 
 def claimed_once(ids: list[int | None]) -> list[int | None]:
@@ -82,13 +95,26 @@ def open_lamps(observations: list[LampObservation], ids: list[int | None], readi
         posterior = np.exp(log_post - log_post.max())
         posterior /= posterior.sum()
         order = [k for k in np.argsort(-posterior)
-                 if reading.mapped[k] and posterior[k] >= PLAUSIBLE and int(reading.candidates[k]) not in taken
-                 and int(reading.candidates[k]) in lamps
-                 and usable(observation, lamps.get(int(reading.candidates[k])))][:_MAX_CANDIDATES]
+                 if reading.mapped[k] and int(reading.candidates[k]) not in taken and int(reading.candidates[k]) in lamps
+                 and usable(observation, lamps.get(int(reading.candidates[k])))]
+        order = _plausible(order, posterior)
         if order:
             found.append(OpenLamp(observation, tuple(lamps.get(int(reading.candidates[k])) for k in order),
-                                  float(posterior[order].sum())))
+                                  tuple(float(posterior[k]) for k in order)))
     return found
+
+
+def _plausible(order: list[int], posterior: np.ndarray) -> list[int]:
+    """The candidates (most probable first) at ``PLAUSIBLE`` or above, and below it as many as the
+    assignments need to cover ``_COVERED`` of the posterior (at most ``_MAX_CANDIDATES`` in all): a lamp
+    read at 0.9989 with its two neighbours at 6e-4 and 5e-4 is otherwise never covered."""
+    kept, covered = [], 0.0
+    for k in order[:_MAX_CANDIDATES]:
+        if posterior[k] < PLAUSIBLE and covered >= _COVERED:
+            break
+        kept.append(k)
+        covered += float(posterior[k])
+    return kept
 
 
 def odd_one_out(certain: list[Pair], solve: Solver) -> int | None:
@@ -107,19 +133,41 @@ def settle(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pa
     if not lamps:
         return []
     anchor = solve(certain) if certain else None
-    if anchor is not None and anchor.pose is not None and anchor.pose.covariance is not None:
+    if _anchors(anchor):
         return _settled_by_pose(certain, lamps, solve, anchor)
-    return _settled_by_assignment(certain, lamps, solve)
+    first, rest = _within_budget(lamps)
+    settled = _settled_by_assignment(certain, first, solve)
+    if not settled or not rest:
+        return settled
+    anchor = solve([*certain, *settled])
+    return settled + _settled_by_pose([*certain, *settled], rest, solve, anchor) if _anchors(anchor) else settled
+
+
+def _anchors(choice: Choice | None) -> bool:
+    return choice is not None and choice.pose is not None and choice.pose.covariance is not None
+
+
+def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp]]:
+    """The most certain open lamps whose assignments number at most ``_MAX_ASSIGNMENTS``, and the others
+    (settled against the first ones' pose): five open tone lamps of three candidates each are 243."""
+    ranked = sorted(lamps, key=lambda o: -max(o.posterior))
+    count = 1
+    for k, open_lamp in enumerate(ranked):
+        count *= len(open_lamp.candidates)
+        if count > _MAX_ASSIGNMENTS:
+            return ranked[:k], ranked[k:]
+    return ranked, []
 
 
 def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, anchor: Choice) -> list[Pair]:
     settled: list[Pair] = []
     for open_lamp in lamps:
         used = {lamp.id for _, lamp in settled}
-        fitting = [lamp for lamp in open_lamp.candidates if lamp.id not in used
+        fitting = [(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior) if lamp.id not in used
                    and _explained_near(solve([*certain, *settled, (open_lamp.observation, lamp)]), anchor)]
-        if len(fitting) == 1:
-            settled.append((open_lamp.observation, fitting[0]))
+        decided = _decisive(fitting)
+        if decided is not None:
+            settled.append((open_lamp.observation, decided))
     return settled
 
 
@@ -131,19 +179,25 @@ def _explained_near(choice: Choice, anchor: Choice) -> bool:
 
 
 def _settled_by_assignment(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pair]:
-    options = [[(o.observation, lamp) for lamp in o.candidates] for o in lamps]
-    if np.prod([len(o) for o in options]) > _MAX_ASSIGNMENTS or min(o.coverage for o in lamps) < _COVERED:
+    options = [[((o.observation, lamp), p) for lamp, p in zip(o.candidates, o.posterior)] for o in lamps]
+    if not options or min(o.coverage for o in lamps) < _COVERED:
         return []
     explaining = []
     for assignment in itertools.product(*options):
-        pairs = [*certain, *assignment]
+        pairs = [*certain, *(pair for pair, _ in assignment)]
         if len({lamp.id for _, lamp in pairs}) < len(pairs) or _residuals(pairs) < 6 + _SPARE_RESIDUALS:
             continue
         if solve(pairs).pose is not None:
-            explaining.append(list(assignment))
-            if len(explaining) > 1:
-                return []
-    return explaining[0] if explaining else []
+            explaining.append(([pair for pair, _ in assignment], float(np.prod([p for _, p in assignment]))))
+    decided = _decisive(explaining)
+    return decided if decided is not None else []
+
+
+def _decisive(fitting: list[tuple[Option, float]]) -> Option | None:
+    """The option (with its posterior) that holds all but 1e-4 of the posterior of ``fitting``, or None."""
+    total = sum(p for _, p in fitting)
+    best = max(fitting, key=lambda option: option[1], default=None)
+    return best[0] if best is not None and best[1] >= _COVERED * total else None
 
 
 def _residuals(pairs: list[Pair]) -> int:
