@@ -21,6 +21,9 @@ import numpy as np
 
 from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
 from vlp_ros.pipeline import Pipeline
+from vlp_ros.pose import Pose
+from vlp_ros.solvers.perspective import _up_update
+from vlp_ros.solvers.up_measurement import UpMeasurement
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.looks import LOOKS, apply_look
 from vlp_ros.sim.render import render_frame
@@ -65,6 +68,13 @@ def warm_up() -> None:
     # Clipped, blurred lamps with glare: the beacon reads them over their light (glow included).
     run_scenario(apply_look(paper_scenario('4k', points=3, postures=1), LOOKS['realistic']), frames=1)
     read_tone_lamps(trials=4)
+    update_by_up()
+
+
+def update_by_up() -> None:
+    """The Kalman update by an up direction, which the scenarios' frames do not reach (it runs when
+    gravity must settle a candidate): a level pose and a vertical up, arrays as the solver builds them."""
+    _up_update(Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4), [UpMeasurement(np.array([0.0, 0.0, 1.0]), 0.01)])
 
 
 def main() -> None:

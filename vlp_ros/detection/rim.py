@@ -195,7 +195,10 @@ def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarr
                                  conic_of(np.asarray(ellipse, dtype=float)))
     if len(left) < _MIN_BLUR_ROWS:
         return None
-    sigma = across / np.abs(ndtri(right) - ndtri(left))
+    # Two pixels at the same level show no slope: that row's blur is unbounded (inf), which
+    # the median weighs as a very soft edge instead of dividing by zero.
+    gap = np.abs(ndtri(right) - ndtri(left))
+    sigma = np.divide(across, gap, out=np.full_like(gap, np.inf), where=gap > 0.0)
     return median(sigma) ** 2
 
 
