@@ -256,10 +256,8 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
             _weighted_normal_equations(design, width, lamp_rows, count, residuals, weights, lamp_of_point, per_lamp,
                                        upper, gradient)
             gram = _symmetric(upper)
-            # A lamp whose edge shows more model error than the frame's spread (a clipped rim) keeps its own.
             for k in range(7, width):
-                sigma = max(mode_sigma, mode_prior_sigma[(k - 7) // per_lamp])
-                gram[k, k] += 1.0 / (sigma * sigma)
+                gram[k, k] += 1.0 / (mode_sigma * mode_sigma)
             solution, inverse = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, estimated)
             _predict(design, residuals, solution, predicted)
             if reweighting < _MODE_REWEIGHTINGS:
