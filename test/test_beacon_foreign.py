@@ -19,7 +19,7 @@ def test_the_hand_held_realistic_lamp_is_identified_in_seven_frames_of_eight_and
     # One mapped lamp (ID 90) beside unmodulated lamps: any other ID would be wrong. With sharp chips only
     # on its light, 2 of the 8 frames were read; with blur weighed in, 4; with the chip grid searched on the
     # whole window (the first 24 chips lie in the glow's faint rows), 5; with the grids around it weighed in
-    # too, all 8, each at 0.99999 or more (issue 14 asks for 90 %). With this session's marker fit merged
-    # in, the first still's disc reads no evidence at all (7 of 8; not yet understood: docs/beacon.md).
+    # too, all 8, each at 0.99999 or more (issue 14 asks for 90 %). With the marker fit of docs/detection.md
+    # merged in, the first still's clipped disc read no evidence (7 of 8); its chips read censored, 8 of 8.
     assert all(ids in ([], [90]) for ids in decoded), decoded
     assert sum(ids == [90] for ids in decoded) >= 7, decoded
