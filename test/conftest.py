@@ -131,8 +131,10 @@ def located_through_the_nodes(test_node, start_process: Callable[..., RosProcess
     # Subscribed once its kernels are loaded, which takes as long as the machine is busy.
     assert spin_until(test_node, lambda: test_node.count_subscribers(topics.image) > 0, 120.0), locator.output()
     # Every frame waits for its answer however slow the machine: an answer the replay stops waiting for
-    # lets the next frame in, and a third one then replaces that one in the locator's queue unseen.
-    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '60', '--topics', topics.image,
+    # lets the next frame in, and a third one then replaces that one in the locator's queue unseen. A kernel
+    # that the build's warm-up did not reach compiles on its first frame, past a minute on a loaded machine
+    # (a bare-LED JPEG still in a fresh-clone CI run): each frame is given three.
+    replay = start_process('replay', bag, '--deterministic', '--answer-timeout', '180', '--topics', topics.image,
                            topics.camera_info, *([topics.imu] if imu else []))
     assert spin_until(test_node, lambda: replay.popen.poll() is not None, 900.0), replay.output()
     assert replay.popen.returncode == 0 and 'unanswered: 0' in replay.stderr(), replay.output()
