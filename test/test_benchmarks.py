@@ -1,6 +1,7 @@
 """Smoke tests: the accuracy and pipeline speed benchmarks run end to end and print their tables."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from vlp_ros.benchmarks import accuracy, pipeline_speed
@@ -28,3 +29,19 @@ def test_pipeline_speed_prints_each_case_with_its_ratio(capsys: pytest.CaptureFi
         line = next(line for line in out.splitlines() if line.startswith(case))
         ratio = float(line.split()[-3])
         assert ratio > 0.0
+
+
+def test_accuracy_drives_the_robot_as_fast_as_asked() -> None:
+    drive = accuracy.Drive(speed=1.0, turn_rate=0.5)
+    rows = [setup for setup in accuracy.look_setups(True, 0, drive) if setup.family == 'robot drive']
+    assert rows
+    for setup in rows:
+        scenario = setup.scenario
+        positions = np.array([pose.position for pose in scenario.poses])
+        speeds = np.linalg.norm(np.diff(positions, axis=0), axis=1) * scenario.frame_rate
+        assert np.median(speeds) == pytest.approx(1.0, rel=0.05)
+
+
+def test_accuracy_rejects_a_drive_that_does_not_move() -> None:
+    with pytest.raises(SystemExit):
+        accuracy.main(['--quick', '--drive-speed', '0'])

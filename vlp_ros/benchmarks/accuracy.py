@@ -1,4 +1,4 @@
-"""Pose accuracy in simulation: python -m vlp_ros.benchmarks.accuracy [--quick] [--seed S] [--frames N] [--only TEXT] [--figures DIR].
+"""Pose accuracy in simulation: python -m vlp_ros.benchmarks.accuracy [--quick] [--seed S] [--frames N] [--only TEXT] [--drive-speed V] [--drive-turn-rate W] [--figures DIR].
 
 The seed paper's experiment reproduced in this process (no ROS, no bags): every
 frame is rendered by the frame simulator and run through ``Pipeline.process``
@@ -106,7 +106,15 @@ class SetupRun:
     in_view: list[bool] = field(default_factory=list)
 
 
-def setups(quick: bool, seed: int, frames: int | None) -> list[Setup]:
+@dataclass(frozen=True)
+class Drive:
+    """How the robot of the drive rows moves: issue 13's setup unless asked otherwise."""
+
+    speed: float = 0.8
+    turn_rate: float = 0.3
+
+
+def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -> list[Setup]:
     """The paper's grid at both heights with both cameras, the robot's drive, then the looks and issue-13 cases."""
     points, postures = (3, 1) if quick else (7, 3)
     made = []
@@ -116,14 +124,14 @@ def setups(quick: bool, seed: int, frames: int | None) -> list[Setup]:
             made.append(Setup(family, f'{height:g} m', scenario, 0))
     robot = robot_scenario(seed=seed)
     made.append(Setup('robot', '', robot.truncated(90) if quick else robot, 0))
-    made += look_setups(quick, seed)
+    made += look_setups(quick, seed, drive)
     return [replace(setup, number=number,
                     scenario=setup.scenario if frames is None
                     else setup.scenario.truncated(min(frames, len(setup.scenario.poses))))
             for number, setup in enumerate(made)]
 
 
-def look_setups(quick: bool, seed: int) -> list[Setup]:
+def look_setups(quick: bool, seed: int, drive: Drive = Drive()) -> list[Setup]:
     """The looks of issue 14 and the cases of issue 13, each through the perspective solver only."""
     points, postures = (3, 1) if quick else (5, 2)
     paper = paper_scenario('4k', height=2.0, points=points, postures=postures, seed=seed)
@@ -139,9 +147,9 @@ def look_setups(quick: bool, seed: int) -> list[Setup]:
     robot = robot_scenario(seed=seed).truncated(90 if quick else 240)
     made += [Setup('robot row', f'look {name}', apply_look(robot, LOOKS[name], seed), 0, only, targets)
              for name, targets in (('falloff', ('falloff',)), ('realistic', ('any look',)))]
-    drive = robot_drive_scenario(seed=seed)
-    drive = drive.truncated(70) if quick else drive
-    made += [Setup('robot drive', f'look {name}', apply_look(drive, LOOKS[name], seed), 0, only, targets)
+    driven = robot_drive_scenario(seed=seed, speed=drive.speed, turn_rate=drive.turn_rate)
+    driven = driven.truncated(70) if quick else driven
+    made += [Setup('robot drive', f'look {name}', apply_look(driven, LOOKS[name], seed), 0, only, targets)
              for name, targets in (('clean', ('drive',)), ('overexposed', ('drive',)), ('falloff', ('falloff',)),
                                    ('realistic', ('any look',)))]
     tone = robot_tone_scenario(seed=seed, frames=12 if quick else 24)
@@ -415,16 +423,24 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--frames', type=int, default=None, help='at most this many frames per setup')
     parser.add_argument('--examples', type=int, default=3, help='wrong fixes shown in full per row')
     parser.add_argument('--figures', type=Path, default=None, help='write paper-style figures into this folder')
+    parser.add_argument('--drive-speed', type=float, default=Drive.speed, metavar='V',
+                        help=f'm/s of the drive rows\' robot (default {Drive.speed:g}, issue 13)')
+    parser.add_argument('--drive-turn-rate', type=float, default=Drive.turn_rate, metavar='W',
+                        help=f'largest heading rate (rad/s) of its weave (default {Drive.turn_rate:g})')
     args = parser.parse_args(argv)
     if args.frames is not None and args.frames < 1:
         parser.error(f'--frames must be at least 1, got {args.frames}')
+    if not (args.drive_speed > 0.0 and args.drive_turn_rate >= 0.0):
+        parser.error(f'--drive-speed must be positive and --drive-turn-rate not negative, got {args.drive_speed} '
+                     f'and {args.drive_turn_rate}')
     return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _arguments(argv)
     runs = []
-    chosen = [setup for setup in setups(args.quick, args.seed, args.frames)
+    drive = Drive(args.drive_speed, args.drive_turn_rate)
+    chosen = [setup for setup in setups(args.quick, args.seed, args.frames, drive)
               if args.only is None or any(text in setup.label for text in args.only)]
     if not chosen:
         print(f'no setup matches --only {" ".join(args.only)}', file=sys.stderr)
@@ -434,7 +450,8 @@ def main(argv: list[str] | None = None) -> int:
         runs.append((setup, run_setup(setup, args.seed,
                                       lambda done, total=total, label=setup.label: progress_bar(done, total, label))))
     table, summaries = results_table(runs)
-    print(f'Pose accuracy in simulation (seed {args.seed}{", quick" if args.quick else ""}); '
+    driven = '' if drive == Drive() else f', drive {drive.speed:g} m/s turning up to {drive.turn_rate:g} rad/s'
+    print(f'Pose accuracy in simulation (seed {args.seed}{", quick" if args.quick else ""}{driven}); '
           f'errors in 3D, wrong fix = error > {100 * WRONG_FIX_M:.0f} cm')
     print(table)
     if any(not setup.targets for setup, _ in runs):
