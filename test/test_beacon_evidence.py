@@ -8,6 +8,7 @@ from beacon_scenes import flat_profile
 from vlp_ros.beacon.decoding import decode_packet
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
+from vlp_ros.beacon.reading import BeaconReading
 from vlp_ros.observation import LampObservation
 
 ROW_TIME = 2e-5
@@ -106,3 +107,19 @@ def test_moving_lamps_keep_their_own_tracks():
         ids = tracker.update(observations, readings, 0.1 * frame)
     assert ids == [201, 17]
     assert len(tracker.tracks) == 2
+
+
+def test_a_frame_delivered_twice_adds_no_evidence():
+    # The same frame again has the same packet phase and noise: summed ten times, a reading that leans
+    # to lamp 3 at ~0.77 would pass for certain.
+    candidates = np.array(MAP)
+    reading = BeaconReading(None, 0.0, candidates, np.array([0.0, -3.0, -3.0, -3.0, -1.5, -3.0]),
+                            np.zeros(len(MAP)), np.ones(len(MAP), bool))
+    once, twice = EvidenceTracker(MAP), EvidenceTracker(MAP)
+    once.update([observation_at(100.0, 50.0)], [reading], 0.0)
+    for _ in range(10):
+        twice.update([observation_at(100.0, 50.0)], [reading], 0.0)
+    assert once.decisions[0].confidence < 0.9
+    assert twice.decisions[0].lamp_id is None
+    assert twice.decisions[0].confidence == pytest.approx(once.decisions[0].confidence, abs=1e-6)
+    assert twice.tracks[0].frames == 1

@@ -7,7 +7,8 @@ similar size within a gate that grows with the time since it was seen. The
 log-likelihoods of its frames add, since the noise and the packet phase are
 independent from frame to frame. A track that is not seen for ``max_gap`` seconds
 is dropped. A frame that is itself certain of another
-candidate than its track starts the track afresh: two lamps were confused.
+candidate than its track starts the track afresh: two lamps were confused. A frame
+stamped as the track's last one (the same frame delivered twice) adds nothing.
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ class _Track:
         """Forget the evidence so far and start from ``reading``."""
         self.candidates, self.log_prior, self.mapped = reading.candidates, reading.log_prior, reading.mapped
         self.log_likelihoods = np.array(reading.log_likelihoods, dtype=float)
-        self.frames = 0
+        self.frames = 1
 
 
 class EvidenceTracker:
@@ -101,12 +102,14 @@ class EvidenceTracker:
                 track = _Track(observation.center, float(observation.ellipse[2]), stamp)
                 track.restart(reading)
                 self.tracks.append(track)
+            elif stamp == track.last_seen:
+                pass  # the same frame again (delivered twice): its packet phase and noise are not new evidence
             elif self._continues(track, reading):
                 track.log_likelihoods = track.log_likelihoods + reading.log_likelihoods
+                track.frames += 1
             else:
                 track.restart(reading)
             track.follow(observation, stamp)
-            track.frames += 1
             decision = self._decide(track)
             self.decisions.append(decision)
             self.evidence.append(BeaconReading(decision.lamp_id, decision.confidence, track.candidates,
