@@ -47,17 +47,20 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
     disc = decode(disc_profile)
     if disc.lamp_id is not None or disc.unknown:
         return disc
+    censored = disc
     if decode_clipped is not None:
         clipped = decode_clipped(disc_profile)
         if clipped.lamp_id is not None or clipped.unknown:
             return clipped
+        if not has_evidence(disc) and has_evidence(clipped):
+            censored = clipped
     if not glow:
-        return disc
+        return censored
     if has_evidence(disc):
         return confirmed_by_light(disc, decode(light_profile(image, observation)))
     profile = light_profile(image, observation)
     light = (decode if decode_glow is None else decode_glow)(profile)
-    return light if light.lamp_id is not None or light.unknown else disc
+    return light if light.lamp_id is not None or light.unknown else censored
 
 
 def confirmed_by_light(disc: BeaconReading, light: BeaconReading) -> BeaconReading:
