@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from vlp_ros.beacon.encoding import packet_length, packet_waveform
+from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_packet
 from vlp_ros.beacon.profile import RowProfile
+from vlp_ros.observation import LampObservation
 from vlp_ros.pipeline import Pipeline
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
@@ -66,6 +68,25 @@ def test_a_clipped_disc_is_never_read_as_another_id(packets, gain, blur_rows):
             profile = clipped_disc(lamp_id, seed, packets, gain, blur_rows)
             reading = decode_clipped_packet(profile, CHIP_RATE, ROW_TIME, 8, None)
             assert reading.lamp_id in (None, lamp_id), (lamp_id, seed, reading.confidence)
+
+
+def test_censored_readings_below_a_packet_add_up_across_frames():
+    """The simulator's realistic drive: a clipped, blurred disc showing 0.7 of a packet reads its ID at 0.97-0.999
+    in each frame, never certain alone. ``read_lamp`` passes those readings on, and the tracker sums them: certain
+    within six frames, and never of another ID (every 34th ID, new packet phase each frame)."""
+    first_certain = []
+    for lamp_id in range(0, 256, 34):
+        tracker = EvidenceTracker(MAP + [lamp_id])
+        ids = []
+        for frame in range(6):
+            reading = decode_clipped_packet(clipped_disc(lamp_id, frame, packets=0.7), CHIP_RATE, ROW_TIME, 8,
+                                            MAP + [lamp_id])
+            ids += tracker.update([LampObservation(np.array([100.0 + 20.0 * frame, 50.0, 40.0, 40.0, 0.0]),
+                                                   np.zeros((0, 2)), 0.1, None, 0.1, (0, 0, 1, 1),
+                                                   np.ones((1, 1), dtype=bool))], [reading], 0.1 * frame)
+        assert set(ids) <= {None, lamp_id}, lamp_id
+        first_certain.append(lamp_id in ids)
+    assert all(first_certain)
 
 
 def test_a_steady_clipped_lamp_gives_no_id():

@@ -8,7 +8,7 @@ from beacon_scenes import flat_profile
 from vlp_ros.beacon.decoding import decode_packet
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
-from vlp_ros.beacon.reading import BeaconReading
+from vlp_ros.beacon.reading import BeaconReading, no_evidence
 from vlp_ros.observation import LampObservation
 
 ROW_TIME = 2e-5
@@ -123,3 +123,18 @@ def test_a_frame_delivered_twice_adds_no_evidence():
     assert twice.decisions[0].lamp_id is None
     assert twice.decisions[0].confidence == pytest.approx(once.decisions[0].confidence, abs=1e-6)
     assert twice.tracks[0].frames == 1
+
+
+def test_a_lamp_near_where_a_certain_lamp_was_does_not_inherit_its_id():
+    """A hand-held camera moved between stills: lamp 201 is read now elsewhere, and an unmodulated lamp stands
+    where the track left it. One lamp cannot be in two places: only the one read now keeps the ID."""
+    tracker = EvidenceTracker(MAP)
+    for frame in range(8):
+        tracker.update([observation_at(100.0, 50.0)], [half_packet(201, frame)], 0.033 * frame)
+    assert tracker.decisions[0].lamp_id == 201
+    full = decode_packet(flat_profile(packet_waveform(201, CHIP_RATE, 0.7), 200, ROW_TIME, 3e-5), CHIP_RATE,
+                         ROW_TIME, 8, MAP)
+    steady = no_evidence(full.candidates, full.mapped, full.log_prior, 'steady')
+    ids = tracker.update([observation_at(102.0, 50.0), observation_at(900.0, 50.0)], [steady, full], 0.3)
+    assert ids == [None, 201]
+    assert tracker.update([observation_at(103.0, 50.0)], [steady], 0.333) == [None]

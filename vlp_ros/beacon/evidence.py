@@ -95,7 +95,7 @@ class EvidenceTracker:
         self._stamp = stamp
         self.tracks = [t for t in self.tracks if stamp - t.last_seen <= self.max_gap]
         matches = self._associate(observations, stamp)
-        self.decisions, self.evidence = [], []
+        followed = []
         for k, (observation, reading) in enumerate(zip(observations, readings)):
             track = matches.get(k)
             if track is None:
@@ -110,12 +110,26 @@ class EvidenceTracker:
             else:
                 track.restart(reading)
             track.follow(observation, stamp)
+            followed.append(track)
+        for k in self._inheriting_another_lamps_id(followed, readings):
+            followed[k].restart(readings[k])
+        self.decisions, self.evidence = [], []
+        for track in followed:
             decision = self._decide(track)
             self.decisions.append(decision)
             self.evidence.append(BeaconReading(decision.lamp_id, decision.confidence, track.candidates,
                                                track.log_likelihoods, track.log_prior, track.mapped,
                                                decision.unknown, decision.detail))
         return [d.lamp_id for d in self.decisions]
+
+    def _inheriting_another_lamps_id(self, followed: list[_Track], readings: Sequence[BeaconReading]) -> list[int]:
+        """The observations whose track is certain of an ID that another lamp of this frame reads with certainty
+        on its own: one lamp cannot be in two places, and the frame's own reading says where it is now. The
+        other track was continued by a lamp that came near the old place of a lamp now elsewhere (a hand-held
+        camera moved between stills, an unmodulated lamp beside the track's lamp)."""
+        read_now = {r.lamp_id for r in readings if r.lamp_id is not None}
+        return [k for k, (track, reading) in enumerate(zip(followed, readings))
+                if reading.lamp_id is None and self._decide(track).lamp_id in read_now]
 
     def _associate(self, observations: Sequence[LampObservation], stamp: float) -> dict[int, _Track]:
         """Observation index -> track, nearest to the tracks' predictions first, each track used once."""
