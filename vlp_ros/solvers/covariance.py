@@ -129,7 +129,12 @@ def _add_rotation_curvature(covariance, lever):
 # one another, with an up direction, with the marker. Where the modes are consistent with
 # noise (clean frames), the sigma comes out near 0 and nothing changes; where they are not,
 # the rim's shape counts for what the disagreement shows and the pose moves toward the
-# measurements that disagree with it. Besides, a common rim offset (all lamps alike) is a
+# measurements that disagree with it. Where that estimate rests on little redundancy (two lamps:
+# 0-0.2 px on the simulator's realistic robot row, whose modes at the true pose were 0.3-0.6 px),
+# a lamp's own prior (``mode_prior_sigma``, from its edge) bounds what the fit may claim: the
+# covariance is that of the fit's estimate with the lamp's modes spread by that prior (the sandwich
+# of ``_add_mode_prior_excess``), and the pose stays where the estimated sigma put it (a floor on
+# the sigma itself moved the independent renderer's robot poses, doubling their errors). Besides, a common rim offset (all lamps alike) is a
 # parameter with a prior of ``RIM_OFFSET_FLOOR_PX`` (or ``RIM_OFFSET_PRIOR`` times the rim's
 # scatter, if more); with several lamps, which fix the scale, it moves the pose where the
 # data determine it (its variance below ``OFFSET_DETERMINED`` of the prior's). One lamp's
@@ -176,7 +181,8 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     fully observed. ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows
     of its modes (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate
     the modes' sigma (one lamp), the modes are marginalised with it, widening the covariance
-    along what they trade with and leaving the pose where the fit put it."""
+    along what they trade with and leaving the pose where the fit put it; with several lamps, a
+    lamp's prior over the estimated sigma widens the covariance alike, the pose left in place."""
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
     offset_sigma = _rim_offset_sigma(residuals[:rim_count], rim_sigma)
@@ -262,11 +268,31 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
             _predict(design, residuals, solution, predicted)
             if reweighting < _MODE_REWEIGHTINGS:
                 _reweight(predicted, weights, rims, marker_count, rim_dof)
+        _add_mode_prior_excess(inverse, mode_sigma, mode_prior_sigma, per_lamp)
     for i in range(6):
         step[i] = solution[i]
         for j in range(6):
             covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
     return cost, offset, mode_sigma, marginalised
+
+
+@kernel
+def _add_mode_prior_excess(inverse, mode_sigma, spread, per_lamp):
+    """``inverse`` (of the fit with every lamp's modes under the prior sigma ``mode_sigma``) turned into
+    the covariance of that fit's estimate where a lamp's modes spread by more, ``spread`` (px, per
+    lamp): the sandwich H^-1 (H - P + P S P) H^-1, which adds (spread^2 - sigma^2) g g^T per mode, g =
+    H^-1 e_k / sigma^2 the estimate's pull by the mode. The pose stays where the fit put it."""
+    variance = mode_sigma * mode_sigma
+    pulls = inverse[:, 7:] / variance
+    for lamp in range(spread.shape[0]):
+        excess = spread[lamp] * spread[lamp] - variance
+        if excess <= 0.0:
+            continue
+        for j in range(per_lamp):
+            k = per_lamp * lamp + j
+            for a in range(inverse.shape[0]):
+                for b in range(inverse.shape[0]):
+                    inverse[a, b] += excess * pulls[a, k] * pulls[b, k]
 
 
 @kernel
