@@ -116,7 +116,7 @@ class DetectionOptions:
 
     @property
     def blur_margin(self) -> int:
-        return math.ceil(3.0 * self.max_blur) + 1
+        return _light_reach(self.max_blur)
 
 
 def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> list[LampObservation]:
@@ -385,10 +385,10 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     model_sigma = math.hypot(edge_model_sigma(variance, level.departure),
                              clipped_edge_model_sigma(clipped_row_share(box, options), math.sqrt(variance)))
     if len(points) < options.min_rim_points or clipped.any():
-        return replace(rim, model_sigma=model_sigma)
+        return replace(rim, model_sigma=model_sigma, blur=math.sqrt(variance))
     fit = fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
                   _MIN_RIM_SIGMA, near=rim.ellipse)
-    return replace(fit, model_sigma=model_sigma)
+    return replace(fit, model_sigma=model_sigma, blur=math.sqrt(variance))
 
 
 def clipped_row_share(box: _LampBox, options: DetectionOptions) -> float:
@@ -523,7 +523,9 @@ def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: n
 def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],
                    origin: tuple[int, int], frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
     """The rim is elliptic, big enough, seen on both sides, and its blurred disc (``extent``: its
-    ellipse's ``_extent``) lies inside the box and frame."""
+    ellipse's ``_extent``) lies inside the box and frame: three of the blurs its ramps measured (up to
+    ``max_blur``'s, which stands where they do not tell) beyond the rim, where the light has reached
+    the ceiling's level."""
     cx, _, a, b, _ = rim.ellipse.tolist()
     count = len(rim.points)
     if (count < options.min_rim_points or rim.sigma > options.max_rim_sigma
@@ -534,11 +536,16 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
     if min(left, count - left) < _MIN_SIDE_FRACTION * count:
         return False
     lo_x, lo_y, hi_x, hi_y = extent
-    margin = options.blur_margin
+    margin = options.blur_margin if rim.blur is None else min(options.blur_margin, _light_reach(rim.blur))
     if lo_x < margin or lo_y < margin or hi_x > roi_shape[1] - 1 - margin or hi_y > roi_shape[0] - 1 - margin:
         return False
     return (lo_x + origin[0] >= margin and lo_y + origin[1] >= margin
             and hi_x + origin[0] <= frame_shape[1] - 1 - margin and hi_y + origin[1] <= frame_shape[0] - 1 - margin)
+
+
+def _light_reach(blur: float) -> int:
+    """Pixels beyond an edge of this blur sigma that its light still reaches (``DetectionOptions.blur_margin``)."""
+    return math.ceil(3.0 * blur) + 1
 
 
 @kernel
