@@ -30,6 +30,10 @@ _MIN_RIM_SIGMA = 0.01
 _CLEAR_BLURS = 3.0
 # Below this share of unclipped rim points, clipped rows are used too (moved onto the edge).
 _MIN_UNCLIPPED_SHARE = 0.25
+# ... and when the unclipped rows span less than this share of the lit rows' height: an ellipse through
+# one band of rows leaves its height to extrapolation (vlp_ros.sim's realistic robot row: one dark stripe
+# of 10 rows on a 57 px lamp gave semi-axes 3-8 px short and centres 2-4 px off, at rim_sigma 0.1 px).
+_MIN_UNCLIPPED_SPAN = 0.5
 # Clipped lamps brighter than this over the clip level give no observation.
 _MAX_OVEREXPOSURE = 2.5
 # Blur mixes a clipped row's light, of unknown level (up to _MAX_OVEREXPOSURE times the clip), into
@@ -112,7 +116,7 @@ class DetectionOptions:
 
     @property
     def blur_margin(self) -> int:
-        return math.ceil(3.0 * self.max_blur) + 1
+        return _light_reach(self.max_blur)
 
 
 def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> list[LampObservation]:
@@ -329,10 +333,19 @@ def _selected(points: np.ndarray, plateaus: np.ndarray, has_seed: bool, centre: 
     points, plateaus = points[far], plateaus[far]
     clipped = plateaus >= saturation_level
     unclipped = ~clipped
-    if np.count_nonzero(unclipped) >= max(min_rim_points, _MIN_UNCLIPPED_SHARE * points.shape[0]):
+    if (np.count_nonzero(unclipped) >= max(min_rim_points, _MIN_UNCLIPPED_SHARE * points.shape[0])
+            and _row_span(points[unclipped]) >= _MIN_UNCLIPPED_SPAN * _row_span(points)):
         # Unclipped rows place the edge exactly: clipped ones are not needed.
         return points[unclipped], plateaus[unclipped], clipped[unclipped]
     return points, plateaus, clipped
+
+
+@kernel
+def _row_span(points: np.ndarray) -> float:
+    """How many rows the points' rows span (0 without points)."""
+    if points.shape[0] == 0:
+        return 0.0
+    return float(points[:, 1].max() - points[:, 1].min())
 
 
 def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np.ndarray, background: float,
@@ -372,10 +385,10 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     model_sigma = math.hypot(edge_model_sigma(variance, level.departure),
                              clipped_edge_model_sigma(clipped_row_share(box, options), math.sqrt(variance)))
     if len(points) < options.min_rim_points or clipped.any():
-        return replace(rim, model_sigma=model_sigma)
+        return replace(rim, model_sigma=model_sigma, blur=math.sqrt(variance))
     fit = fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
                   _MIN_RIM_SIGMA, near=rim.ellipse)
-    return replace(fit, model_sigma=model_sigma)
+    return replace(fit, model_sigma=model_sigma, blur=math.sqrt(variance))
 
 
 def clipped_row_share(box: _LampBox, options: DetectionOptions) -> float:
@@ -510,7 +523,9 @@ def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: n
 def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],
                    origin: tuple[int, int], frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
     """The rim is elliptic, big enough, seen on both sides, and its blurred disc (``extent``: its
-    ellipse's ``_extent``) lies inside the box and frame."""
+    ellipse's ``_extent``) lies inside the box and frame: three of the blurs its ramps measured (up to
+    ``max_blur``'s, which stands where they do not tell) beyond the rim, where the light has reached
+    the ceiling's level."""
     cx, _, a, b, _ = rim.ellipse.tolist()
     count = len(rim.points)
     if (count < options.min_rim_points or rim.sigma > options.max_rim_sigma
@@ -521,11 +536,16 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
     if min(left, count - left) < _MIN_SIDE_FRACTION * count:
         return False
     lo_x, lo_y, hi_x, hi_y = extent
-    margin = options.blur_margin
+    margin = options.blur_margin if rim.blur is None else min(options.blur_margin, _light_reach(rim.blur))
     if lo_x < margin or lo_y < margin or hi_x > roi_shape[1] - 1 - margin or hi_y > roi_shape[0] - 1 - margin:
         return False
     return (lo_x + origin[0] >= margin and lo_y + origin[1] >= margin
             and hi_x + origin[0] <= frame_shape[1] - 1 - margin and hi_y + origin[1] <= frame_shape[0] - 1 - margin)
+
+
+def _light_reach(blur: float) -> int:
+    """Pixels beyond an edge of this blur sigma that its light still reaches (``DetectionOptions.blur_margin``)."""
+    return math.ceil(3.0 * blur) + 1
 
 
 @kernel

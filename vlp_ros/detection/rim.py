@@ -58,13 +58,15 @@ class RimFit:
     """The ellipse through the kept rim points, their RMS distance across the edge (px), how
     many points were left after grazing rows were dropped (before outlier rejection), and the
     prior sigma (px) of the smooth patterns round the rim by which the edge may depart from the
-    model's (``edge_model_sigma``; 0 where the ramps do not tell the blur)."""
+    model's (``edge_model_sigma``; 0 where the ramps do not tell the blur), and the edge's blur
+    sigma (px) that the ramps measured (None where they do not tell)."""
 
     ellipse: np.ndarray
     points: np.ndarray
     sigma: float
     candidates: int
     model_sigma: float = 0.0
+    blur: float | None = None
 
 
 def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
