@@ -5,7 +5,7 @@ half a second per kernel, a minute for all of them); a node would pay that on
 its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
 every kind the nodes meet (colour and mono8, one and several lamps, packet and
 tone beacons, sharp lamps and the realistic look's clipped, glaring ones, read over
-their glow), so the machine code is cached beside the modules
+their glow, steady lamps off the map, bare LEDs as JPEG), so the machine code is cached beside the modules
 (``vlp_ros.compiled``). ``make build`` runs this for the installed package and
 for the source tree the tests import; the locator runs ``warm_up`` before it
 subscribes, which then only loads the machine code (about a second), so that its
@@ -22,23 +22,25 @@ import numpy as np
 from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
 from vlp_ros.pipeline import Pipeline
 from vlp_ros.pose import Pose
+from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.perspective import _up_update
 from vlp_ros.solvers.up_measurement import UpMeasurement
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.looks import LOOKS, apply_look
-from vlp_ros.sim.render import render_frame
+from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.point_lamps import bare_led_scenario
 from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
 
 
 def run_scenario(scenario: Scenario, frames: int) -> None:
-    """The scenario's first frames through the pipeline: in colour with gravity, and as mono8 without;
-    each as a writable array (as the simulator gives it) and as a read-only one (as the locator's
-    image messages give it: numba compiles the two separately)."""
+    """The scenario's first frames, as the locator receives them (through JPEG if the scenario sends it),
+    through the pipeline: in colour with gravity, and as mono8 without; each as a writable array (as the
+    simulator and a JPEG decoder give it) and as a read-only one (as raw image messages give it: numba
+    compiles the two separately)."""
     pipeline = Pipeline(scenario.locator_settings())
     rng = np.random.default_rng(0)
     for index in range(frames):
-        stamp, truth = index / scenario.frame_rate, scenario.poses[index]
-        image = render_frame(scenario.camera, truth, scenario.lamps, scenario.sensor, stamp, rng).image
+        stamp, truth = float(scenario.frame_times()[index]), scenario.poses[index]
+        image = transported(scenario, scenario.render(index, rng).image)
         gravity = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
         up = gravity / np.linalg.norm(gravity)
         for pixels in (image, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)):
@@ -67,14 +69,29 @@ def warm_up() -> None:
     run_scenario(robot_scenario(), frames=3)
     # Clipped, blurred lamps with glare: the beacon reads them over their light (glow included).
     run_scenario(apply_look(paper_scenario('4k', points=3, postures=1), LOOKS['realistic']), frames=1)
+    # Steady lamps without a marker among the mapped ones, and bare LEDs (point lamps, solved from their
+    # centres; clipped cores without a marker), as JPEG: without these, the first frame of each compiled
+    # kernels (a fresh process's first bare-LED JPEG frame 51 s, a tone robot's 21-25 s).
+    run_scenario(apply_look(paper_scenario('1080p', points=3, postures=1), LOOKS['clutter']), frames=1)
+    run_scenario(bare_led_scenario('4k', photos=1, row_time_error=0.02, jpeg_quality=90), frames=1)
     read_tone_lamps(trials=4)
     update_by_up()
+    compare_candidates()
 
 
 def update_by_up() -> None:
     """The Kalman update by an up direction, which the scenarios' frames do not reach (it runs when
     gravity must settle a candidate): a level pose and a vertical up, arrays as the solver builds them."""
     _up_update(Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4), [UpMeasurement(np.array([0.0, 0.0, 1.0]), 0.01)])
+
+
+def compare_candidates() -> None:
+    """The test whether two candidate poses are apart by their covariance (``inverse_form``), which the
+    scenarios' frames do not reach (the realistic look's second hand-held frame does): a covariance and a
+    separation as the solvers give them, writable and read-only."""
+    covariance, separation = np.eye(6) * 1e-4, np.full(6, 1e-2)
+    inverse_form(covariance, separation)
+    inverse_form(read_only(covariance), read_only(separation))
 
 
 def main() -> None:

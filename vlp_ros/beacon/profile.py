@@ -319,10 +319,12 @@ def _separable_light(pixels: np.ndarray, y0: int, y1: int, x0: int, x1: int, str
         free[:] = 1.0
     brightness, weights = np.ones(rows), np.ones(rows)
     light = np.zeros(_RADIAL_BINS)
+    # The rows' fit reads the sums bin by bin: laid out so, it runs over all rows at once.
+    total_by_bin, count_by_bin = np.ascontiguousarray(total.T), np.ascontiguousarray(count.T)
     for done in range(_ROUNDS + 2):
         use = free if done < _ROUNDS else np.ones(_RADIAL_BINS)
         light = _fit_light(total, count, use, brightness, weights)
-        brightness, weights = _fit_rows(total, count, light)
+        brightness, weights = _fit_rows(total_by_bin, count_by_bin, light)
     # The rows' weights in pixels of the brightest light, and their clipped share among lit pixels.
     reference = max(light.max(), 1e-12)
     weights /= reference * reference
@@ -342,17 +344,19 @@ def _fit_light(total: np.ndarray, count: np.ndarray, use: np.ndarray, brightness
                measured: np.ndarray) -> np.ndarray:
     """Each radial bin's light given the rows' brightness (least squares over the unclipped pixels of the
     bins in ``use`` and the rows ``measured`` > 0); bins dimmer than _MIN_LIGHT of the brightest are
-    background (0)."""
+    background (0). Every bin's sums run over the rows in order, all bins at once (a row is contiguous)."""
     rows, bins = total.shape
+    top, bottom = np.zeros(bins), np.zeros(bins)
+    for r in range(rows):
+        if measured[r] > 0.0:
+            level = brightness[r]
+            for k in range(bins):
+                top[k] += total[r, k] * level
+                bottom[k] += count[r, k] * level * level
     light = np.zeros(bins)
     for k in range(bins):
         if use[k] > 0.0:
-            top, bottom = 0.0, 0.0
-            for r in range(rows):
-                if measured[r] > 0.0:
-                    top += total[r, k] * brightness[r]
-                    bottom += count[r, k] * brightness[r] * brightness[r]
-            light[k] = top / max(bottom, 1e-12)
+            light[k] = top[k] / max(bottom[k], 1e-12)
     floor = _MIN_LIGHT * light.max()
     for k in range(bins):
         if light[k] < floor:
@@ -361,16 +365,19 @@ def _fit_light(total: np.ndarray, count: np.ndarray, use: np.ndarray, brightness
 
 
 @kernel
-def _fit_rows(total: np.ndarray, count: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's brightness given the light's shape, and sum(light^2) over its unclipped pixels."""
-    rows, bins = total.shape
-    brightness, weights = np.ones(rows), np.zeros(rows)
+def _fit_rows(total_by_bin: np.ndarray, count_by_bin: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's brightness given the light's shape, and sum(light^2) over its unclipped pixels: the sums
+    (bins, rows) run over the bins in order, all rows at once."""
+    bins, rows = total_by_bin.shape
+    top, weights = np.zeros(rows), np.zeros(rows)
+    for k in range(bins):
+        shade = light[k]
+        if shade > 0.0:
+            for r in range(rows):
+                top[r] += total_by_bin[k, r] * shade
+                weights[r] += count_by_bin[k, r] * shade * shade
+    brightness = np.ones(rows)
     for r in range(rows):
-        top = 0.0
-        for k in range(bins):
-            if light[k] > 0.0:
-                top += total[r, k] * light[k]
-                weights[r] += count[r, k] * light[k] * light[k]
         if weights[r] > 0.0:
-            brightness[r] = top / weights[r]
+            brightness[r] = top[r] / weights[r]
     return brightness, weights
