@@ -161,7 +161,8 @@ class ModelErrorFit:
     (its prior included; the measure candidates are compared and gated by), the common rim
     offset ``rim_offset`` (px, outward positive; 0 where not determined), the rim modes'
     estimated prior sigma ``mode_sigma`` (px), and ``fit_covariance``: the covariance before
-    the modes were marginalised with their given prior (None where they were not)."""
+    the modes were marginalised with their given prior, or before the lamps' priors widened the
+    several-lamp fit's (None where neither was done)."""
 
     step: np.ndarray
     covariance: np.ndarray
@@ -214,7 +215,8 @@ def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float
 def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_count, marker_count, offset_sigma,
                      estimated, rim_dof, mode_sigma_grid, mode_prior_sigma, step, covariance, fit_covariance):
     """``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning (cost,
-    rim offset, mode sigma, whether the modes were marginalised with their given prior). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
+    rim offset, mode sigma, whether ``fit_covariance`` was set: the modes marginalised with their given
+    prior, or a lamp's prior over the estimated sigma). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
     or one with a prior sigma of its modes)."""
     count, rims = residuals.shape[0], rim_sigma.shape[0]
     per_lamp = modes.shape[1]
@@ -268,7 +270,13 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
             _predict(design, residuals, solution, predicted)
             if reweighting < _MODE_REWEIGHTINGS:
                 _reweight(predicted, weights, rims, marker_count, rim_dof)
-        _add_mode_prior_excess(inverse, mode_sigma, mode_prior_sigma, per_lamp)
+        if mode_prior_sigma.max() > mode_sigma:
+            # Candidates are told apart and up directions judged by the fit's own covariance, as for one lamp.
+            for i in range(6):
+                for j in range(6):
+                    fit_covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
+            marginalised = True
+            _add_mode_prior_excess(inverse, mode_sigma, mode_prior_sigma, per_lamp)
     for i in range(6):
         step[i] = solution[i]
         for j in range(6):
