@@ -48,8 +48,8 @@ from vlp_ros.progress import progress_bar
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.render import LampTruth, RenderedFrame
-from vlp_ros.sim.scenarios import (Scenario, as_stills, paper_scenario, robot_drive_scenario, robot_scenario,
-                                   robot_tone_scenario, with_rim_markers)
+from vlp_ros.sim.scenarios import (DRIVE_SPEED, DRIVE_TURN_RATE, Scenario, as_stills, paper_scenario,
+                                   robot_drive_scenario, robot_scenario, robot_tone_scenario, with_rim_markers)
 
 SOLVERS = ('paper', 'perspective')
 HEIGHTS = (2.0, 1.5)
@@ -110,8 +110,8 @@ class SetupRun:
 class Drive:
     """How the robot of the drive rows moves: issue 13's setup unless asked otherwise."""
 
-    speed: float = 0.8
-    turn_rate: float = 0.3
+    speed: float = DRIVE_SPEED
+    turn_rate: float = DRIVE_TURN_RATE
 
 
 def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -> list[Setup]:

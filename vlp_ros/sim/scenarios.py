@@ -297,6 +297,9 @@ ROBOT_1080P_FOCAL = 1100.0
 ROBOT_1080P_DISTORTION = (-0.08, 0.03, 0.0005, -0.0003, 0.0)
 ROBOT_ROW_TIME = 15e-6
 ROBOT_EXPOSURE = 20e-6
+# Issue 13's drive: 0.8 m/s, weaving with a heading rate up to 0.3 rad/s.
+DRIVE_SPEED = 0.8
+DRIVE_TURN_RATE = 0.3
 ROBOT_LAMP_RADIUS = 0.075
 ROBOT_CAMERA_HEIGHT = 0.45
 
@@ -306,7 +309,8 @@ def robot_1080p_camera() -> CameraModel:
     return CameraModel(1920, 1080, K, np.array(ROBOT_1080P_DISTORTION))
 
 
-def robot_drive_scenario(seed: int = 0, duration: float = 12.0, speed: float = 0.8, turn_rate: float = 0.3,
+def robot_drive_scenario(seed: int = 0, duration: float = 12.0, speed: float = DRIVE_SPEED,
+                         turn_rate: float = DRIVE_TURN_RATE,
                          spacing: float = 2.4, height: float = 2.15, depth: float = 0.75,
                          bayer: str | None = None) -> Scenario:
     """A robot driving ``speed`` m/s and weaving (heading rate up to ``turn_rate`` rad/s) under
