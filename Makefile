@@ -29,8 +29,8 @@ venv: $(STAMP)
 $(BUILT): $(STAMP) $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
 	find vlp_ros install/vlp_ros -path '*/__pycache__/*.nb[ic]' -delete
-	$(RUN) cd build && python -m vlp_ros.compile_kernels
-	$(RUN) python -m vlp_ros.compile_kernels
+	$(RUN) cd build && python -m vlp_ros.compiled.warm_up
+	$(RUN) python -m vlp_ros.compiled.warm_up
 	touch $@
 
 build: $(BUILT)

@@ -5,7 +5,7 @@ import numpy as np
 
 from vlp_ros.beacon.encoding import Waveform
 from vlp_ros.beacon.profile import RowProfile
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.observation import LampObservation
 
 
 def row_brightness(waveform: Waveform, rows: int, row_time: float, exposure: float,

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from vlp_ros.dds_environment import claim_domain_id, installed_executable, use_loopback_dds
+from vlp_ros.nodes.dds_environment import claim_domain_id, installed_executable, use_loopback_dds
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / 'shared' / 'data'

@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.scenarios import paper_camera
-from vlp_ros.solvers.synthetic import synthetic_observation
+from vlp_ros.sim.exact_observations import synthetic_observation
 
 
 def camera_4k() -> CameraModel:

@@ -13,8 +13,8 @@ from vlp_ros.beacon.encoding import packet_length, packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_packet
 from vlp_ros.beacon.profile import RowProfile
-from vlp_ros.observation import LampObservation
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 

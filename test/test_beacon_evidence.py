@@ -9,7 +9,7 @@ from vlp_ros.beacon.decoding import decode_packet
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.reading import BeaconReading, no_evidence
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.observation import LampObservation
 
 ROW_TIME = 2e-5
 CHIP_RATE = 1.0 / (5 * ROW_TIME)

@@ -4,8 +4,8 @@ import pytest
 from conftest import SHARED_DATA
 
 from vlp_ros.evaluation.recording import RecordingTopics, recorded_frames
-from vlp_ros.locator_config import settings_from_params_file
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.config import settings_from_params_file
+from vlp_ros.pipeline.frame import Pipeline
 
 HANDHELD = SHARED_DATA / 'foreign_frames' / 'handheld_4k_realistic'
 

@@ -11,14 +11,14 @@ from scipy.spatial.transform import Rotation
 from solver_scenes import grid_lamps, looking_up
 from vlp_ros.benchmarks import camera_models
 from vlp_ros.benchmarks.camera_models import EQUIDISTANT_D, RATIONAL_D, robot_cameras, wide_camera
-from vlp_ros.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, RECTIFIED, CameraModel
-from vlp_ros.ellipse import geometric_distances
-from vlp_ros.pinhole_view import seen_through_pinhole, solver_view
+from vlp_ros.core.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, RECTIFIED, CameraModel
+from vlp_ros.core.ellipse import geometric_distances
+from vlp_ros.solvers.pinhole_view import seen_through_pinhole, solver_view
 from vlp_ros.sim.render import _rim_ellipse
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.covariance import nees
 from vlp_ros.solvers.fusion import solve_lamps
-from vlp_ros.solvers.synthetic import synthetic_observation
+from vlp_ros.sim.exact_observations import synthetic_observation
 
 # A thousandth of a pixel: far below the 0.1-0.3 px the detector measures rim points and markers to.
 PIXEL_TOLERANCE = 1e-3

@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 from solver_scenes import observe
 
 from vlp_ros.beacon.reading import BeaconReading
-from vlp_ros.lamp_map import Lamp, LampMap
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp, LampMap
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.scenarios import ROBOT_CAMERA_MOUNT, robot_1080p_camera
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.continuity_ids import settled_by_continuity

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, observe, small_lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints
 from vlp_ros.solvers.covariance import nees, perturbed, widened_toward_up
 from vlp_ros.solvers.fusion import solve_lamps

@@ -8,13 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_waveform
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.detection import DetectionOptions, detect_lamps
 from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
-from vlp_ros.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.render import SimLamp, render_frame
 from vlp_ros.sim.scenarios import paper_scenario

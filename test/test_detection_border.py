@@ -2,7 +2,7 @@
 import numpy as np
 
 from vlp_ros.detection import detect_lamps
-from vlp_ros.ellipse import fit_ellipse
+from vlp_ros.core.ellipse import fit_ellipse
 from vlp_ros.sim.scenarios import robot_drive_scenario
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import yaml
 from conftest import ROOT
 
-from vlp_ros.locator_config import LAMP_PARAMETERS, PARAMETERS, settings_from_params_file
+from vlp_ros.pipeline.config import LAMP_PARAMETERS, PARAMETERS, settings_from_params_file
 
 
 def test_readme_documents_every_parameter() -> None:

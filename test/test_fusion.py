@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
-from vlp_ros.lamp_map import Lamp
+from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.fusion import pnp_starts, solve_lamps

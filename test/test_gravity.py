@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.gravity import GravityBuffer
+from vlp_ros.core.gravity import GravityBuffer
 
 
 def test_nearest_recent_sample_gives_unit_up_in_camera_frame() -> None:

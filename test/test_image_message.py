@@ -7,8 +7,8 @@ import pytest
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
-from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
-from vlp_ros.image_message import MessageFormatError, parse_compressed_image, parse_image
+from vlp_ros.images.conversion import ImageConversionError, decode_compressed, pixels_of
+from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
 
 
 def _image_bytes(pixels: np.ndarray, encoding: str, step: int | None = None, frame_id: str = 'cam',

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from vlp_ros.beacon.encoding import tone_waveform
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
 from vlp_ros.detection import detect_lamps
-from vlp_ros.pipeline import Pipeline
-from vlp_ros.pose import Pose
+from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import Choice, Reason
 from vlp_ros.solvers.joint_ids import OpenLamp, settle
 from vlp_ros.sim.imu import specific_force

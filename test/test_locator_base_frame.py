@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from vlp_ros.benchmarks.base_frame import MOUNTING, mounted_robot_scenario
 from vlp_ros.evaluation.demo import PoseListener, play_through_nodes
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.recording import LOCATOR_NODE, record, write_params
 from vlp_ros.sim.scenarios import robot_scenario
 from vlp_ros.solvers.covariance import nees

@@ -10,7 +10,7 @@ from conftest import spin_until
 from test_locator_node import STAMP_NS, Feeder, _header, _image_bytes, _serialized, _start_locator
 
 from vlp_ros.benchmarks.camera_models import EQUIDISTANT_D, robot_cameras, robot_scenario_with
-from vlp_ros.camera import COEFFICIENTS, EQUIDISTANT, RATIONAL_POLYNOMIAL
+from vlp_ros.core.camera import COEFFICIENTS, EQUIDISTANT, RATIONAL_POLYNOMIAL
 from vlp_ros.evaluation.demo import PoseListener, play_through_nodes
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
 from vlp_ros.sim.bag_writer import camera_info_message

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vlp_ros.locator_config import ConfigError, default_parameters, settings_from_parameters
+from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters
 
 
 def _values(**overrides):

@@ -16,7 +16,7 @@ from conftest import located_through_the_nodes, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 
 from vlp_ros.evaluation.recording import RecordingTopics
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.recording import EPOCH_NS, LOCATOR_NODE, write_params

@@ -15,7 +15,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.bag_writer import TYPESTORE, camera_info_message, image_message
 from vlp_ros.sim.recording import LOCATOR_NODE, write_params
 from vlp_ros.sim.render import render_frame

@@ -12,7 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
-from vlp_ros.debug_view import DISPLAY_WIDTH, IDENTIFIED
+from vlp_ros.pipeline.debug_view import DISPLAY_WIDTH, IDENTIFIED
 from vlp_ros.sim.bag_writer import TYPESTORE, camera_info_message, image_message
 from vlp_ros.sim.recording import write_params
 from vlp_ros.sim.render import render_frame

@@ -16,7 +16,7 @@ import vlp_ros.detection.detector as detector
 from vlp_ros.detection import detect_lamps
 from vlp_ros.detection import marker
 from vlp_ros.detection.marker import MarkerSeed, find_seed, fit_marker, redness, redness_and_peaks
-from vlp_ros.ellipse import geometric_distances
+from vlp_ros.core.ellipse import geometric_distances
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.gravity import STANDARD_GRAVITY, GravityBuffer
-from vlp_ros.locator_config import ConfigError, default_parameters, settings_from_parameters
-from vlp_ros.mounting import (MIN_POSITION_VARIANCE, MIN_ROTATION_VARIANCE, Mounting, publishable_covariance)
-from vlp_ros.pipeline import Pipeline
-from vlp_ros.pose import Pose
+from vlp_ros.core.gravity import STANDARD_GRAVITY, GravityBuffer
+from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters
+from vlp_ros.core.mounting import (MIN_POSITION_VARIANCE, MIN_ROTATION_VARIANCE, Mounting, publishable_covariance)
+from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario
 

@@ -6,7 +6,7 @@ import os
 import pytest
 from conftest import ROOT, spin_until
 
-from vlp_ros.dds_environment import installed_executable
+from vlp_ros.nodes.dds_environment import installed_executable
 
 EXECUTABLES = ['locator', 'replay']
 

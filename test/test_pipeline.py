@@ -6,9 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from vlp_ros.gravity import STANDARD_GRAVITY
-from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.core.gravity import STANDARD_GRAVITY
+from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario

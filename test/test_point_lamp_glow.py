@@ -13,8 +13,8 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
                                     reading)
 from vlp_ros.beacon.tone import agreeing
 from vlp_ros.detection import detect_lamps
-from vlp_ros.locator_config import ConfigError, beacon_from_parameters, default_parameters
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.config import ConfigError, beacon_from_parameters, default_parameters
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
 from vlp_ros.sim.sensor import encode_jpeg

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import yaml
 
-from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim.point_lamps import RIG_FREQUENCIES, PointLampLook, bare_led_scenario
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from solver_scenes import camera_4k, camera_wide, looking_up, measured_up, observe
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.locator_config import default_parameters, settings_from_parameters
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.pipeline.config import default_parameters, settings_from_parameters
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.fusion import solve_lamps

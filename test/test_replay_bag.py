@@ -12,9 +12,9 @@ from replay_bags import (IMAGE, SHARED_BAGS, STRING, T0_NS, Recorded, chatter, c
                          write_bag, write_overlapping_split_bag, write_split_bag)
 from rosbags.interfaces import QosDurability, QosReliability
 
-from vlp_ros.playback_plan import (PlaybackOptions, PlaybackTally, Timeline, parse_remaps, playback_origin,
+from vlp_ros.bags.playback_plan import (PlaybackOptions, PlaybackTally, Timeline, parse_remaps, playback_origin,
                                    progress_line, select_topics)
-from vlp_ros.rosbag_reader import Bag, BagError, BagMessage, OfferedQos, adapt_offers, header_stamp
+from vlp_ros.bags.reader import Bag, BagError, BagMessage, OfferedQos, adapt_offers, header_stamp
 
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 

@@ -6,7 +6,7 @@ import pytest
 
 from vlp_ros.benchmarks import accuracy
 from vlp_ros.evaluation.metrics import FrameOutcome
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 
 TRUTH = Pose(np.eye(3), [0.0, 0.0, 0.0])
 

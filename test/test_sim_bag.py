@@ -8,12 +8,12 @@ import yaml
 from rosbags.rosbag2 import Reader
 
 from vlp_ros.beacon.encoding import packet_waveform
-from vlp_ros.camera import CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.gravity import STANDARD_GRAVITY
-from vlp_ros.locator_config import default_parameters, flatten_parameters, settings_from_parameters
-from vlp_ros.pose import Pose
-from vlp_ros.rosbag_reader import Bag
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.gravity import STANDARD_GRAVITY
+from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.core.pose import Pose
+from vlp_ros.bags.reader import Bag
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim.bag_writer import TYPESTORE
 from vlp_ros.sim.recording import EPOCH_NS, record, write_params

@@ -8,11 +8,11 @@ from scipy.special import i0e
 from scipy.stats import norm
 
 from vlp_ros.beacon.encoding import Waveform, packet_waveform, tone_waveform
-from vlp_ros.camera import CameraModel
-from vlp_ros.image_conversion import decode_compressed
-from vlp_ros.image_message import parse_compressed_image
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.images.conversion import decode_compressed
+from vlp_ros.images.message import parse_compressed_image
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim import look_check
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC, JPEG_FORMAT, TYPESTORE

@@ -4,10 +4,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_waveform, tone_waveform
-from vlp_ros.camera import CameraModel
-from vlp_ros.ellipse import fit_ellipse, geometric_distances
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.ellipse import fit_ellipse, geometric_distances
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.coverage import Circle, disc_coverage, plane_points
 from vlp_ros.sim.render import SimLamp, crop_camera, lamp_roi, render_frame
 from vlp_ros.sim.sensor import SensorModel

@@ -4,8 +4,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_length
-from vlp_ros.pose import Pose
-from vlp_ros.gravity import STANDARD_GRAVITY
+from vlp_ros.core.pose import Pose
+from vlp_ros.core.gravity import STANDARD_GRAVITY
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import (PAPER_DESIGN_DISTANCE, as_stills, design_beacon, paper_scenario, robot_drive_scenario,

@@ -4,7 +4,7 @@ did not show. The covariance must cover them."""
 import numpy as np
 import pytest
 
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 from vlp_ros.solvers.covariance import nees

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from vlp_ros.small_arrays import median, percentile, ranked
+from vlp_ros.compiled.small_arrays import median, percentile, ranked
 
 
 @pytest.mark.parametrize('size', [1, 2, 3, 10, 61, 300])

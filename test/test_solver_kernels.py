@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from solver_scenes import camera_wide, grid_lamps, looking_up, measured_up, observe
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.solvers.circle_pose import circle_poses
 from vlp_ros.solvers.fit_kernels import forecast, inverse_form, project_point
 from vlp_ros.solvers.perspective import _kalman_update

@@ -4,8 +4,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from solver_scenes import camera_4k, looking_up, observe, small_lamp
-from vlp_ros.camera import CameraModel
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.paper import solve_lamp_paper
 

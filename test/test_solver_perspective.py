@@ -4,8 +4,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
-from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse
-from vlp_ros.lamp_map import Lamp
+from vlp_ros.core.ellipse import conic_from_ellipse, fit_ellipse
+from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.circle_pose import circle_poses
 from vlp_ros.solvers.measurement import LampMeasurement

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.small_arrays import median
+from vlp_ros.compiled.small_arrays import median
 
 _COARSE_PHASES = 6
 _THOROUGH_PHASES = 24

@@ -13,7 +13,7 @@ from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_pack
 from vlp_ros.beacon.profile import RowProfile, light_profile, row_profile
 from vlp_ros.beacon.reading import UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, has_evidence, no_evidence
 from vlp_ros.beacon.tone import decode_tone
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.observation import LampObservation
 
 __all__ = ['BLUR_MIXES', 'BeaconReading', 'RowProfile', 'UNMAPPED', 'decode_clipped_packet', 'decode_glow',
            'decode_packet', 'decode_tone', 'light_profile', 'has_evidence', 'read_lamp', 'row_profile']

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlp_ros.beacon.reading import MIN_CONFIDENCE, BeaconReading, Decision, decide
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.observation import LampObservation
 
 
 # Largest ratio between the sizes of a lamp in consecutive frames of one track.

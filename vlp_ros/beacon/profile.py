@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.observation import LampObservation
 
 @dataclass(frozen=True)
 class RowProfile:

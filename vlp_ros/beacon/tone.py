@@ -23,7 +23,7 @@ from vlp_ros.beacon.profile import RowProfile, light_profile, relative_brightnes
 from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, has_evidence,
                                     log_prior, no_evidence, reading)
 from vlp_ros.compiled import kernel
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.observation import LampObservation
 
 # How far off (relative) the row time may be: every frequency then reads off by as much, so each lamp's band
 # widens by that share of its frequency (issue 14: nominal row times are 0.3-2 % off).

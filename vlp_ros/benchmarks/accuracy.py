@@ -42,9 +42,9 @@ from vlp_ros.evaluation.evaluate import grid_point
 from vlp_ros.evaluation.metrics import (TABLE_HEADER, WRONG_FIX_M, ErrorSummary, FrameOutcome, format_table,
                                         nees_or_nan, summarize, summary_row)
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
-from vlp_ros.gravity import GravityBuffer
-from vlp_ros.pipeline import FrameResult, Pipeline
-from vlp_ros.progress import progress_bar
+from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.pipeline.frame import FrameResult, Pipeline
+from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.render import LampTruth, RenderedFrame

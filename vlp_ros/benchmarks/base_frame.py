@@ -17,9 +17,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
-from vlp_ros.mounting import Mounting
-from vlp_ros.pipeline import Pipeline
-from vlp_ros.pose import Pose
+from vlp_ros.core.mounting import Mounting
+from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import ROBOT_CAMERA_MOUNT, Scenario, robot_scenario
 

@@ -38,10 +38,10 @@ from vlp_ros.beacon.encoding import packet_chips, packet_length, packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.profile import RowProfile
 from vlp_ros.beacon.reading import MIN_CONFIDENCE, UNMAPPED_WEIGHT, decide, log_prior
-from vlp_ros.camera import CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.looks import LOOKS, STEADY, Look
 from vlp_ros.sim.render import RenderedFrame, SimLamp, lamp_roi, render_frame
 from vlp_ros.sim.sensor import SensorModel, encode_jpeg

@@ -14,9 +14,9 @@ from dataclasses import replace
 import numpy as np
 
 from vlp_ros.benchmarks.base_frame import drive_arguments
-from vlp_ros.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, CameraModel
+from vlp_ros.core.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, CameraModel
 from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import Scenario, robot_scenario
 

@@ -26,15 +26,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.detection import detect_lamps
-from vlp_ros.ellipse import geometric_distances
+from vlp_ros.core.ellipse import geometric_distances
 from vlp_ros.evaluation.metrics import format_table, nees_or_nan
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.locator_config import LocatorSettings
-from vlp_ros.observation import LampObservation
-from vlp_ros.pipeline import Pipeline
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.pipeline.config import LocatorSettings
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.render import LampTruth

@@ -42,10 +42,10 @@ import numpy as np  # noqa: E402
 from vlp_ros.beacon.decoding import decode_packet, row_profile  # noqa: E402
 from vlp_ros.detection import detect_lamps  # noqa: E402
 from vlp_ros.evaluation.metrics import format_table  # noqa: E402
-from vlp_ros.lamp_map import Lamp, LampMap  # noqa: E402
-from vlp_ros.locator_config import LocatorSettings  # noqa: E402
-from vlp_ros.observation import LampObservation  # noqa: E402
-from vlp_ros.pipeline import Pipeline  # noqa: E402
+from vlp_ros.core.lamp_map import Lamp, LampMap  # noqa: E402
+from vlp_ros.pipeline.config import LocatorSettings  # noqa: E402
+from vlp_ros.core.observation import LampObservation  # noqa: E402
+from vlp_ros.pipeline.frame import Pipeline  # noqa: E402
 from vlp_ros.sim.imu import specific_force  # noqa: E402
 from vlp_ros.sim.render import RenderedFrame, render_frame  # noqa: E402
 from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario  # noqa: E402

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from vlp_ros.detection import detect_lamps
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
 from vlp_ros.sim.sensor import encode_jpeg

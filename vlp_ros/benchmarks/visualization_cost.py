@@ -23,10 +23,10 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.benchmarks.pipeline_speed import BURST, Case, cases, interleaved_times
-from vlp_ros.debug_view import debug_view
+from vlp_ros.pipeline.debug_view import debug_view
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
 
 RUNS = ('process', 'debug image', 'lamps')

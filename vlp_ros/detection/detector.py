@@ -17,9 +17,9 @@ from vlp_ros.detection.point import fit_point
 from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
                                    edge_model_sigma, fit_rim, outward_normals, row_crossings)
 from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile
-from vlp_ros.ellipse import conic_distance, conic_from_ellipse, conic_of
-from vlp_ros.observation import LampObservation
-from vlp_ros.small_arrays import median
+from vlp_ros.core.ellipse import conic_distance, conic_from_ellipse, conic_of
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.compiled.small_arrays import median
 
 # A lamp's rim must have this many kept points on each side of its centre.
 _MIN_SIDE_FRACTION = 0.2

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.ellipse import ellipse_from_conic
+from vlp_ros.core.ellipse import ellipse_from_conic
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 0.70710678118654752440

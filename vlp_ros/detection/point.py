@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlp_ros.small_arrays import median
+from vlp_ros.compiled.small_arrays import median
 
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826

@@ -25,8 +25,8 @@ from scipy.special import ndtr, ndtri
 
 from vlp_ros.compiled import kernel
 from vlp_ros.detection.rows import RowLevels, chords
-from vlp_ros.ellipse import OK, conic_of, distances, fit_error, fit_points, geometric_distances
-from vlp_ros.small_arrays import median
+from vlp_ros.core.ellipse import OK, conic_of, distances, fit_error, fit_points, geometric_distances
+from vlp_ros.compiled.small_arrays import median
 
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826

@@ -14,8 +14,8 @@ import numpy as np
 from scipy.special import ndtr
 
 from vlp_ros.compiled import kernel
-from vlp_ros.ellipse import conic_distance, conic_of
-from vlp_ros.small_arrays import percentile, ranked
+from vlp_ros.core.ellipse import conic_distance, conic_of
+from vlp_ros.compiled.small_arrays import percentile, ranked
 
 # Plateau samples per row, spread over the middle half of the row's chord.
 _FRACTIONS = np.linspace(0.25, 0.75, 9)

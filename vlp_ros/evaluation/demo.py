@@ -27,16 +27,16 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from std_msgs.msg import Header
 
-from vlp_ros.dds_environment import claim_domain_id, installed_executable, loopback_profile, use_loopback_dds
+from vlp_ros.nodes.dds_environment import claim_domain_id, installed_executable, loopback_profile, use_loopback_dds
 from vlp_ros.evaluation import figures
 from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, summarize
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
 from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, mirror_summary
-from vlp_ros.locator_config import settings_from_params_file
-from vlp_ros.pose import Pose
-from vlp_ros.progress import progress_bar
+from vlp_ros.pipeline.config import settings_from_params_file
+from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, AIMED_TWIST_DEG, paper_scenario
 

@@ -18,10 +18,10 @@ from vlp_ros.evaluation.metrics import FrameOutcome
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
 from vlp_ros.evaluation.report import Evaluation, write_report
 from vlp_ros.evaluation.tiebreak import CandidateRecorder, add_paper_tiebreak_argument, mirror_summary
-from vlp_ros.gravity import GravityBuffer
-from vlp_ros.locator_config import ConfigError, LocatorSettings, settings_from_params_file
-from vlp_ros.pipeline import Pipeline
-from vlp_ros.rosbag_reader import BagError
+from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.pipeline.config import ConfigError, LocatorSettings, settings_from_params_file
+from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.bags.reader import BagError
 
 
 def grid_point(outcome_truth_xy) -> tuple[float, float]:

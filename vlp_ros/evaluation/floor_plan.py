@@ -23,19 +23,19 @@ from functools import cached_property
 import numpy as np
 
 from vlp_ros.beacon.encoding import packet_length
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.detection.detector import DetectionOptions
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.locator_config import default_parameters
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.pipeline.config import default_parameters
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION
 from vlp_ros.sim.scenarios import MARKER_RIM_GAP_FRACTION
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.refinement import refine_pose
-from vlp_ros.solvers.synthetic import synthetic_observation
+from vlp_ros.sim.exact_observations import synthetic_observation
 
 _LOCATOR_DEFAULTS = default_parameters()
 _DETECTION_DEFAULTS = DetectionOptions()

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.covariance import nees
 
 WRONG_FIX_M = 0.5  # a published pose further than this from the truth is a wrong fix

@@ -22,7 +22,7 @@ from matplotlib.colors import ListedColormap, LogNorm  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
-from vlp_ros.camera import CameraModel  # noqa: E402
+from vlp_ros.core.camera import CameraModel  # noqa: E402
 from vlp_ros.evaluation.floor_plan import (BeaconPlan, Decodability, Deployment, FloorPlan,  # noqa: E402
                                            MeasurementNoise, ceiling_lamp, grid_positions, looking_up,
                                            plan_floor)

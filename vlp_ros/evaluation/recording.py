@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.gravity import GravityBuffer
-from vlp_ros.image_conversion import decode_compressed, pixels_of
-from vlp_ros.image_message import parse_compressed_image, parse_image
-from vlp_ros.pose import Pose
-from vlp_ros.rosbag_reader import Bag, BagError
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.images.conversion import decode_compressed, pixels_of
+from vlp_ros.images.message import parse_compressed_image, parse_image
+from vlp_ros.core.pose import Pose
+from vlp_ros.bags.reader import Bag, BagError
 
 TYPESTORE = get_typestore(Stores.LATEST)
 

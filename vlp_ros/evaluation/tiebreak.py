@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 from vlp_ros.evaluation.metrics import FrameOutcome
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from vlp_ros.frame_stats import FrameStats
+from vlp_ros.pipeline.frame_stats import FrameStats
 
 # Pipeline outcomes (solver Reason values) that mean candidates could not be told apart.
 AMBIGUITY_OUTCOMES = ('ambiguous', 'conflicting_hints', 'no_candidate_agrees', 'inconsistent_lamps')

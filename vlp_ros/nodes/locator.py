@@ -1,9 +1,9 @@
 """The `locator` node: camera images in, camera poses out.
 
 Callbacks only keep the newest frame; one worker thread decodes it, hands it to
-the ROS-free pipeline (vlp_ros.pipeline) and publishes. Frames that arrive while
+the ROS-free pipeline (vlp_ros.pipeline.frame) and publishes. Frames that arrive while
 the worker is busy replace the waiting one, so latency never grows. Before it
-subscribes, the node loads the pipeline's compiled kernels (vlp_ros.compile_kernels),
+subscribes, the node loads the pipeline's compiled kernels (vlp_ros.compiled.warm_up),
 so its first frames take no longer than later ones.
 """
 from __future__ import annotations
@@ -29,20 +29,20 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
-from vlp_ros.camera import CameraModel
-from vlp_ros.compile_kernels import warm_up
-from vlp_ros.debug_view import debug_view
-from vlp_ros.frame_stats import FrameStats
-from vlp_ros.gravity import GravityBuffer
-from vlp_ros.image_conversion import ImageConversionError, decode_compressed, pixels_of
-from vlp_ros.image_message import MessageFormatError, parse_compressed_image, parse_image
-from vlp_ros.locator_config import ConfigError, settings_from_parameters
-from vlp_ros.mounting import publishable_covariance
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.compiled.warm_up import warm_up
+from vlp_ros.pipeline.debug_view import debug_view
+from vlp_ros.pipeline.frame_stats import FrameStats
+from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.images.conversion import ImageConversionError, decode_compressed, pixels_of
+from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
+from vlp_ros.pipeline.config import ConfigError, settings_from_parameters
+from vlp_ros.core.mounting import publishable_covariance
 from vlp_ros.nodes.diagnostics import diagnostic_array
 from vlp_ros.nodes.parameters import declare_locator_parameters
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
-from vlp_ros.pipeline import FrameResult, Pipeline
-from vlp_ros.pose import Pose
+from vlp_ros.pipeline.frame import FrameResult, Pipeline
+from vlp_ros.core.pose import Pose
 
 THROTTLE_S = 5.0
 

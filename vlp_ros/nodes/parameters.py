@@ -11,7 +11,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from vlp_ros.locator_config import LAMP_PARAMETERS, PARAMETERS, ConfigError, ParameterSpec
+from vlp_ros.pipeline.config import LAMP_PARAMETERS, PARAMETERS, ConfigError, ParameterSpec
 
 _STATIC_TYPES = {
     'string': Parameter.Type.STRING,

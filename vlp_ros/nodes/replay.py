@@ -34,9 +34,9 @@ from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
-from vlp_ros.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, PlaybackTally, Timeline,
+from vlp_ros.bags.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, PlaybackTally, Timeline,
                                    playback_origin, progress_line, select_topics)
-from vlp_ros.rosbag_reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
+from vlp_ros.bags.reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
 
 DISCOVERY_WAIT_S = 5.0  # at most, for subscribers to match first (a lost announcement costs 3 s)
 DISCOVERY_SETTLE_S = 0.5  # once some matched, this long without another match ends the wait

@@ -9,7 +9,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from vlp_ros.lamp_map import Lamp, LampMap
+from vlp_ros.core.lamp_map import Lamp, LampMap
 
 DISC_THICKNESS_M = 0.01
 LAMP = ColorRGBA(r=0.85, g=0.85, b=0.85, a=0.9)

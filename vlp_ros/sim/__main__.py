@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from vlp_ros.sim.bag_writer import STORAGES
-from vlp_ros.progress import progress_bar
+from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.point_lamps import BARE_LED_CAMERAS, PointLampLook, bare_led_scenario
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.looks import LOOKS, Look, apply_look

@@ -12,8 +12,8 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import RenderedFrame
 from vlp_ros.sim.sensor import encode_jpeg
 

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.pose import Pose
 
 # Discs smaller than this (image radius, px) get supersampled edges instead of tangent-line cuts.
 SUPERSAMPLE_BELOW_PX = 8.0

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from vlp_ros.gravity import STANDARD_GRAVITY
-from vlp_ros.pose import Pose
+from vlp_ros.core.gravity import STANDARD_GRAVITY
+from vlp_ros.core.pose import Pose
 
 
 def specific_force(pose: Pose, acceleration: np.ndarray | None = None, noise_std: float = 0.0,

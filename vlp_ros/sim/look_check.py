@@ -24,12 +24,12 @@ from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_waveform, tone_waveform
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.evaluation.metrics import format_table
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
-from vlp_ros.locator_config import settings_from_params_file
-from vlp_ros.pipeline import Pipeline
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
+from vlp_ros.pipeline.config import settings_from_params_file
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.render import SimLamp
 from vlp_ros.sim.scenarios import BeaconDesign, Scenario

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from vlp_ros.beacon.encoding import Waveform
-from vlp_ros.lamp_map import Lamp
+from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.sim.render import SimLamp
 from vlp_ros.sim.scenarios import Scenario
 from vlp_ros.sim.sensor import encode_jpeg

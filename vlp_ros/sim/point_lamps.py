@@ -26,9 +26,9 @@ from scipy.special import erfc
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import Waveform, tone_waveform
-from vlp_ros.camera import CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import LampTruth, RenderedFrame
 from vlp_ros.sim.scenarios import BeaconDesign, Scenario
 from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 
 from vlp_ros.beacon.encoding import Waveform
-from vlp_ros.camera import PLUMB_BOB, CameraModel
-from vlp_ros.ellipse import ellipse_from_conic
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import PLUMB_BOB, CameraModel
+from vlp_ros.core.ellipse import ellipse_from_conic
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.coverage import Circle, disc_coverage, plane_points
 from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern, spill_charge
 

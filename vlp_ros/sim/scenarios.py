@@ -13,11 +13,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_length, packet_waveform, tone_waveform
-from vlp_ros.camera import CameraModel
-from vlp_ros.gravity import STANDARD_GRAVITY
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.locator_config import LocatorSettings, default_parameters, flatten_parameters, settings_from_parameters
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.gravity import STANDARD_GRAVITY
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.pipeline.config import LocatorSettings, default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, RenderedFrame, SimLamp, render_frame
 from vlp_ros.sim.sensor import SensorModel
 

@@ -5,6 +5,5 @@ Entry points: ``perspective.solve_lamp`` (one lamp: refined candidates),
 ``fusion.solve_lamps`` (every lamp of a frame, one or more). An up hint with a
 sigma (``ambiguity.UpHint``) also enters both fits as a measurement
 (``up_measurement``). ``paper`` is the seed paper's weak-perspective solver for
-comparison; ``up_study`` measures accuracy against the view angle with and
-without gravity measured.
+comparison.
 """

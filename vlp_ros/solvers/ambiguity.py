@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
 from vlp_ros.solvers.up_measurement import UpMeasurement, unit_direction
 

@@ -7,7 +7,7 @@ from enum import Enum
 import numpy as np
 from scipy.stats import chi2
 
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.fit_kernels import inverse_form
 
 

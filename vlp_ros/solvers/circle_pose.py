@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.ellipse import conic_from_ellipse, ellipse_from_conic, fit_ellipse
+from vlp_ros.core.ellipse import conic_from_ellipse, ellipse_from_conic, fit_ellipse
 
 # Below this (~ the tilt from the line of sight, rad) the two circles are one:
 # roundoff alone makes it ~1e-8 for a circular image.

@@ -22,9 +22,9 @@ from collections.abc import Callable
 import numpy as np
 
 from vlp_ros.beacon.reading import BeaconReading, has_evidence
-from vlp_ros.lamp_map import Lamp, LampMap
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp, LampMap
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import Choice, Reason
 
 # The settled lamp's share of the beacon posterior left once the geometry has excluded the other

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.fit_kernels import information_matrix, perturb
 
 # Beyond this condition number of J^T J scaled to unit diagonal (units cancel)

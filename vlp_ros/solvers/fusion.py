@@ -24,11 +24,11 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.ellipse import ellipse_from_conic
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.ellipse import ellipse_from_conic
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, explains_the_image
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic

@@ -36,8 +36,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from vlp_ros.beacon.reading import BeaconReading
-from vlp_ros.lamp_map import Lamp, LampMap
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.lamp_map import Lamp, LampMap
+from vlp_ros.core.observation import LampObservation
 from vlp_ros.solvers.candidates import Choice, Reason
 
 # A candidate whose posterior (the reading alone) is below this is not tried, unless needed to cover _COVERED.

@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vlp_ros.camera import PLUMB_BOB, CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.camera import PLUMB_BOB, CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
 from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, rim_terms
 
 if TYPE_CHECKING:
@@ -53,7 +53,7 @@ class LampMeasurement:
     def from_observation(cls, observation: LampObservation, lamp: Lamp,
                          camera: CameraModel) -> LampMeasurement:
         if camera.model != PLUMB_BOB:
-            raise ValueError(f'the solvers model plumb_bob, not {camera.model!r}: see vlp_ros.pinhole_view')
+            raise ValueError(f'the solvers model plumb_bob, not {camera.model!r}: see vlp_ros.solvers.pinhole_view')
         rim = np.asarray(observation.rim_points, dtype=float).reshape(-1, 2)
         if len(rim) < 5:
             raise ValueError(f'lamp {lamp.name!r}: need at least 5 rim points, got {len(rim)}')

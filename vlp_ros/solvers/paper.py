@@ -49,11 +49,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.ellipse import fit_ellipse
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.ellipse import fit_ellipse
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.measurement import LampMeasurement
 

@@ -37,11 +37,11 @@ from functools import cache
 
 import numpy as np
 
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.compiled import kernel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import COST_GAP
 from vlp_ros.solvers.candidates import PoseCandidate, distinct, explains_the_image
 from vlp_ros.solvers.circle_pose import CirclePose, circle_poses, normalized_conic

@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from vlp_ros.camera import CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.fit_kernels import Terms, linearize
 
 # The ellipse centre of a detected blob, from N rim points of sigma s across the edge, has a

@@ -4,7 +4,7 @@ A small Levenberg-Marquardt loop on the analytic Jacobians of ``measurement``
 rather than scipy.optimize.least_squares: the starts are close, so a solve
 takes 3-6 iterations, run whole in one kernel (``fit_kernels.iterate``), while
 least_squares' per-call overhead alone is over 1 ms (python -m
-vlp_ros.solvers.benchmark). Measured up directions (``up_measurement``) join the
+vlp_ros.benchmarks.solver_speed). Measured up directions (``up_measurement``) join the
 lamps' residuals: their information enters the fit and its covariance like any
 other measurement's.
 """
@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import allow_for_model_error, perturbed
 from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, forecast, iterate, joined, linearize_into

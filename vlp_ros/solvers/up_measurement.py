@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.fit_kernels import Terms, linearize
 # Largest innovation chi-square (2 dof) of a measured up direction that agrees with the

@@ -14,13 +14,13 @@ from vlp_ros.beacon.decoding import (BeaconReading, RowProfile, decode_clipped_p
                                      decode_tone, read_lamp)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.tone import agreeing, point_light_profile
-from vlp_ros.camera import CameraModel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.detection import detect_lamps
-from vlp_ros.lamp_map import Lamp, LampMap
-from vlp_ros.locator_config import LocatorSettings
-from vlp_ros.observation import LampObservation
-from vlp_ros.pinhole_view import solver_view
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp, LampMap
+from vlp_ros.pipeline.config import LocatorSettings
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.solvers.pinhole_view import solver_view
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, explains_the_image
 from vlp_ros.solvers.continuity_ids import settled_by_continuity

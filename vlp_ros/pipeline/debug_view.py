@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vlp_ros.pipeline import FrameResult
+from vlp_ros.pipeline.frame import FrameResult
 
 DISPLAY_WIDTH = 960
 # BGR.

@@ -8,7 +8,7 @@ callers stay plain Python with the checks and dataclasses around them.
 
 Settings: ``cache=True`` keeps the machine code beside the module (``__pycache__``,
 or numba's user cache where that is read-only), so a process loads it instead of
-compiling; ``python -m vlp_ros.compile_kernels`` (run by ``make build``) fills that
+compiling; ``python -m vlp_ros.compiled.warm_up`` (run by ``make build``) fills that
 cache. The cache notices a change in a kernel's own file only, not in the kernels it
 calls from other files, so ``make build`` clears it before compiling afresh.
 ``error_model='numpy'`` makes a division by zero give inf/nan as numpy does instead

@@ -1,4 +1,4 @@
-"""Render speed: python -m vlp_ros.sim.benchmark [--repeats N].
+"""Render speed: python -m vlp_ros.benchmarks.render_speed [--repeats N].
 
 Prints the median time per frame of each case and its ratio to one bare OpenCV
 noise pass over a frame of the same size (the floor any full-frame render pays),
@@ -25,7 +25,7 @@ def noise_pass(height: int, width: int, bayer: bool) -> Callable[[], object]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.benchmark', description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.render_speed', description=__doc__.splitlines()[0])
     parser.add_argument('--repeats', type=int, default=15)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)

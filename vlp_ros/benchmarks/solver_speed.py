@@ -1,4 +1,4 @@
-"""Solver speed: python -m vlp_ros.solvers.benchmark [--repeats N].
+"""Solver speed: python -m vlp_ros.benchmarks.solver_speed [--repeats N].
 
 Prints the median time of each case and its ratio to a reference measured in
 the same run: scipy.optimize.least_squares (MINPACK LM, finite differences)
@@ -13,15 +13,15 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.pose import Pose
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.scenarios import paper_camera, robot_scenario
 from vlp_ros.solvers.ambiguity import DisambiguationHints
 from vlp_ros.solvers.covariance import perturbed
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp
-from vlp_ros.solvers.synthetic import synthetic_observation
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.solvers.up_measurement import UpMeasurement
 from vlp_ros.benchmarks.timing import median_seconds
 

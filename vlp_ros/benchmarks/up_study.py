@@ -1,5 +1,5 @@
 """Single-lamp accuracy against the view angle, with gravity as a gate only and as a measurement:
-python -m vlp_ros.solvers.up_study [--trials N] [--imu-sigma-deg S] [--imu-error-deg E].
+python -m vlp_ros.benchmarks.up_study [--trials N] [--imu-sigma-deg S] [--imu-error-deg E].
 
 The paper's phone (Lumia 1020 field of view at 4K) under its 11 cm lamp, rim and
 marker noise 0.2 px. The view angle is between the line of sight and the lamp's
@@ -17,16 +17,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.benchmarks.timing import median_seconds
-from vlp_ros.camera import CameraModel
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
-from vlp_ros.pose import Pose
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION
 from vlp_ros.sim.scenarios import MARKER_RIM_GAP_FRACTION, paper_camera, paper_scenario
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
 from vlp_ros.solvers.covariance import nees
 from vlp_ros.solvers.perspective import solve_lamp
-from vlp_ros.solvers.synthetic import synthetic_observation
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
 IMU_TOLERANCE = 0.35

@@ -5,7 +5,7 @@ from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
-from vlp_ros.rosbag_reader import BagMessage, BagTopic, absolute_topic
+from vlp_ros.bags.reader import BagMessage, BagTopic, absolute_topic
 
 DEFAULT_CLOCK_HZ = 40.0  # as `ros2 bag play --clock` without a rate
 

@@ -1,4 +1,4 @@
-"""Compile and cache every numba kernel: python -m vlp_ros.compile_kernels.
+"""Compile and cache every numba kernel: python -m vlp_ros.compiled.warm_up.
 
 Numba compiles a kernel on its first call for the argument types it gets (about
 half a second per kernel, a minute for all of them); a node would pay that on
@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 
 from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
-from vlp_ros.pipeline import Pipeline
-from vlp_ros.pose import Pose
+from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.perspective import _up_update
 from vlp_ros.solvers.up_measurement import UpMeasurement

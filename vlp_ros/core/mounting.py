@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.pose import Pose
+from vlp_ros.core.pose import Pose
 
 # A quaternion parameter whose norm is further than this from 1 is refused rather than
 # normalised: 1e-3 accepts values rounded to 3 decimals (0.707 for sqrt(1/2): norm 0.99985)

@@ -14,8 +14,8 @@ import numpy as np
 import yaml
 
 from vlp_ros.beacon.tone import MAX_ROW_TIME_TOLERANCE, ROW_TIME_TOLERANCE
-from vlp_ros.lamp_map import Lamp, LampMap
-from vlp_ros.mounting import Mounting, unit_quaternion_problem
+from vlp_ros.core.lamp_map import Lamp, LampMap
+from vlp_ros.core.mounting import Mounting, unit_quaternion_problem
 
 BEACON_MODES = ('packet', 'tone')
 SOLVERS = ('perspective', 'paper')

@@ -20,10 +20,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from vlp_ros.camera import PLUMB_BOB, CameraModel
-from vlp_ros.ellipse import conic_from_ellipse, fit_ellipse
-from vlp_ros.lamp_map import Lamp
-from vlp_ros.observation import LampObservation
+from vlp_ros.core.camera import PLUMB_BOB, CameraModel
+from vlp_ros.core.ellipse import conic_from_ellipse, fit_ellipse
+from vlp_ros.core.lamp_map import Lamp
+from vlp_ros.core.observation import LampObservation
 
 # Central differences over half a pixel: the mapping is smooth on that scale, its Jacobian exact to < 1e-6.
 STEP_PX = 0.5

@@ -4,7 +4,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vlp_ros.image_message import CompressedImageMessage, ImageMessage
+from vlp_ros.images.message import CompressedImageMessage, ImageMessage
 
 # OpenCV names Bayer patterns after the second row's first two pixels, so ROS's
 # bayer_rggb8 is OpenCV's BayerBG (as in cv_bridge).

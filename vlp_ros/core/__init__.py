@@ -1,0 +1,1 @@
+"""Core types every stage shares: camera models, poses, the lamp map, observations, ellipses, mounting, gravity."""
