@@ -124,6 +124,13 @@ class Locator(Node):
         qos = QoSProfile(depth=self.settings.qos_depth, reliability=reliability)
         if reliability == ReliabilityPolicy.BEST_EFFORT:
             self._warn_without_large_data_transport()
+        # camera_info and imu before the image: the executor serves the messages waiting at one wake in the
+        # order the subscriptions were made, so a camera_info that came before its frame is read before it.
+        # Best effort matches both reliable and best-effort publishers.
+        self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, qos_profile_sensor_data)
+        if self.settings.imu_enabled:
+            self.create_subscription(Imu, 'imu', self._on_imu, QoSProfile(
+                depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
         if self.settings.image_transport == 'compressed':
             # Derived from the resolved name so that remapping image_raw moves it too.
             self._image_topic = self.resolve_topic_name('image_raw') + '/compressed'
@@ -131,11 +138,6 @@ class Locator(Node):
         else:
             self._image_topic = self.resolve_topic_name('image_raw')
             self.create_subscription(Image, 'image_raw', self._on_frame, qos, raw=True)
-        # Best effort matches both reliable and best-effort publishers.
-        self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info, qos_profile_sensor_data)
-        if self.settings.imu_enabled:
-            self.create_subscription(Imu, 'imu', self._on_imu, QoSProfile(
-                depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
 
     def _warn_without_large_data_transport(self) -> None:
         large_data = os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', '').upper().startswith('LARGE_DATA')
