@@ -1,6 +1,8 @@
 """The deployment planner: its maps follow the geometry and the beacon, and the tool runs end to end."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,14 @@ def test_tool_writes_a_png_and_a_summary(tmp_path, capsys) -> None:
     assert status == 0
     assert out.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     printed = capsys.readouterr().out
-    assert '% of the floor' in printed and 'median' in printed
+    fix, single, blind = (float(v) for v in re.search(
+        r'fix on ([\d.]+) % of the floor \(([\d.]+) % from a single lamp\); no lamp fully in view on ([\d.]+) %',
+        printed).groups())
+    median, p95 = (float(v) for v in re.search(r'median ([\d.]+) cm, 95th percentile ([\d.]+) cm', printed).groups())
+    # Two lamps 1.5 m apart over a 3 x 2 m floor: every point is covered or not, some by one lamp only;
+    # a 1080p camera places itself to about a centimetre (tests below follow its geometry).
+    assert fix + blind == pytest.approx(100.0, abs=0.1) and 0.0 < single <= fix < 100.0, printed
+    assert 0.1 < median <= p95 < 5.0, printed
 
 
 @pytest.mark.parametrize('options, complaint', [
