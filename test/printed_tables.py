@@ -7,8 +7,11 @@ CELL_GAP = re.compile(r'\s{2,}')
 
 
 def printed_tables(text: str) -> list[dict[str, dict[str, str]]]:
-    """Every table in ``text`` (a header line, a line of dashes, rows up to a blank line): each row's cells by
-    column name, the rows by their first cell. Cells are separated by two spaces or more."""
+    """Return every table in ``text``: each row's cells by column name, the rows by their first cell.
+
+    A table is a header line, a line of dashes and rows up to a blank line; cells are separated by two
+    spaces or more.
+    """
     lines = text.splitlines()
     tables = []
     for index in range(1, len(lines) - 1):
