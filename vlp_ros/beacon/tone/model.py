@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from vlp_ros.beacon.tone.linalg import inverse_2x2_or_3x3, inverse_cholesky_3x3
 from vlp_ros.compiled import kernel
 
 # Envelope terms (1, u, u^2) and the tone's amplitude (linear), frequency and phase (not).
@@ -135,7 +136,7 @@ def envelope_fit(z: np.ndarray, w: np.ndarray, stride: int) -> EnvelopeFit:
         u = 2.0 * tau[i]
         basis[0, i], basis[1, i], basis[2, i] = sqrt_w[i], u * sqrt_w[i], u * u * sqrt_w[i]
     # Orthonormal rows: the basis whitened by the inverse of its Gram matrix's Cholesky factor.
-    envelope = np.linalg.inv(np.linalg.cholesky(basis @ basis.T)) @ basis
+    envelope = inverse_cholesky_3x3(basis @ basis.T) @ basis
     y = np.empty(kept)
     for i in range(kept):
         y[i] = z[stride * i] * sqrt_w[i]
@@ -242,10 +243,8 @@ def gauss_newton(cycles: float, phase: float, exposure_rows: float, free: bool, 
                                              null_rss)
     # Edges in the gaps between the rows' exposures move unseen by up to a gap (in periods).
     gap = max(1.0 - exposure_rows, 0.0) * cycles / rows
-    if not _invertible(normal):
-        return gap > 0.0, Peak(cycles, phase, exposure_rows, gap, 0.0, gap)
-    inverse = np.linalg.inv(normal)
-    if not (inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
+    invertible, inverse = inverse_2x2_or_3x3(normal)
+    if not (invertible and inverse[0, 0] > 0.0 and inverse[1, 1] > 0.0):
         # No edge inside an exposure: all there is to go on is the gaps (the period moves by about a
         # gap over the window).
         return gap > 0.0, Peak(cycles, phase, exposure_rows, gap, 0.0, gap)
@@ -258,13 +257,6 @@ def gauss_newton(cycles: float, phase: float, exposure_rows: float, free: bool, 
     slope = covariance[0, 1] / covariance[0, 0]
     return True, Peak(cycles, phase, exposure_rows, math.sqrt(covariance[0, 0]), slope,
                       max(math.sqrt(max(covariance[1, 1] - slope * covariance[0, 1], 0.0)), 0.5 * gap))
-
-
-@kernel
-def _invertible(m: np.ndarray) -> bool:
-    """Return whether a small square matrix is invertible: its determinant finite, and not tiny for its scale."""
-    det = np.linalg.det(m)
-    return np.isfinite(det) and abs(det) > 1e-12 * np.abs(m).max() ** len(m)
 
 
 @kernel
