@@ -94,7 +94,6 @@ class ToneFit:
         kept row's own and its neighbours' (tau_around); the envelope is orthonormal (weighted) over the
         kept rows, and y what it leaves of the profile.
         """
-        self.stride = stride
         self.kept = envelope_fit(self.z, self.w, stride)
         self.dof = len(self.kept.tau) - _PARAMETERS
         self.model = StripeModel(self.rows, self.kept.tau_around, stride, self.kept.products, self.kept.weights,
