@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from beacon_scenes import flat_profile, lamp_image
 
-from vlp_ros.beacon import tone
+from vlp_ros.beacon.tone import model, scan
 from vlp_ros.beacon.decoding import UNMAPPED, decode_tone, row_profile
 from vlp_ros.beacon.encoding import Waveform, tone_waveform
 from vlp_ros.beacon.profile import RowProfile
@@ -174,8 +174,8 @@ def test_each_mix_is_fitted_exactly(stride):
     rng = np.random.default_rng(stride)
     rows, exposure_rows = 90, 1.3
     z, w = rng.normal(size=rows), rng.uniform(0.5, 1.0, rows)
-    fit = tone._ToneFit(z, w)
-    fit._use(stride)
+    fit = model.ToneFit(z, w)
+    fit.use(stride)
     cycles, phase = rng.uniform(3.0, 9.0, (4, 2)), rng.uniform(0.0, 1.0, (4, 2))
     kept = np.arange(0, rows, stride)
     u = 2.0 * (kept - 0.5 * (rows - 1)) / rows
@@ -188,7 +188,7 @@ def test_each_mix_is_fitted_exactly(stride):
         mean = np.abs(start - np.rint(start)) - np.abs(start + cycles[index] * exposure_rows / rows
                                                         - np.rint(start + cycles[index] * exposure_rows / rows))
         residuals = []
-        for even, odd in itertools.product(tone._MIX_LEVELS, repeat=2):
+        for even, odd in itertools.product(model.MIX_LEVELS, repeat=2):
             mix = np.where(np.arange(rows) % 2 == 0, even, odd)
             seen = (1.0 - 2.0 * mix) * mean[1:-1] + mix * (mean[:-2] + mean[2:])
             design = np.column_stack([envelope, seen[kept]]) * sqrt_w[:, None]
@@ -196,8 +196,8 @@ def test_each_mix_is_fitted_exactly(stride):
             residuals.append(residual @ residual)
         own, mixed = residuals[0], min(residuals)
         power = 0.5 * (fit.dof + 1)
-        expected[index] = mixed * (tone._MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
-    rss = tone._rss_kernel(cycles.ravel(), phase.ravel(), np.full(cycles.size, exposure_rows), *fit.model)
+        expected[index] = mixed * (model.MIXED_WEIGHT + (mixed / own) ** power) ** (-1.0 / power)
+    rss = model.rss(cycles.ravel(), phase.ravel(), np.full(cycles.size, exposure_rows), *fit.model)
     np.testing.assert_allclose(rss.reshape(cycles.shape), expected, rtol=1e-6)  # sums of squares to six digits
 
 
@@ -219,18 +219,18 @@ def test_spectral_peak_is_the_zero_padded_ffts(seed):
     # and its neighbours'.
     rng = np.random.default_rng(seed)
     rows = int(rng.integers(40, 300))
-    fit = tone._ToneFit(np.sin(2 * np.pi * rng.uniform(3, 20) * np.arange(rows) / rows) + rng.normal(size=rows),
+    fit = model.ToneFit(np.sin(2 * np.pi * rng.uniform(3, 20) * np.arange(rows) / rows) + rng.normal(size=rows),
                         rng.uniform(0.5, 1.0, rows))
     low, high = rng.uniform(1.0, 4.0), rng.uniform(15.0, 40.0)
-    size = tone._PAD * (1 << (rows - 1).bit_length())
-    power = np.abs(np.fft.rfft(fit.weighted_y, size)) ** 2
+    size = scan._PAD * (1 << (rows - 1).bit_length())
+    power = np.abs(np.fft.rfft(fit.kept.weighted_y, size)) ** 2
     first, last = int(np.ceil(low * size / rows)), min(int(high * size / rows), len(power) - 1)
     peak = first + int(np.argmax(power[first:last + 1]))
     left, centre, right = np.log(power[peak - 1:peak + 2])
     shift = min(max(0.5 * (left - right) / (left - 2 * centre + right), -0.5), 0.5)
     # One part per million of the frequency: lamps are told apart at parts per hundred.
-    assert fit.spectral_peak(low, high) == pytest.approx((peak + shift) * rows / size, rel=1e-6)
-    assert fit.spectral_peak(30.0 * rows, 31.0 * rows) is None
+    assert scan.spectral_peak(fit, low, high) == pytest.approx((peak + shift) * rows / size, rel=1e-6)
+    assert scan.spectral_peak(fit, 30.0 * rows, 31.0 * rows) is None
 
 
 # Issue 14's tone lamps: 12 from 2000 to 5300 Hz, 300 Hz apart, 15 us rows, 20 us exposure.
