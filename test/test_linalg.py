@@ -2,6 +2,7 @@
 
 Tolerances: a millionth relative, far above rounding and far below anything a fit could notice.
 """
+import cv2
 import numpy as np
 import pytest
 
@@ -59,3 +60,26 @@ def test_pseudo_inverse_is_numpys_also_when_rank_deficient(size: int) -> None:
 def test_a_matrix_that_is_not_finite_gives_nan_instead_of_raising() -> None:
     eigen = symmetric_eigen(np.array([[1.0, np.nan], [np.nan, 1.0]]))
     assert np.isnan(eigen.values).all() and np.isnan(pseudo_inverse(eigen, 0.0)).all()
+
+
+def test_lu_solve_gives_opencvs_decomp_lu() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        root = rng.normal(size=(4, 4))
+        matrix, vector = root @ root.T + 0.1 * np.eye(4), rng.normal(size=4)
+        _, expected = cv2.solve(matrix, vector.reshape(4, 1), flags=cv2.DECOMP_LU)
+        np.testing.assert_allclose(lu_solve(matrix, vector, OPENCV_PIVOT_FLOOR).solution, expected.ravel(),
+                                   rtol=1e-8, atol=1e-10)
+
+
+def test_pseudo_inverse_form_of_2x2_is_numpys_pinv() -> None:
+    rng = np.random.default_rng(6)
+    root = rng.normal(size=(40, 2, 2))
+    matrices = [*(r @ r.T for r in root), *(np.outer(r[0], r[0]) for r in root[:10]),
+                np.diag([1.0, 1e-12]), np.diag([-2.0, 3.0]), np.zeros((2, 2)), np.eye(2)]
+    for matrix in matrices:
+        vector = rng.normal(size=2)
+        expected = vector @ np.linalg.pinv(matrix, rcond=1e-9, hermitian=True) @ vector
+        eigen = symmetric_eigen(matrix)
+        form = pseudo_inverse_form(eigen, vector, rcond_cutoff(eigen, 1e-9))
+        assert form == pytest.approx(expected, rel=1e-6, abs=1e-9)

@@ -21,13 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlp_ros.compiled import kernel
+from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve, pseudo_inverse, svd_cutoff, symmetric_eigen
 from vlp_ros.core.ellipse import ellipse_from_conic
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 0.70710678118654752440
-_DBL_EPSILON = float(np.finfo(np.float64).eps)
-# OpenCV's LU solve gives up (and returns zero) on a pivot below this.
-_LU_EPSILON = 100.0 * _DBL_EPSILON
 # Beyond this many blurs from its edge, a blurred disc is 1 (to rounding) or its tail's asymptotic series.
 _TAIL = 8.3
 # Pixels scanned at a time for the first occurrence of the peak redness.
@@ -473,91 +471,10 @@ def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, l
 
 
 @kernel
-def _solve4(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """OpenCV's DECOMP_LU solve (partial pivoting; zero if a pivot is below 100 eps)."""
-    a = matrix.copy()
-    b = rhs.copy()
-    m = b.size
-    for i in range(m):
-        k = i
-        for j in range(i + 1, m):
-            if abs(a[j, i]) > abs(a[k, i]):
-                k = j
-        if abs(a[k, i]) < _LU_EPSILON:
-            return np.zeros(m)
-        if k != i:
-            for j in range(m):
-                a[i, j], a[k, j] = a[k, j], a[i, j]
-            b[i], b[k] = b[k], b[i]
-        d = -1.0 / a[i, i]
-        for j in range(i + 1, m):
-            alpha = a[j, i] * d
-            for c in range(i + 1, m):
-                a[j, c] += alpha * a[i, c]
-            b[j] += alpha * b[i]
-    for i in range(m - 1, -1, -1):
-        total = b[i]
-        for c in range(i + 1, m):
-            total -= a[i, c] * b[c]
-        b[i] = total / a[i, i]
-    return b
-
-
-@kernel
 def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
-    """Pseudo-inverse of a symmetric matrix as OpenCV's DECOMP_SVD gives it: singular values
-    at most 2 eps times their sum are dropped. Eigenvalues by cyclic Jacobi rotations."""
-    m = matrix.shape[0]
-    a = matrix.copy()
-    vectors = np.eye(m)
-    for _ in range(50):
-        off = 0.0
-        for p in range(m):
-            for q in range(p + 1, m):
-                off += a[p, q] * a[p, q]
-        if off == 0.0:
-            break
-        for p in range(m):
-            for q in range(p + 1, m):
-                apq = a[p, q]
-                if apq == 0.0:
-                    continue
-                # Negligible beside both diagonal entries: rotating would not change them.
-                if abs(a[p, p]) + 1e3 * abs(apq) == abs(a[p, p]) and abs(a[q, q]) + 1e3 * abs(apq) == abs(a[q, q]):
-                    a[p, q] = a[q, p] = 0.0
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(m):
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p] = c * akp - s * akq
-                    a[k, q] = s * akp + c * akq
-                for k in range(m):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k] = c * apk - s * aqk
-                    a[q, k] = s * apk + c * aqk
-                a[p, q] = a[q, p] = 0.0
-                for k in range(m):
-                    vkp, vkq = vectors[k, p], vectors[k, q]
-                    vectors[k, p] = c * vkp - s * vkq
-                    vectors[k, q] = s * vkp + c * vkq
-    threshold = 0.0
-    for i in range(m):
-        threshold += abs(a[i, i])
-    threshold *= 2.0 * _DBL_EPSILON
-    inverse = np.zeros((m, m))
-    for i in range(m):
-        if abs(a[i, i]) <= threshold:
-            continue
-        weight = 1.0 / a[i, i]
-        for r in range(m):
-            for c in range(m):
-                inverse[r, c] += vectors[r, i] * weight * vectors[c, i]
-    return inverse
+    """Pseudo-inverse of a symmetric matrix as OpenCV's DECOMP_SVD gives it (``linalg.svd_cutoff``)."""
+    eigen = symmetric_eigen(matrix)
+    return pseudo_inverse(eigen, svd_cutoff(eigen))
 
 
 @kernel
@@ -714,6 +631,7 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     jac = np.empty((n, 4))
     params = np.array([seed_x, seed_y, seed_radius, blur_guess])
     trial = np.empty(4)
+    zero_step = np.zeros(4)
     jtj, trial_jtj = np.empty((4, 4)), np.empty((4, 4))
     jtr, trial_jtr = np.empty(4), np.empty(4)
     cost = _evaluate(params, rounded, root, level, data, disc_term, disc_norm2, project_1, marker, jac, jtj, jtr)
@@ -722,7 +640,9 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
         damped = jtj.copy()
         for k in range(4):
             damped[k, k] += damping * (jtj[k, k] + 1e-12)
-        step = _solve4(damped, jtr)
+        # A singular system (a pivot below OpenCV's DECOMP_LU floor) gives no step, as cv2.solve would.
+        solved = lu_solve(damped, jtr, OPENCV_PIVOT_FLOOR)
+        step = solved.solution if solved.ok else zero_step
         trial[0] = params[0] + step[0]
         trial[1] = params[1] + step[1]
         trial[2] = _lower_bound(params[2] + step[2], 0.5)
