@@ -543,7 +543,7 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
             or count < _MIN_INLIER_FRACTION * rim.candidates
             or 2.0 * a < options.min_diameter or b < options.min_axis_ratio * a):
         return False
-    left = _count_left(rim.points, cx)
+    left = int(np.count_nonzero(rim.points[:, 0] < cx))
     if min(left, count - left) < _MIN_SIDE_FRACTION * count:
         return False
     lo_x, lo_y, hi_x, hi_y = extent
@@ -557,15 +557,6 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
 def _light_reach(blur: float) -> int:
     """Pixels beyond an edge of this blur sigma that its light still reaches (``DetectionOptions.blur_margin``)."""
     return math.ceil(3.0 * blur) + 1
-
-
-@kernel
-def _count_left(points: np.ndarray, cx: float) -> int:
-    """How many points lie left of x = ``cx``."""
-    count = 0
-    for i in range(points.shape[0]):
-        count += points[i, 0] < cx
-    return count
 
 
 def _extent(ellipse: np.ndarray) -> tuple[float, float, float, float]:
