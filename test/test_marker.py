@@ -265,18 +265,15 @@ def test_blurred_step_is_scipys_ndtr():
     assert np.max(np.abs(stepped[tail] / expected[tail] - 1.0)) < 1e-6
 
 
-def test_small_solves_match_numpy():
+def test_pseudo_inverse_matches_numpy_and_opencv():
     rng = np.random.default_rng(3)
     for _ in range(50):
         a = rng.normal(size=(4, 4))
         spd = a @ a.T + 0.1 * np.eye(4)
-        b = rng.normal(size=4)
-        # Eight digits of a fit's step or covariance; these matrices' rounding stays below 1e-12.
-        np.testing.assert_allclose(marker._solve4(spd, b), np.linalg.solve(spd, b), rtol=1e-8, atol=1e-10)
+        # Eight digits of a fit's covariance; these matrices' rounding stays below 1e-12.
         np.testing.assert_allclose(marker._pseudo_inverse(spd), np.linalg.inv(spd), rtol=1e-8, atol=1e-10)
     # Rank-deficient: the pseudo-inverse, as OpenCV's SVD gives it.
     v = rng.normal(size=(4, 2))
     singular = v @ v.T
     _, expected = cv2.invert(singular, flags=cv2.DECOMP_SVD)
     np.testing.assert_allclose(marker._pseudo_inverse(singular), expected, atol=1e-8 * np.abs(expected).max())
-    np.testing.assert_array_equal(marker._solve4(np.zeros((4, 4)), np.ones(4)), np.zeros(4))

@@ -17,7 +17,7 @@ from vlp_ros.solvers.fit_kernels import forecast, inverse_form, project_point
 from vlp_ros.solvers.perspective import _kalman_update
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.refinement import linearize
-from vlp_ros.solvers.up_measurement import UpMeasurement, _pseudo_inverse_form, _tangent_axes
+from vlp_ros.solvers.up_measurement import UpMeasurement, _tangent_axes
 
 WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
 AWAY = looking_up((0.7, 0.2, 0.5), (0.2, 0.1, 0.0))
@@ -101,17 +101,6 @@ def test_joined_terms_stack_every_kind_in_order() -> None:
              + [(3, slice(None)), (4, slice(None))])
     np.testing.assert_array_equal(residuals, np.concatenate([parts[k][0][s] for k, s in order]))
     np.testing.assert_array_equal(jacobian, np.vstack([parts[k][1][s] for k, s in order]))
-
-
-def test_pseudo_inverse_form_is_numpys() -> None:
-    rng = np.random.default_rng(6)
-    root = rng.normal(size=(40, 2, 2))
-    matrices = [*(r @ r.T for r in root), *(np.outer(r[0], r[0]) for r in root[:10]),
-                np.diag([1.0, 1e-12]), np.diag([-2.0, 3.0]), np.zeros((2, 2)), np.eye(2)]
-    for matrix in matrices:
-        vector = rng.normal(size=2)
-        expected = vector @ np.linalg.pinv(matrix, rcond=1e-9, hermitian=True) @ vector
-        assert _pseudo_inverse_form(matrix, vector, 1e-9) == pytest.approx(expected, rel=1e-6, abs=1e-9)
 
 
 def test_rotation_curvature_is_the_direct_formula() -> None:

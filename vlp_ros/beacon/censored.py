@@ -21,7 +21,7 @@ import numpy as np
 from vlp_ros.beacon.chips import ChipLevels, interior_bounds
 from vlp_ros.beacon.encoding import packet_chips
 from vlp_ros.compiled import kernel
-from vlp_ros.detection.marker import _solve4
+from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve
 
 # A chip whose interior rows have more than this share of their pixels clipped is censored.
 CENSORED_SHARE = 0.5
@@ -224,4 +224,5 @@ def _solve(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
     ridged = matrix.copy()
     for a in range(len(vector)):
         ridged[a, a] += 1e-9 * matrix[a, a] + 1e-12
-    return _solve4(ridged, vector)
+    solved = lu_solve(ridged, vector, OPENCV_PIVOT_FLOOR)
+    return solved.solution if solved.ok else np.zeros(len(vector))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -139,11 +140,10 @@ def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float 
 
 def _on_grid(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float | None,
              sigma2: float) -> ChipLevels | None:
-    index, levels, variances, start = _levels(sums, rows, period, phase % period, _interior(period, margin),
-                                              sigma2)
-    if index.size == 0:
+    chips = _levels(sums, rows, period, phase % period, _interior(period, margin), sigma2)
+    if chips.index.size == 0:
         return None
-    return ChipLevels(index, levels, variances, period, start)
+    return ChipLevels(chips.index, chips.levels, chips.variances, period, chips.start)
 
 
 def _interior(period: float, margin: float | None) -> float:
@@ -158,9 +158,18 @@ def interior_bounds(levels: ChipLevels, margin: float | None, size: int) -> tupl
     return (np.clip(start + interior, 0.0, size), np.clip(start + levels.period - interior, 0.0, size))
 
 
+class _Chips(NamedTuple):
+    """``_levels``' result: ``ChipLevels`` short of the period."""
+
+    index: np.ndarray
+    levels: np.ndarray
+    variances: np.ndarray
+    start: float
+
+
 @kernel
 def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float,
-            sigma2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+            sigma2: float) -> _Chips:
     """Chip averages over each chip's interior, normalised by the local extremes: the chips that hold
     enough rows (indices from the first of them), their levels and variances, and where the first
     begins (no chips if none holds enough rows)."""
@@ -187,7 +196,7 @@ def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, mar
             if used_first < 0:
                 used_first = c
     if used_first < 0:
-        return np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), 0.0
+        return _Chips(np.empty(0, dtype=np.int64), np.empty(0), np.empty(0), 0.0)
     span = used_last + 1 - used_first
     mean = np.empty(span)
     solid = np.empty(span, dtype=np.bool_)
@@ -216,7 +225,7 @@ def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, mar
             levels[k] = (mean[c] - centre[c]) / amplitude[c]
             variances[k] = sigma2 / (weight[chip] * amplitude[c] ** 2)
             k += 1
-    return index, levels, variances, phase + period * (first + used_first)
+    return _Chips(index, levels, variances, phase + period * (first + used_first))
 
 
 @kernel

@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlp_ros.compiled import kernel
 
 # Candidate standing for "a frequency that no lamp of the map has" (tone mode).
 UNMAPPED = -1
@@ -94,16 +93,10 @@ def no_evidence(candidates: np.ndarray, mapped: np.ndarray, log_prior: np.ndarra
     return BeaconReading(None, 0.0, candidates, np.zeros(len(candidates)), log_prior, mapped, False, detail)
 
 
-@kernel
 def _most_probable(log_likelihoods: np.ndarray, log_prior: np.ndarray) -> tuple[int, float]:
     """The most probable candidate and its posterior probability; -1 if none has a finite posterior."""
     log_post = log_likelihoods + log_prior
-    best = 0
-    for i in range(len(log_post)):
-        if math.isnan(log_post[i]):
-            return -1, 0.0
-        if log_post[i] > log_post[best]:
-            best = i
-    if not math.isfinite(log_post[best]):
+    best = int(np.argmax(log_post))
+    if np.isnan(log_post).any() or not math.isfinite(log_post[best]):
         return -1, 0.0
-    return best, 1.0 / np.exp(log_post - log_post[best]).sum()
+    return best, 1.0 / float(np.exp(log_post - log_post[best]).sum())

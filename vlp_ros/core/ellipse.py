@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from vlp_ros.compiled import kernel
+from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve
 
 # Status codes of the kernels, and the errors they stand for.
 OK, TOO_FEW, IDENTICAL, COLLINEAR, NO_ELLIPSE, NOT_ELLIPSE, IMAGINARY = range(7)
@@ -24,8 +25,6 @@ _ERRORS = {TOO_FEW: 'an ellipse fit needs at least 5 points, got {count}',
            NO_ELLIPSE: 'no ellipse fits these points',
            NOT_ELLIPSE: 'conic is not an ellipse',
            IMAGINARY: 'conic is an imaginary ellipse'}
-# Pivots below this count as zero in the 3x3 solve (OpenCV's DECOMP_LU threshold).
-_PIVOT_EPSILON = 100.0 * np.finfo(float).eps
 
 
 def fit_error(status: int, count: int) -> ValueError:
@@ -167,33 +166,11 @@ def fit_points(p: np.ndarray) -> tuple[int, np.ndarray]:
     for j in range(6):
         for k in range(j):
             scatter[j, k] = scatter[k, j]
-    # T = -S3^-1 S2^T by LU with partial pivoting (as OpenCV's DECOMP_LU).
-    A = scatter[3:, 3:].copy()
-    T = scatter[:3, 3:].T.copy()
-    for i in range(3):
-        pivot = i
-        for j in range(i + 1, 3):
-            if abs(A[j, i]) > abs(A[pivot, i]):
-                pivot = j
-        if abs(A[pivot, i]) < _PIVOT_EPSILON:
-            return COLLINEAR, np.zeros(5)
-        if pivot != i:
-            for k in range(3):
-                A[i, k], A[pivot, k] = A[pivot, k], A[i, k]
-                T[i, k], T[pivot, k] = T[pivot, k], T[i, k]
-        for j in range(i + 1, 3):
-            factor = A[j, i] / A[i, i]
-            for k in range(i, 3):
-                A[j, k] -= factor * A[i, k]
-            for k in range(3):
-                T[j, k] -= factor * T[i, k]
-    for i in range(2, -1, -1):
-        for k in range(3):
-            value = T[i, k]
-            for j in range(i + 1, 3):
-                value -= A[i, j] * T[j, k]
-            T[i, k] = value / A[i, i]
-    T = -T
+    # T = -S3^-1 S2^T, pivots as OpenCV's DECOMP_LU.
+    solved = lu_solve(scatter[3:, 3:], scatter[:3, 3:].T.copy(), OPENCV_PIVOT_FLOOR)
+    if not solved.ok:
+        return COLLINEAR, np.zeros(5)
+    T = -solved.solution
     reduced = scatter[:3, :3].copy()
     for i in range(3):
         for k in range(3):

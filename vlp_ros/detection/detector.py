@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -421,13 +422,14 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     if box.seed is None:
         return None
     profile = row_profile(box.brightness, box.rim.ellipse, box.background, 0.5 * options.max_blur)
-    lit, unclipped, clipped, gradient = _marker_rows(profile, box.background, float(options.saturation_level))
-    if not lit:
+    marker_rows = _marker_rows(profile, box.background, float(options.saturation_level))
+    if not marker_rows.lit:
         return None
-    level, rows = _marker_levels(box.red, box.seed, profile, unclipped, clipped)
+    clipped = marker_rows.clipped
+    level, rows = _marker_levels(box.red, box.seed, profile, marker_rows.unclipped, clipped)
     focal_length = options.focal_length or box.frame_width
     fit = fit_marker(box.red, box.seed, box.rim.ellipse, 0.5 * options.max_blur, 2.5 * options.max_blur + 1.0,
-                     level, rows, gradient, shape_spread(box.rim.ellipse, focal_length))
+                     level, rows, marker_rows.gradient, shape_spread(box.rim.ellipse, focal_length))
     # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
     if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
@@ -442,11 +444,20 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     return replace(fit, sigma=sigma)
 
 
+class _MarkerRows(NamedTuple):
+    """``_marker_rows``' result (see there)."""
+
+    lit: bool
+    unclipped: np.ndarray
+    clipped: np.ndarray
+    gradient: np.ndarray
+
+
 @kernel
 def _marker_rows(profile: np.ndarray, background: float,
-                 saturation_level: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
-    """(whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, each row's
-    level gradient) of a row profile (NaN: unknown). The gradient is the level's signed relative
+                 saturation_level: float) -> _MarkerRows:
+    """Whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, and each row's
+    level gradient, of a row profile (NaN: unknown). The gradient is the level's signed relative
     derivative, on unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
     clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours)."""
     lit, brightest = False, -np.inf
@@ -470,7 +481,7 @@ def _marker_rows(profile: np.ndarray, background: float,
             below, above = profile[i - 1], profile[i + 1]
             if below + background < saturation_level and above + background < saturation_level:
                 gradient[i] = 0.5 * (above - below) / profile[i]
-    return lit, unclipped, clipped, gradient
+    return _MarkerRows(lit, unclipped, clipped, gradient)
 
 
 def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,
@@ -532,7 +543,7 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
             or count < _MIN_INLIER_FRACTION * rim.candidates
             or 2.0 * a < options.min_diameter or b < options.min_axis_ratio * a):
         return False
-    left = _count_left(rim.points, cx)
+    left = int(np.count_nonzero(rim.points[:, 0] < cx))
     if min(left, count - left) < _MIN_SIDE_FRACTION * count:
         return False
     lo_x, lo_y, hi_x, hi_y = extent
@@ -546,15 +557,6 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
 def _light_reach(blur: float) -> int:
     """Pixels beyond an edge of this blur sigma that its light still reaches (``DetectionOptions.blur_margin``)."""
     return math.ceil(3.0 * blur) + 1
-
-
-@kernel
-def _count_left(points: np.ndarray, cx: float) -> int:
-    """How many points lie left of x = ``cx``."""
-    count = 0
-    for i in range(points.shape[0]):
-        count += points[i, 0] < cx
-    return count
 
 
 def _extent(ellipse: np.ndarray) -> tuple[float, float, float, float]:

@@ -17,17 +17,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from vlp_ros.compiled import kernel
+from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve, pseudo_inverse, svd_cutoff, symmetric_eigen
 from vlp_ros.core.ellipse import ellipse_from_conic
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 0.70710678118654752440
-_DBL_EPSILON = float(np.finfo(np.float64).eps)
-# OpenCV's LU solve gives up (and returns zero) on a pivot below this.
-_LU_EPSILON = 100.0 * _DBL_EPSILON
 # Beyond this many blurs from its edge, a blurred disc is 1 (to rounding) or its tail's asymptotic series.
 _TAIL = 8.3
 # Pixels scanned at a time for the first occurrence of the peak redness.
@@ -47,6 +46,61 @@ _SHAPE_FLOOR = 0.005
 _MAX_CORRELATION = 0.8
 # The marker's and the lamp's amplitudes, eliminated from the fit.
 _LINEAR_COUNT = 2
+
+
+class _Redness(NamedTuple):
+    """``_redness``'s result: 2 R - G - B (int16) and the brightest value of each channel."""
+
+    red: np.ndarray
+    peaks: tuple[int, int, int]
+
+
+class _Seed(NamedTuple):
+    """``_seed``'s result: whether a spot is red enough, its centre and radius (px)."""
+
+    found: bool
+    x: float
+    y: float
+    radius: float
+
+
+class _MarkerSums(NamedTuple):
+    """``_marker_terms``' sums: the marker term against itself, the disc and the data, and each
+    Jacobian column against the marker and the disc (``columns``, 4x2)."""
+
+    marker_norm2: float
+    marker_disc: float
+    marker_data: float
+    columns: np.ndarray
+
+
+class _Amplitudes(NamedTuple):
+    """``_amplitudes``' result: the marker's and the disc's amplitudes, and the inverse Gram matrix
+    (2x2, symmetric) as its entries (00, 01, 11)."""
+
+    marker: float
+    disc: float
+    inverse: tuple[float, float, float]
+
+
+class _ConsiderTerms(NamedTuple):
+    """``_consider_terms``' result (see there)."""
+
+    gram: np.ndarray
+    cross: np.ndarray
+    row_terms: np.ndarray
+    row_vertical: np.ndarray
+
+
+class _Fitted(NamedTuple):
+    """``_fit``'s result: ``MarkerFit``'s fields, and whether the fit succeeded."""
+
+    found: bool
+    center: np.ndarray
+    sigma: float
+    radius: float
+    blur: float
+    shape: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -84,22 +138,21 @@ class MarkerFit:
 
 def redness(bgr: np.ndarray) -> np.ndarray:
     """2 R - G - B (int16): large on the marker, near zero on a white lamp; linear in the light."""
-    return _redness(bgr)[0]
+    return _redness(bgr).red
 
 
 def redness_and_peaks(bgr: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
     """``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels
     (the detector's first over a lamp box: reading it from the frame costs more than either)."""
-    red, blue_peak, green_peak, red_peak = _redness(bgr)
-    return red, (blue_peak, green_peak, red_peak)
+    return tuple(_redness(bgr))
 
 
 def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> MarkerSeed | None:
     """The reddest spot and the extent of the red pixels around it, or None if nothing is red enough."""
-    found, cx, cy, radius = _seed(red, float(search_radius), float(min_redness))
-    if not found:
+    seed = _seed(red, float(search_radius), float(min_redness))
+    if not seed.found:
         return None
-    return MarkerSeed(np.array([cx, cy]), radius)
+    return MarkerSeed(np.array([seed.x, seed.y]), seed.radius)
 
 
 def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
@@ -129,14 +182,14 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
-    found, cx, cy, radius, blur, sigma, s00, s01, s10, s11 = _fit(
+    fitted = _fit(
         red, float(seed.center[0]), float(seed.center[1]), float(seed.radius),
         np.asarray(lamp_ellipse, dtype=np.float64), float(blur_guess), float(margin),
         np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
         np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
-    if not found:
+    if not fitted.found:
         return None
-    return MarkerFit(np.array([cx, cy]), sigma, radius, blur, np.array([[s00, s01], [s10, s11]]))
+    return MarkerFit(fitted.center, fitted.sigma, fitted.radius, fitted.blur, fitted.shape)
 
 
 # The compiled kernels (vlp_ros.compiled). The fit is one call: window, model, Levenberg-Marquardt
@@ -147,7 +200,7 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
 
 
 @kernel
-def _redness(bgr: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+def _redness(bgr: np.ndarray) -> _Redness:
     height, width = bgr.shape[0], bgr.shape[1]
     red = np.empty((height, width), dtype=np.int16)
     blue_peak = green_peak = red_peak = np.uint8(0)
@@ -156,12 +209,12 @@ def _redness(bgr: np.ndarray) -> tuple[np.ndarray, int, int, int]:
             blue, green, r = bgr[y, x, 0], bgr[y, x, 1], bgr[y, x, 2]
             blue_peak, green_peak, red_peak = max(blue_peak, blue), max(green_peak, green), max(red_peak, r)
             red[y, x] = np.int16(2 * np.int32(r) - np.int32(green) - np.int32(blue))
-    return red, int(blue_peak), int(green_peak), int(red_peak)
+    return _Redness(red, (int(blue_peak), int(green_peak), int(red_peak)))
 
 
 @kernel
-def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> tuple:
-    """(found, x, y, radius): the first maximum of ``red`` (as np.argmax), and the box of the
+def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> _Seed:
+    """The first maximum of ``red`` (as np.argmax), and the box of the
     pixels above 0.4 of it within ``search_radius`` (a square) around it."""
     height, width = red.shape
     flat = red.ravel()
@@ -184,7 +237,7 @@ def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> tuple:
     y, x = first // width, first % width
     peak = float(peak_value)
     if peak < min_redness:
-        return False, 0.0, 0.0, 0.0
+        return _Seed(False, 0.0, 0.0, 0.0)
     r = int(np.ceil(search_radius))
     y0, x0 = max(y - r, 0), max(x - r, 0)
     y1, x1 = min(y + r + 1, height), min(x + r + 1, width)
@@ -196,10 +249,10 @@ def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> tuple:
                 low_x, high_x = min(low_x, j), max(high_x, j)
                 low_y, high_y = min(low_y, i), max(high_y, i)
     if high_x < 0:
-        return False, 0.0, 0.0, 0.0
+        return _Seed(False, 0.0, 0.0, 0.0)
     low_x, high_x, low_y, high_y = low_x - x0, high_x - x0, low_y - y0, high_y - y0
-    return (True, x0 + 0.5 * (low_x + high_x), y0 + 0.5 * (low_y + high_y),
-            0.5 * max(high_x - low_x + 1, high_y - low_y + 1))
+    return _Seed(True, x0 + 0.5 * (low_x + high_x), y0 + 0.5 * (low_y + high_y),
+                 0.5 * max(high_x - low_x + 1, high_y - low_y + 1))
 
 
 @kernel
@@ -240,14 +293,12 @@ def _upper_bound(value: float, bound: float) -> float:
 @kernel
 def _marker_terms(cx: float, cy: float, s: float, blur: float, rounded: np.ndarray, root: np.ndarray,
                   level: np.ndarray, data: np.ndarray, disc_term: np.ndarray, marker: np.ndarray,
-                  jac: np.ndarray) -> tuple:
+                  jac: np.ndarray) -> _MarkerSums:
     """The marker's basis term and its derivatives, before the amplitude is known.
 
     Fills ``marker`` (N): level times the blurred disc, and ``jac`` (N, 4): the derivatives
     of the marker term over centre, radius and blur, short of the factor amplitude /
-    (sqrt(2 pi) blur). Returns the sums the amplitudes and the projection need: marker .
-    marker, marker . disc, marker . data, then each column of ``jac`` against marker and
-    against disc (8).
+    (sqrt(2 pi) blur). Returns the sums the amplitudes and the projection need.
     """
     # Pixels in the frame where the lamp is round: u = (p - centre) R is a shift away.
     shift_u = cx * root[0, 0] + cy * root[1, 0]
@@ -286,13 +337,16 @@ def _marker_terms(cx: float, cy: float, s: float, blur: float, rounded: np.ndarr
         a21 += j2 * b1
         a30 += j3 * b0
         a31 += j3 * b1
-    return gram_00, gram_01, project_0, a00, a01, a10, a11, a20, a21, a30, a31
+    columns = np.empty((4, 2))
+    columns[0, 0], columns[0, 1], columns[1, 0], columns[1, 1] = a00, a01, a10, a11
+    columns[2, 0], columns[2, 1], columns[3, 0], columns[3, 1] = a20, a21, a30, a31
+    return _MarkerSums(gram_00, gram_01, project_0, columns)
 
 
 @kernel
 def _amplitudes(gram_00: float, gram_01: float, disc_norm2: float, project_0: float,
-                project_1: float) -> tuple:
-    """The two amplitudes and the inverse of the 2x2 Gram matrix (closed form): (coef, inverse (3))."""
+                project_1: float) -> _Amplitudes:
+    """The two amplitudes and the inverse of the 2x2 Gram matrix (closed form)."""
     a = gram_00 + 1e-9
     b = gram_01
     d = disc_norm2 + 1e-9
@@ -300,7 +354,7 @@ def _amplitudes(gram_00: float, gram_01: float, disc_norm2: float, project_0: fl
     inverse_00, inverse_01, inverse_11 = d / det, -b / det, a / det
     coef_0 = inverse_00 * project_0 + inverse_01 * project_1
     coef_1 = inverse_01 * project_0 + inverse_11 * project_1
-    return coef_0, coef_1, inverse_00, inverse_01, inverse_11
+    return _Amplitudes(coef_0, coef_1, (inverse_00, inverse_01, inverse_11))
 
 
 @kernel
@@ -315,10 +369,13 @@ def _evaluate(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: 
     blurred; k1, k2 are eliminated.
     """
     blur = params[3]
-    gram_00, gram_01, project_0, a00, a01, a10, a11, a20, a21, a30, a31 = _marker_terms(
-        params[0], params[1], params[2], blur, rounded, root, level, data, disc_term, marker, jac)
-    coef_0, coef_1, inverse_00, inverse_01, inverse_11 = _amplitudes(gram_00, gram_01, disc_norm2, project_0,
-                                                                     project_1)
+    sums = _marker_terms(params[0], params[1], params[2], blur, rounded, root, level, data, disc_term, marker, jac)
+    amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
+    coef_0, coef_1 = amplitudes.marker, amplitudes.disc
+    inverse_00, inverse_01, inverse_11 = amplitudes.inverse
+    columns = sums.columns
+    a00, a01, a10, a11 = columns[0, 0], columns[0, 1], columns[1, 0], columns[1, 1]
+    a20, a21, a30, a31 = columns[2, 0], columns[2, 1], columns[3, 0], columns[3, 1]
     scale = coef_0 / (_SQRT_2PI * blur)
     # The marker term's derivatives, minus their part in the basis.
     w00 = scale * (a00 * inverse_00 + a01 * inverse_01)
@@ -369,7 +426,7 @@ def _evaluate(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: 
 @kernel
 def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray,
                     data: np.ndarray, disc_term: np.ndarray, disc_norm2: float, project_1: float, width: int,
-                    marker: np.ndarray, jac: np.ndarray) -> tuple:
+                    marker: np.ndarray, jac: np.ndarray) -> _ConsiderTerms:
     """What the centre's covariance needs at ``params``: the Gram matrix of the Jacobian
     (4x4), its columns against the two shape stretches' (4x2: along the axes and the
     diagonals, in the frame where the lamp is round), and each row's marker term against
@@ -377,8 +434,7 @@ def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, l
     term needs no projection), and each row's vertical-centre column against them (rows, 4).
     Rows are ``width`` pixels each."""
     cx, cy, s, blur = params[0], params[1], params[2], params[3]
-    gram_00, gram_01, project_0, a00, a01, a10, a11, a20, a21, a30, a31 = _marker_terms(
-        cx, cy, s, blur, rounded, root, level, data, disc_term, marker, jac)
+    sums = _marker_terms(cx, cy, s, blur, rounded, root, level, data, disc_term, marker, jac)
     n = data.size
     # The stretches' columns, like the others short of the factor amplitude / (sqrt(2 pi) blur).
     shift_u = cx * root[0, 0] + cy * root[1, 0]
@@ -401,9 +457,10 @@ def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, l
         for k in range(2):
             along[4 + k, 0] += stretches[i, k] * marker[i]
             along[4 + k, 1] += stretches[i, k] * disc_term[i]
-    along[0, 0], along[0, 1], along[1, 0], along[1, 1] = a00, a01, a10, a11
-    along[2, 0], along[2, 1], along[3, 0], along[3, 1] = a20, a21, a30, a31
-    coef_0, _, inverse_00, inverse_01, inverse_11 = _amplitudes(gram_00, gram_01, disc_norm2, project_0, project_1)
+    along[:4] = sums.columns
+    amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
+    coef_0 = amplitudes.marker
+    inverse_00, inverse_01, inverse_11 = amplitudes.inverse
     scale = coef_0 / (_SQRT_2PI * blur)
     weights = np.empty((6, 2))
     for k in range(6):
@@ -469,95 +526,14 @@ def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, l
     cross = np.empty((4, 2))
     cross[0, 0], cross[0, 1], cross[1, 0], cross[1, 1] = x04, x05, x14, x15
     cross[2, 0], cross[2, 1], cross[3, 0], cross[3, 1] = x24, x25, x34, x35
-    return gram, cross, row_terms, row_vertical
-
-
-@kernel
-def _solve4(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """OpenCV's DECOMP_LU solve (partial pivoting; zero if a pivot is below 100 eps)."""
-    a = matrix.copy()
-    b = rhs.copy()
-    m = b.size
-    for i in range(m):
-        k = i
-        for j in range(i + 1, m):
-            if abs(a[j, i]) > abs(a[k, i]):
-                k = j
-        if abs(a[k, i]) < _LU_EPSILON:
-            return np.zeros(m)
-        if k != i:
-            for j in range(m):
-                a[i, j], a[k, j] = a[k, j], a[i, j]
-            b[i], b[k] = b[k], b[i]
-        d = -1.0 / a[i, i]
-        for j in range(i + 1, m):
-            alpha = a[j, i] * d
-            for c in range(i + 1, m):
-                a[j, c] += alpha * a[i, c]
-            b[j] += alpha * b[i]
-    for i in range(m - 1, -1, -1):
-        total = b[i]
-        for c in range(i + 1, m):
-            total -= a[i, c] * b[c]
-        b[i] = total / a[i, i]
-    return b
+    return _ConsiderTerms(gram, cross, row_terms, row_vertical)
 
 
 @kernel
 def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
-    """Pseudo-inverse of a symmetric matrix as OpenCV's DECOMP_SVD gives it: singular values
-    at most 2 eps times their sum are dropped. Eigenvalues by cyclic Jacobi rotations."""
-    m = matrix.shape[0]
-    a = matrix.copy()
-    vectors = np.eye(m)
-    for _ in range(50):
-        off = 0.0
-        for p in range(m):
-            for q in range(p + 1, m):
-                off += a[p, q] * a[p, q]
-        if off == 0.0:
-            break
-        for p in range(m):
-            for q in range(p + 1, m):
-                apq = a[p, q]
-                if apq == 0.0:
-                    continue
-                # Negligible beside both diagonal entries: rotating would not change them.
-                if abs(a[p, p]) + 1e3 * abs(apq) == abs(a[p, p]) and abs(a[q, q]) + 1e3 * abs(apq) == abs(a[q, q]):
-                    a[p, q] = a[q, p] = 0.0
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(m):
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p] = c * akp - s * akq
-                    a[k, q] = s * akp + c * akq
-                for k in range(m):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k] = c * apk - s * aqk
-                    a[q, k] = s * apk + c * aqk
-                a[p, q] = a[q, p] = 0.0
-                for k in range(m):
-                    vkp, vkq = vectors[k, p], vectors[k, q]
-                    vectors[k, p] = c * vkp - s * vkq
-                    vectors[k, q] = s * vkp + c * vkq
-    threshold = 0.0
-    for i in range(m):
-        threshold += abs(a[i, i])
-    threshold *= 2.0 * _DBL_EPSILON
-    inverse = np.zeros((m, m))
-    for i in range(m):
-        if abs(a[i, i]) <= threshold:
-            continue
-        weight = 1.0 / a[i, i]
-        for r in range(m):
-            for c in range(m):
-                inverse[r, c] += vectors[r, i] * weight * vectors[c, i]
-    return inverse
+    """Pseudo-inverse of a symmetric matrix as OpenCV's DECOMP_SVD gives it (``linalg.svd_cutoff``)."""
+    eigen = symmetric_eigen(matrix)
+    return pseudo_inverse(eigen, svd_cutoff(eigen))
 
 
 @kernel
@@ -653,9 +629,9 @@ def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, r
 @kernel
 def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, ellipse: np.ndarray,
          blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
-         spread: float) -> tuple:
-    """fit_marker's work: (found, cx, cy, radius, blur, sigma, shape (4, row-major))."""
-    failed = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+         spread: float) -> _Fitted:
+    """fit_marker's work."""
+    failed = _Fitted(False, np.zeros(2), 0.0, 0.0, 0.0, np.zeros((2, 2)))
     half = seed_radius + margin
     x0 = max(int(np.floor(seed_x - half)), 0)
     y0 = max(int(np.floor(seed_y - half)), 0)
@@ -714,6 +690,7 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     jac = np.empty((n, 4))
     params = np.array([seed_x, seed_y, seed_radius, blur_guess])
     trial = np.empty(4)
+    zero_step = np.zeros(4)
     jtj, trial_jtj = np.empty((4, 4)), np.empty((4, 4))
     jtr, trial_jtr = np.empty(4), np.empty(4)
     cost = _evaluate(params, rounded, root, level, data, disc_term, disc_norm2, project_1, marker, jac, jtj, jtr)
@@ -722,7 +699,9 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
         damped = jtj.copy()
         for k in range(4):
             damped[k, k] += damping * (jtj[k, k] + 1e-12)
-        step = _solve4(damped, jtr)
+        # A singular system (a pivot below OpenCV's DECOMP_LU floor) gives no step, as cv2.solve would.
+        solved = lu_solve(damped, jtr, OPENCV_PIVOT_FLOOR)
+        step = solved.solution if solved.ok else zero_step
         trial[0] = params[0] + step[0]
         trial[1] = params[1] + step[1]
         trial[2] = _lower_bound(params[2] + step[2], 0.5)
@@ -758,22 +737,21 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     dof = n - 4 - _LINEAR_COUNT
     if dof <= 0:
         return failed
-    gram, cross, row_terms, row_vertical = _consider_terms(params, rounded, root, level, data, disc_term, disc_norm2,
-                                                           project_1, width, marker, jac)
-    gram_00, gram_01, project_0 = _marker_terms(mx, my, radius, blur, rounded, root, level, data, disc_term, marker,
-                                                jac)[:3]
-    coef_0, coef_1 = _amplitudes(gram_00, gram_01, disc_norm2, project_0, project_1)[:2]
-    inflation = _correlation_inflation(data, marker, disc_term, coef_0, coef_1, rows, width)
-    sigma = _centre_sigma(gram, cross, row_terms, inflation * cost / dof, spread)
+    terms = _consider_terms(params, rounded, root, level, data, disc_term, disc_norm2, project_1, width, marker, jac)
+    sums = _marker_terms(mx, my, radius, blur, rounded, root, level, data, disc_term, marker, jac)
+    amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
+    inflation = _correlation_inflation(data, marker, disc_term, amplitudes.marker, amplitudes.disc, rows, width)
+    sigma = _centre_sigma(terms.gram, terms.cross, terms.row_terms, inflation * cost / dof, spread)
     # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
     # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
     # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
     # other half is counted as the centre's uncertainty, so either way the error stays within sigma.
-    shift_x, shift_y = _row_mixing_shift(blur, gram, row_vertical, rows, level_gradient)
+    shift_x, shift_y = _row_mixing_shift(blur, terms.gram, terms.row_vertical, rows, level_gradient)
     mx, my = mx - 0.5 * shift_x, my - 0.5 * shift_y
     sigma = math.hypot(sigma, 0.5 * math.hypot(shift_x, shift_y))
-    shape_00 = root[0, 0] * root[0, 0] + root[0, 1] * root[1, 0]
-    shape_01 = root[0, 0] * root[0, 1] + root[0, 1] * root[1, 1]
-    shape_10 = root[1, 0] * root[0, 0] + root[1, 1] * root[1, 0]
-    shape_11 = root[1, 0] * root[0, 1] + root[1, 1] * root[1, 1]
-    return True, mx, my, radius, blur, sigma, shape_00, shape_01, shape_10, shape_11
+    center, shape = np.empty(2), np.empty((2, 2))
+    center[0], center[1] = mx, my
+    for i in range(2):
+        for j in range(2):
+            shape[i, j] = root[i, 0] * root[0, j] + root[i, 1] * root[1, j]
+    return _Fitted(True, center, sigma, radius, blur, shape)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -509,18 +510,29 @@ def fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float,
     ``near``: an ellipse already close to the points, to tell the grazing rows by.
     Raises ValueError when too few points remain for a fit.
     """
-    status, count, ellipse, kept, sigma, candidates = _fit_rim(
+    fitted = _fit_rim(
         np.ascontiguousarray(points, dtype=float), float(max_slope), float(outlier_sigmas), float(min_sigma),
         np.zeros(5) if near is None else np.asarray(near, dtype=float), near is not None)
-    if status != OK:
-        raise fit_error(status, count)
-    return RimFit(ellipse, kept, sigma, candidates)
+    if fitted.status != OK:
+        raise fit_error(fitted.status, fitted.count)
+    return RimFit(fitted.ellipse, fitted.kept, fitted.sigma, fitted.candidates)
+
+
+class _FittedRim(NamedTuple):
+    """``_fit_rim``'s result: ``RimFit``'s fields, the status of the fit, and (if it failed) the points it was given."""
+
+    status: int
+    count: int
+    ellipse: np.ndarray
+    kept: np.ndarray
+    sigma: float
+    candidates: int
 
 
 @kernel
 def _fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float, min_sigma: float,
-             near: np.ndarray, use_near: bool) -> tuple[int, int, np.ndarray, np.ndarray, float, int]:
-    """``fit_rim``: (status, points given to the failed fit, ellipse, kept points, sigma, candidates)."""
+             near: np.ndarray, use_near: bool) -> _FittedRim:
+    """``fit_rim``'s work."""
     failed = np.zeros((0, 2))
     ellipse = near
     if not use_near:
@@ -528,12 +540,12 @@ def _fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float, min_si
         rough = np.ascontiguousarray(points[::4]) if points.shape[0] >= 40 else points
         status, ellipse = fit_points(rough)
         if status != OK:
-            return status, rough.shape[0], ellipse, failed, 0.0, 0
+            return _FittedRim(status, rough.shape[0], ellipse, failed, 0.0, 0)
     kept = points[edge_slopes(conic_of(ellipse), points) <= max_slope]
     candidates = kept.shape[0]
     status, ellipse = fit_points(kept)
     if status != OK:
-        return status, candidates, ellipse, failed, 0.0, 0
+        return _FittedRim(status, candidates, ellipse, failed, 0.0, 0)
     residuals = distances(ellipse, kept)
     scale = max(_MAD_TO_SIGMA * np.median(np.abs(residuals)), min_sigma)
     inliers = np.abs(residuals) <= outlier_sigmas * scale
@@ -541,7 +553,7 @@ def _fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float, min_si
         kept = kept[inliers]
         status, ellipse = fit_points(kept)
         if status != OK:
-            return status, kept.shape[0], ellipse, failed, 0.0, 0
+            return _FittedRim(status, kept.shape[0], ellipse, failed, 0.0, 0)
         residuals = distances(ellipse, kept)
     # The pose fit weighs every point alike, so its covariance scales with their mean square
     # distance (over the degrees of freedom the ellipse leaves), not with their median spread:
@@ -551,4 +563,4 @@ def _fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float, min_si
     for residual in residuals:
         square += residual * residual
     sigma = max(math.sqrt(square / max(residuals.size - _ELLIPSE_PARAMETERS, 1)), min_sigma)
-    return OK, 0, ellipse, kept, sigma, candidates
+    return _FittedRim(OK, 0, ellipse, kept, sigma, candidates)

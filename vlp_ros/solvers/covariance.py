@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -191,15 +192,15 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     if estimated:
         offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
     step, covariance, fit_covariance = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
-    cost, offset, mode_sigma, marginalised = _model_error_fit(
+    fitted = _model_error_fit(
         np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float),
         np.ascontiguousarray(rim_sigma, dtype=float), np.ascontiguousarray(modes, dtype=float),
         np.ascontiguousarray(lamp_of_point, dtype=np.int64), lamp_count, marker_count, offset_sigma, estimated,
         max(rim_count - 5 * lamp_count - 1, 1), _MODE_SIGMA_GRID_PX,
         np.zeros(lamp_count) if mode_prior_sigma is None else np.ascontiguousarray(mode_prior_sigma, dtype=float),
         step, covariance, fit_covariance)
-    return ModelErrorFit(step=step, covariance=covariance, cost=cost, rim_offset=offset, mode_sigma=mode_sigma,
-                         fit_covariance=fit_covariance if marginalised else None)
+    return ModelErrorFit(step=step, covariance=covariance, cost=fitted.cost, rim_offset=fitted.rim_offset,
+                         mode_sigma=fitted.mode_sigma, fit_covariance=fit_covariance if fitted.marginalised else None)
 
 
 def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float:
@@ -211,12 +212,22 @@ def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float
     return RIM_OFFSET_PRIOR * max(scatter_px, float(np.mean(rim_sigma)))
 
 
+class _ModelErrorScalars(NamedTuple):
+    """``_model_error_fit``'s result beside its arrays: the cost, the rim offset, the mode sigma, and
+    whether ``fit_covariance`` was set (the modes marginalised with their given prior, or a lamp's
+    prior over the estimated sigma)."""
+
+    cost: float
+    rim_offset: float
+    mode_sigma: float
+    marginalised: bool
+
+
 @kernel
 def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_count, marker_count, offset_sigma,
                      estimated, rim_dof, mode_sigma_grid, mode_prior_sigma, step, covariance, fit_covariance):
-    """``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning (cost,
-    rim offset, mode sigma, whether ``fit_covariance`` was set: the modes marginalised with their given
-    prior, or a lamp's prior over the estimated sigma). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
+    """``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning the rest
+    (``_ModelErrorScalars``). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
     or one with a prior sigma of its modes)."""
     count, rims = residuals.shape[0], rim_sigma.shape[0]
     per_lamp = modes.shape[1]
@@ -281,7 +292,7 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
         step[i] = solution[i]
         for j in range(6):
             covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
-    return cost, offset, mode_sigma, marginalised
+    return _ModelErrorScalars(cost, offset, mode_sigma, marginalised)
 
 
 @kernel

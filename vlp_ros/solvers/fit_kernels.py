@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from vlp_ros.compiled import kernel
+from vlp_ros.compiled.linalg import inverse3_into, lu_solve
 
 # Stop when the best step can lower the chi-square by less than this fraction of it, or
 # by less than the floor: the pose is then within sqrt(floor) = 0.03 sigma of the minimum
@@ -196,24 +197,6 @@ def perturb(rotation, position, delta, rotation_out, position_out):
 
 
 @kernel
-def _inverse3(m, out):
-    """3x3 inverse by cofactors (inf/nan if singular, as the residuals then are)."""
-    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
-    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
-    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
-    inverse_det = 1.0 / (m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02)
-    out[0, 0] = c00 * inverse_det
-    out[1, 0] = c01 * inverse_det
-    out[2, 0] = c02 * inverse_det
-    out[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) * inverse_det
-    out[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) * inverse_det
-    out[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) * inverse_det
-    out[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) * inverse_det
-    out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) * inverse_det
-    out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) * inverse_det
-
-
-@kernel
 def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_conic):
     """The lamp's rim conic C (3, 3) and its derivatives dC_k (6, 3, 3) along the six pose
     perturbations: dH_k of H, then dC = -(M + M^T) with M = C dH H^-1."""
@@ -226,7 +209,7 @@ def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_coni
         plane[i, 1] = rotation[1, i]
         plane[i, 2] = rotation[0, i] * offset[0] + rotation[1, i] * offset[1] + rotation[2, i] * offset[2]
     inverse = np.empty((3, 3))
-    _inverse3(plane, inverse)
+    inverse3_into(plane, inverse)
     for i in range(3):
         for j in range(3):
             conic[i, j] = (inverse[0, i] * inverse[0, j] + inverse[1, i] * inverse[1, j]
@@ -363,52 +346,25 @@ def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, cen
     return cost
 
 
-@kernel
-def _solve6(matrix, rhs, out):
-    """out = matrix^-1 rhs by LU with partial pivoting (as LAPACK's gesv); False if a pivot is zero."""
-    a = matrix.copy()
-    b = rhs.copy()
-    size = 6
-    for col in range(size):
-        pivot = col
-        for r in range(col + 1, size):
-            if abs(a[r, col]) > abs(a[pivot, col]):
-                pivot = r
-        if a[pivot, col] == 0.0:
-            return False
-        if pivot != col:
-            for j in range(size):
-                a[col, j], a[pivot, j] = a[pivot, j], a[col, j]
-            b[col], b[pivot] = b[pivot], b[col]
-        for r in range(col + 1, size):
-            factor = a[r, col] / a[col, col]
-            for j in range(col + 1, size):
-                a[r, j] -= factor * a[col, j]
-            b[r] -= factor * b[col]
-    for r in range(size - 1, -1, -1):
-        total = b[r]
-        for j in range(r + 1, size):
-            total -= a[r, j] * out[j]
-        out[r] = total / a[r, r]
-    return True
-
-
 def inverse_form(matrix: np.ndarray, vector: np.ndarray) -> float:
     """v^T M^-1 v for a 6x6 ``matrix`` M; LinAlgError if M is singular (as ``np.linalg.solve``)."""
-    solution = np.empty(6)
-    if not _solve6(np.ascontiguousarray(matrix, dtype=float), np.ascontiguousarray(vector, dtype=float), solution):
+    vector = np.ascontiguousarray(vector, dtype=float)
+    solved = lu_solve(np.ascontiguousarray(matrix, dtype=float), vector, 0.0)
+    if not solved.ok:
         raise np.linalg.LinAlgError('singular matrix')
-    return float(vector @ solution)
+    return float(vector @ solved.solution)
 
 
 @kernel
 def forecast(residuals, jacobian):
     """The chi-square that the Gauss-Newton model of (residuals, jacobian) forecasts at its
     minimum, r^T r - g^T (J^T J)^-1 g with g = J^T r; 0 if J^T J is singular."""
-    information, gradient, step = np.empty((6, 6)), np.empty(6), np.empty(6)
+    information, gradient = np.empty((6, 6)), np.empty(6)
     _normal_equations(residuals, jacobian, information, gradient)
-    if not _solve6(information, gradient, step):
+    solved = lu_solve(information, gradient, 0.0)
+    if not solved.ok:
         return 0.0
+    step = solved.solution
     cost = 0.0
     for n in range(residuals.shape[0]):
         cost += residuals[n] * residuals[n]
@@ -452,7 +408,6 @@ def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
     information = np.empty((6, 6))
     damped = np.empty((6, 6))
     gradient = np.empty(6)
-    step = np.empty(6)
     trial_rotation = np.empty((3, 3))
     trial_position = np.empty(3)
     trial_residuals = np.empty_like(residuals)
@@ -461,8 +416,10 @@ def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
         _normal_equations(residuals, jacobian, information, gradient)
         for i in range(6):
             gradient[i] = -gradient[i]
-        if not _solve6(information, gradient, step):
+        solved = lu_solve(information, gradient, 0.0)
+        if not solved.ok:
             return SINGULAR, cost, damping
+        step = solved.solution
         decrease = 0.0
         for i in range(6):
             decrease += gradient[i] * step[i]
@@ -474,8 +431,10 @@ def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
         damped[:, :] = information
         for i in range(6):
             damped[i, i] += damping * information[i, i]
-        if not _solve6(damped, gradient, step):
+        solved = lu_solve(damped, gradient, 0.0)
+        if not solved.ok:
             return SINGULAR, cost, damping
+        step = solved.solution
         perturb(rotation, position, step, trial_rotation, trial_position)
         trial_cost = linearize_into(trial_rotation, trial_position, rays, lens, rim_sigma, lamp_of_point, centres,
                                     radii_squared, marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlp_ros.compiled import kernel
+from vlp_ros.compiled.linalg import pseudo_inverse_form, rcond_cutoff, symmetric_eigen
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.fit_kernels import Terms, linearize
@@ -93,33 +94,9 @@ def _innovation(jacobian, covariance, residual, rcond):
                     row += covariance[i, j] * jacobian[b, j]
                 total += jacobian[a, i] * row
             left[a, b] = (1.0 if a == b else 0.0) - total
-    return _pseudo_inverse_form(left, residual, rcond)
-
-
-@kernel
-def _pseudo_inverse_form(matrix, vector, rcond):
-    """v^T M^+ v for a symmetric 2x2 M, its pseudo-inverse as ``np.linalg.pinv(M, rcond,
-    hermitian=True)`` forms it: eigenvalues under rcond times the largest in magnitude count as zero."""
-    a, b, c = matrix[0, 0], 0.5 * (matrix[0, 1] + matrix[1, 0]), matrix[1, 1]
-    middle, radius = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
-    values = (middle + radius, middle - radius)
-    cutoff = rcond * max(abs(values[0]), abs(values[1]))
-    kept = (abs(values[0]) > cutoff, abs(values[1]) > cutoff)
-    if kept[0] and kept[1]:
-        # Both count: the plain inverse, which does not need the eigenvectors.
-        x, y = vector[0], vector[1]
-        return (c * x * x - 2.0 * b * x * y + a * y * y) / (a * c - b * b)
-    total = 0.0
-    for value, keep in ((values[0], kept[0]), (values[1], kept[1])):
-        if keep:
-            # (M - value I) u = 0: u normal to a row of M - value I, the longer row for accuracy.
-            if math.hypot(value - c, b) >= math.hypot(b, value - a):
-                u0, u1 = value - c, b
-            else:
-                u0, u1 = b, value - a
-            projection = (u0 * vector[0] + u1 * vector[1]) / math.hypot(u0, u1)
-            total += projection * projection / value
-    return total
+    # v^T M^+ v with M^+ as np.linalg.pinv(M, rcond, hermitian=True) forms it.
+    eigen = symmetric_eigen(left)
+    return pseudo_inverse_form(eigen, residual, rcond_cutoff(eigen, rcond))
 
 
 @kernel
