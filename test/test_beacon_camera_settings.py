@@ -1,6 +1,7 @@
 """The start-up advice on camera settings: silent inside the limits the beacon benchmark reads reliably,
 specific (setting, value, lamps) outside them."""
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.sim.scenarios import robot_scenario
 
 TONES = {'hall': 1000.0, 'door': 5000.0, 'desk': 8000.0}
@@ -13,7 +14,7 @@ def test_settings_inside_the_limits_give_no_advice() -> None:
 
 
 def test_the_simulated_robot_is_configured_within_the_limits() -> None:
-    beacon = robot_scenario().locator_settings().beacon
+    beacon = settings_from_tree(robot_scenario().locator_parameters(imu=True)).beacon
     assert packet_setting_advice(beacon.chip_rate, beacon.row_time, beacon.exposure) == []
 
 

@@ -14,6 +14,7 @@ from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_packet
 from vlp_ros.beacon.profile import RowProfile
 from vlp_ros.core.observation import LampObservation
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
@@ -105,7 +106,7 @@ def test_the_simulators_realistic_stills_are_identified():
     locator's reading of each mapped lamp (main: 1 of 9), and never of a clutter lamp."""
     scenario = apply_look(with_rim_markers(paper_scenario('4k', height=2.0, points=3, postures=1, seed=0), 0.9, 0.1),
                           LOOKS['realistic'], 0)
-    pipeline = Pipeline(scenario.locator_settings())
+    pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=True)))
     identified = 0
     for index in range(len(scenario.poses)):
         frame = scenario.render(index, np.random.default_rng([0, 99, index]))

@@ -8,6 +8,7 @@ import numpy as np
 
 from vlp_ros.beacon.decoding import decode_glow, decode_packet, read_lamp
 from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 
@@ -23,9 +24,9 @@ def test_a_glow_read_on_a_wrong_chip_period_is_not_certain():
     image = transported(scenario, frame.image)
     truth = next(t for t in scenario.mapped_truths(frame) if t.lamp_id == LAMP)
     observation = min(detect_lamps(image), key=lambda o: np.linalg.norm(o.center - truth.ellipse[:2]))
-    beacon = scenario.locator_settings().beacon
+    beacon = settings_from_tree(scenario.locator_parameters(imu=True)).beacon
     # A map that holds the misread ID: a certain misreading would be a wrong fix.
-    known = sorted(set(scenario.locator_settings().lamps.ids) | {MISREAD})
+    known = sorted(set(settings_from_tree(scenario.locator_parameters(imu=True)).lamps.ids) | {MISREAD})
     reading = read_lamp(image, observation,
                         lambda profile: decode_packet(profile, beacon.chip_rate, beacon.row_time, beacon.id_bits,
                                                       known),

@@ -3,6 +3,7 @@ import numpy as np
 
 from vlp_ros.beacon.decoding import decode_packet, read_lamp
 from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.sim.looks import LOOKS, apply_look
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 
@@ -12,7 +13,7 @@ def test_glare_stills_showing_less_than_a_packet_on_the_disc_are_read_over_their
     # bits leave unmapped IDs at 3 % (never certain); the glare halo above and below carries the rest.
     scenario = apply_look(with_rim_markers(paper_scenario('4k', height=2.0, points=3, postures=1, seed=2017),
                                            0.9, 0.1), LOOKS['glare'], 2017)
-    settings = scenario.locator_settings()
+    settings = settings_from_tree(scenario.locator_parameters(imu=True))
     beacon, known = settings.beacon, [lamp.id for lamp in settings.lamps]
 
     def decode(profile):

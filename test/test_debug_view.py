@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from visualization_msgs.msg import Marker
 
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.debug_view import DISPLAY_WIDTH, IDENTIFIED, MARKER, UNIDENTIFIED, debug_view
 from vlp_ros.nodes.visualization import lamp_markers
 from vlp_ros.pipeline.frame import FrameResult, Pipeline, SeenLamp
@@ -17,7 +18,8 @@ def robot_result():
     scenario = robot_scenario(seed=3)
     frame = render_frame(scenario.camera, scenario.poses[90], scenario.lamps, scenario.sensor, 2.0,
                          np.random.default_rng(5))
-    result = Pipeline(scenario.locator_settings(imu=False)).process(frame.image, scenario.camera, 2.0)
+    settings = settings_from_tree(scenario.locator_parameters(imu=False))
+    result = Pipeline(settings).process(frame.image, scenario.camera, 2.0)
     return scenario, frame, result
 
 
@@ -55,7 +57,7 @@ def test_lamp_without_an_id_is_drawn_as_such(robot_result) -> None:
 
 def test_lamp_markers_show_every_lamp_and_highlight_the_used_ones(robot_result) -> None:
     scenario, _, _ = robot_result
-    lamps = scenario.locator_settings(imu=False).lamps
+    lamps = settings_from_tree(scenario.locator_parameters(imu=False)).lamps
     array = lamp_markers(lamps, 'map', {1, 2})
     discs = {m.id: m for m in array.markers if m.ns == 'lamps'}
     arrows = [m for m in array.markers if m.ns == 'marker_direction']

@@ -12,6 +12,7 @@ from vlp_ros.beacon.encoding import tone_waveform
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import Choice, Reason
@@ -48,7 +49,7 @@ def photos():
 def located(scenario, photos) -> list[tuple[int, int, float | None]]:
     """Per (frame, up) photo: lamps identified right and wrong (against the LED nearest to each), and
     the pose's position error (m; None without a pose)."""
-    pipeline = Pipeline(scenario.locator_settings(imu=True))
+    pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=True)))
     found = []
     for frame, up in photos:
         result = pipeline.process(frame.image, frame.camera, frame.start_time, up)

@@ -12,6 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.debug_view import DISPLAY_WIDTH, IDENTIFIED
 from vlp_ros.sim.bag_writer import TYPESTORE, camera_info_message, image_message
 from vlp_ros.sim.recording import write_params
@@ -90,7 +91,7 @@ def test_lamp_map_is_latched_and_highlights_the_lamps_of_the_latest_pose(start_p
     maps: list[MarkerArray] = []
     test_node.create_subscription(MarkerArray, 'vlp/lamps', maps.append, LATCHED)
     assert spin_until(test_node, lambda: bool(maps), 10.0), locator.output()
-    lamps = scenario.locator_settings(imu=False).lamps
+    lamps = settings_from_tree(scenario.locator_parameters(imu=False)).lamps
     first = maps[0]
     assert len([m for m in first.markers if m.ns == 'lamps']) == len(lamps)
     assert {m.header.frame_id for m in first.markers} == {'map'} and not _highlighted(first)

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.core.gravity import STANDARD_GRAVITY, GravityBuffer
-from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters
+from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters, settings_from_tree
 from vlp_ros.core.mounting import (MIN_POSITION_VARIANCE, MIN_ROTATION_VARIANCE, Mounting, publishable_covariance)
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.core.pose import Pose
@@ -142,8 +142,9 @@ def test_prior_and_imu_stay_in_the_camera_frame_with_a_tilted_mounting() -> None
     frame = render_frame(scenario.camera, camera, scenario.lamps, scenario.sensor, 2.0, np.random.default_rng(5))
     assert sum(t.fully_inside for t in frame.lamps) >= 1
     imu_to_camera = Rotation.from_matrix(mounting.rotation.T).as_quat()
-    settings = replace(scenario.locator_settings(imu=False), prior_up=mounting.up_in_camera(), imu_enabled=True,
-                       imu_rotation=imu_to_camera, imu_sigma=0.01, base_frame='base_link', mounting=mounting)
+    settings = replace(settings_from_tree(scenario.locator_parameters(imu=False)), prior_up=mounting.up_in_camera(),
+                       imu_enabled=True, imu_rotation=imu_to_camera, imu_sigma=0.01, base_frame='base_link',
+                       mounting=mounting)
     gravity = GravityBuffer(imu_to_camera, max_age=0.05)
     gravity.add(0, base.rotation.T @ [0.0, 0.0, STANDARD_GRAVITY])
     result = Pipeline(settings).process(frame.image, scenario.camera, 0.0, gravity.up_at(0))

@@ -13,7 +13,7 @@ from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, B
                                     reading)
 from vlp_ros.beacon.tone import agreeing
 from vlp_ros.detection import detect_lamps
-from vlp_ros.pipeline.config import ConfigError, beacon_from_parameters, default_parameters
+from vlp_ros.pipeline.config import ConfigError, beacon_from_parameters, default_parameters, settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
@@ -28,7 +28,7 @@ TARGET_M = 0.05
 def test_the_rigs_leds_are_identified_from_their_glow_and_located(row_time_error, jpeg_quality) -> None:
     scenario = bare_led_scenario('4k', photos=PHOTOS, seed=11, look=PointLampLook(),
                                  row_time_error=row_time_error, jpeg_quality=jpeg_quality)
-    pipeline = Pipeline(scenario.locator_settings(imu=True))
+    pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=True)))
     rng = np.random.default_rng(4)
     right = wrong = 0
     for index, pose in enumerate(scenario.poses):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
-from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters, settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim.point_lamps import RIG_FREQUENCIES, PointLampLook, bare_led_scenario
@@ -85,7 +85,7 @@ def test_bare_led_photos_through_the_pipeline_give_right_ids_and_poses_or_none(l
     measured look is not yet (its glow hides the cores from this detector): no ID and no pose,
     and never a wrong one."""
     scenario = bare_led_scenario('4k', photos=3, seed=4, look=look)
-    pipeline = Pipeline(scenario.locator_settings(imu=False))
+    pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=False)))
     rng = np.random.default_rng(9)
     located = 0
     for index, truth in enumerate(scenario.poses):

@@ -4,6 +4,7 @@ did not show. The covariance must cover them."""
 import numpy as np
 import pytest
 
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import LOOKS, apply_look, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
@@ -17,7 +18,7 @@ def _poses(look: str) -> list[float]:
     """NEES of every pose the pipeline publishes on the paper's 4K stills 2 m under ``look``."""
     scenario = apply_look(with_rim_markers(paper_scenario('4k', height=2.0, points=3, postures=1, seed=5), 0.9, 0.1),
                           LOOKS[look], 5)
-    pipeline = Pipeline(scenario.locator_settings())
+    pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=True)))
     errors = []
     for index, (truth, stamp) in enumerate(zip(scenario.poses, scenario.frame_times())):
         frame = scenario.render(index, np.random.default_rng([5, index]))

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.sim.looks import LOOKS, apply_look
 from vlp_ros.sim.scenarios import robot_drive_scenario
 from vlp_ros.solvers.candidates import explains_the_image
@@ -20,7 +21,7 @@ def test_a_lamp_near_the_image_centre_with_the_mount_prior_gives_a_pose_that_exp
     truth = scenario.poses[frame]
     image = scenario.render(frame, np.random.default_rng([2017, frame])).image
     lamps = {sim.lamp.id: sim.lamp for sim in scenario.lamps}
-    settings = scenario.locator_settings()
+    settings = settings_from_tree(scenario.locator_parameters(imu=True))
     up = [UpMeasurement(settings.prior_up, settings.prior_sigma)]
     (observation,) = [o for o in detect_lamps(image) if o.marker is not None]
     lamp = lamps[214]

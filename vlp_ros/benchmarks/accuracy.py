@@ -43,6 +43,7 @@ from vlp_ros.evaluation.metrics import (TABLE_HEADER, WRONG_FIX_M, ErrorSummary,
                                         nees_or_nan, summarize, summary_row)
 from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
 from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import FrameResult, Pipeline
 from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.imu import specific_force
@@ -161,7 +162,7 @@ def look_setups(quick: bool, seed: int, drive: Drive = Drive()) -> list[Setup]:
 def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = None) -> SetupRun:
     """Every frame of ``setup`` through one pipeline per solver."""
     scenario = setup.scenario
-    settings = scenario.locator_settings()
+    settings = settings_from_tree(scenario.locator_parameters(imu=True))
     # The paper's solver is measured as published: without the fit gate the locator applies.
     pipelines = {solver: Pipeline(replace(settings, solver=solver), gate_fit=solver != 'paper')
                  for solver in setup.solvers}

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
 from vlp_ros.core.mounting import Mounting
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import render_frame
@@ -45,7 +46,8 @@ def mounted_robot_scenario(mounting: Mounting, first: int, frames: int, seed: in
 
 def run(frames: int, first: int, seed: int) -> list[list[str]]:
     scenario, bases = mounted_robot_scenario(MOUNTING, first, frames, seed)
-    settings = replace(scenario.locator_settings(imu=False), base_frame='base_link', mounting=MOUNTING)
+    settings = replace(settings_from_tree(scenario.locator_parameters(imu=False)), base_frame='base_link',
+                       mounting=MOUNTING)
     pipeline = Pipeline(settings)
     rng = np.random.default_rng(seed)
     camera_rows, base_rows, lever_free_rows = [], [], []

@@ -16,6 +16,7 @@ import numpy as np
 from vlp_ros.benchmarks.base_frame import drive_arguments
 from vlp_ros.core.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, CameraModel
 from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import Scenario, robot_scenario
@@ -54,7 +55,7 @@ def run(frames: int, first: int, seed: int) -> list[list[str]]:
     rows = []
     for model, camera in robot_cameras().items():
         scenario = robot_scenario_with(camera, seed)
-        pipeline = Pipeline(scenario.locator_settings(imu=False))
+        pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=False)))
         rng = np.random.default_rng(seed)
         outcomes = []
         for truth, t in list(zip(scenario.poses, scenario.frame_times()))[first:first + frames]:

@@ -31,7 +31,7 @@ from vlp_ros.detection import detect_lamps
 from vlp_ros.core.ellipse import geometric_distances
 from vlp_ros.evaluation.metrics import format_table, nees_or_nan
 from vlp_ros.core.lamp_map import Lamp
-from vlp_ros.pipeline.config import LocatorSettings
+from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.core.pose import Pose
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.frames is not None:
                 scenario = scenario.truncated(min(args.frames, len(scenario.poses)))
             scenario = apply_look(scenario, LOOKS[look], args.seed)
-            settings = scenario.locator_settings()
+            settings = settings_from_tree(scenario.locator_parameters(imu=True))
             if imu and args.imu_sigma is not None:
                 settings = replace(settings, imu_sigma=args.imu_sigma)
             results.append((f'{label} {look}', run_setup(scenario, settings, imu, args.seed, number,

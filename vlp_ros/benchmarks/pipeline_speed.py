@@ -43,7 +43,7 @@ from vlp_ros.beacon.decoding import decode_packet, row_profile  # noqa: E402
 from vlp_ros.detection import detect_lamps  # noqa: E402
 from vlp_ros.evaluation.metrics import format_table  # noqa: E402
 from vlp_ros.core.lamp_map import Lamp, LampMap  # noqa: E402
-from vlp_ros.pipeline.config import LocatorSettings  # noqa: E402
+from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree  # noqa: E402
 from vlp_ros.core.observation import LampObservation  # noqa: E402
 from vlp_ros.pipeline.frame import Pipeline  # noqa: E402
 from vlp_ros.sim.imu import specific_force  # noqa: E402
@@ -156,7 +156,7 @@ def _ms(seconds: float) -> str:
 
 def case_row(case: Case, repeats: int, seed: int, clock: Callable[[], float] = time.perf_counter) -> list[str]:
     """The table row of one case: medians over all its camera poses and repetitions."""
-    settings = case.scenario.locator_settings()
+    settings = settings_from_tree(case.scenario.locator_parameters(imu=True))
     rng = np.random.default_rng(seed)
     times: dict[str, list[float]] = {stage: [] for stage in STAGES}
     posed = 0

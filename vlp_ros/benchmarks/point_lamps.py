@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
@@ -62,7 +63,7 @@ class Tally:
 def run_setup(setup: Setup, imu: bool, camera: str, photos: int, seed: int) -> Tally:
     scenario = bare_led_scenario(camera, photos=photos, seed=seed, look=setup.look,
                                  row_time_error=setup.row_time_error, jpeg_quality=setup.jpeg_quality)
-    pipeline = Pipeline(scenario.locator_settings(imu=imu))
+    pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=imu)))
     rng = np.random.default_rng([seed, 1])
     tally = Tally()
     for index, pose in enumerate(scenario.poses):

@@ -23,6 +23,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.benchmarks.pipeline_speed import BURST, Case, cases, interleaved_times
+from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.debug_view import debug_view
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
@@ -34,7 +35,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 
 
 def case_times(case: Case, publishers, repeats: int, rng: np.random.Generator) -> dict[str, list[float]]:
-    settings = case.scenario.locator_settings()
+    settings = settings_from_tree(case.scenario.locator_parameters(imu=True))
     scenario = case.scenario
     image_pub, lamps_pub = publishers
     times: dict[str, list[float]] = {name: [] for name in RUNS}

@@ -1,103 +1,231 @@
-"""Compile and cache every numba kernel: python -m vlp_ros.compiled.warm_up.
+"""Make every numba kernel ready before the first frame: python -m vlp_ros.compiled.warm_up.
 
 Numba compiles a kernel on its first call for the argument types it gets (about
-half a second per kernel, a minute for all of them); a node would pay that on
-its first frames. ``warm_up`` runs the per-frame work once on simulated frames of
-every kind the nodes meet (colour and mono8, one and several lamps, packet and
-tone beacons, sharp lamps and the realistic look's clipped, glaring ones, read over
-their glow, steady lamps off the map, bare LEDs as JPEG), so the machine code is cached beside the modules
-(``vlp_ros.compiled``). ``make build`` runs this for the installed package and
-for the source tree the tests import; the locator runs ``warm_up`` before it
-subscribes, which then only loads the machine code (about a second), so that its
-first frames are as quick as the rest.
+half a second per kernel, a minute for all of them), or loads it from the cache
+(``vlp_ros.compiled``); a node would pay that on its first frames. ``warm_up``
+builds a few small frames in place and runs them through the pipeline: a camera
+looking straight up at lamps 2 m above it, each a disc whose rows carry its beacon
+(``vlp_ros.beacon.encoding``), with a red marker on its rim, drawn sharp, clipped and
+glowing, without a marker (a steady lamp off the map), and as bare LEDs; in packet
+and tone mode, in colour with gravity and as mono8 without, each as a writable
+array (as a JPEG decoder gives it) and a read-only one (as raw image messages give
+it: numba compiles the two separately). Only the pipeline's public entry points are
+called, so the warm-up follows the kernels wherever they move.
+
+``make build`` runs this for the installed package and for the source tree the
+tests import, which fills the cache; the locator runs ``warm_up`` before it
+subscribes, which then only loads the machine code.
 """
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
-from vlp_ros.benchmarks.beacon import TONE_BASE, Tally, Timer, tone_trial
-from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.beacon.encoding import Waveform, packet_waveform, tone_waveform
+from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.lamp_map import LampMap
 from vlp_ros.core.pose import Pose
+from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import settings_from_tree
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.perspective import _up_update
+from vlp_ros.solvers.point_lamps import PointLampMeasurement, pose_from_opencv
+from vlp_ros.solvers.refinement import refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement
-from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
-from vlp_ros.sim.point_lamps import bare_led_scenario
-from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
+
+WIDTH, HEIGHT, FOCAL = 640, 480, 1600.0
+CAMERA = CameraModel(WIDTH, HEIGHT, [[FOCAL, 0.0, (WIDTH - 1) / 2], [0.0, FOCAL, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]])
+# The camera looks straight up (its axes those of the map): up is its optical axis.
+UP = np.array([0.0, 0.0, 1.0])
+LAMP_HEIGHT, LAMP_RADIUS, MARKER_DISTANCE = 2.0, 0.055, 0.048
+ROW_TIME, EXPOSURE, CHIP_RATE, ID_BITS = 3.1e-5, 5e-5, 7600.0, 4
+TONE_ROW_TIME, TONE_EXPOSURE = 1.5e-5, 2e-5
+# Three lamps on a triangle (P3P needs points off a line), the middle one at the image centre.
+LAYOUT = ((-0.2, -0.05), (0.0, 0.0), (0.2, 0.06))
+LAMP_BGR, MARKER_BGR, AMBIENT_BGR = (1.0, 0.97, 0.92), (0.12, 0.16, 0.95), (10.0, 12.0, 12.0)
 
 
-def run_scenario(scenario: Scenario, frames: int) -> None:
-    """The scenario's first frames, as the locator receives them (through JPEG if the scenario sends it),
-    through the pipeline: in colour with gravity, and as mono8 without; each as a writable array (as the
-    simulator and a JPEG decoder give it) and as a read-only one (as raw image messages give it: numba
-    compiles the two separately)."""
-    pipeline = Pipeline(scenario.locator_settings())
-    rng = np.random.default_rng(0)
-    for index in range(frames):
-        stamp, truth = float(scenario.frame_times()[index]), scenario.poses[index]
-        image = transported(scenario, scenario.render(index, rng).image)
-        gravity = specific_force(truth, scenario.accelerations[index], scenario.imu_noise, rng)
-        up = gravity / np.linalg.norm(gravity)
+@dataclass(frozen=True)
+class DrawnLamp:
+    """A lamp as the warm-up draws it: where (m, in the camera's frame), how big, its light and marker."""
+
+    x: float
+    y: float
+    radius: float
+    waveform: Waveform
+    marker_angle: float | None = 0.6
+
+
+@dataclass(frozen=True)
+class Look:
+    """How a frame looks: the lamps' level (DN; over 255 clips), blur (px), glow (its share of the level, its
+    width in px: the light scattered around a lamp, which carries its beacon too), sensor noise (DN)."""
+
+    peak: float = 200.0
+    blur: float = 0.7
+    glow: float = 0.0
+    glow_width: float = 20.0
+    noise: float = 3.0
+    jpeg: bool = False
+
+
+SHARP = Look()
+CLIPPED = Look(peak=350.0, blur=2.0, glow=0.15)
+BARE_LED = Look(peak=900.0, blur=1.0, glow=0.15, jpeg=True)
+
+
+def draw(lamps: Sequence[DrawnLamp], look: Look, row_time: float, exposure: float,
+         rng: np.random.Generator) -> np.ndarray:
+    """Return a bgr8 frame of ``lamps`` seen from below, each row lit as the rolling shutter exposes it."""
+    rows, columns = np.mgrid[0:HEIGHT, 0:WIDTH].astype(float)
+    light = np.tile(np.array(AMBIENT_BGR), (HEIGHT, WIDTH, 1))
+    for lamp in lamps:
+        scale = FOCAL / LAMP_HEIGHT
+        u, v, radius = CAMERA.K[0, 2] + scale * lamp.x, CAMERA.K[1, 2] + scale * lamp.y, scale * lamp.radius
+        distance = np.hypot(columns - u, rows - v)
+        disc = np.clip(radius - distance + 0.5, 0.0, 1.0)
+        glow = look.glow * np.exp(-0.5 * np.square(np.maximum(distance - radius, 0.0) / look.glow_width))
+        level = lamp.waveform.mean_brightness(np.arange(HEIGHT) * row_time, exposure)[:, None]
+        colour = np.broadcast_to(np.array(LAMP_BGR), light.shape).copy()
+        if lamp.marker_angle is not None:
+            mu = u + scale * MARKER_DISTANCE * np.cos(lamp.marker_angle)
+            mv = v + scale * MARKER_DISTANCE * np.sin(lamp.marker_angle)
+            marker = np.clip(0.09 * radius - np.hypot(columns - mu, rows - mv) + 0.5, 0.0, 1.0)[..., None]
+            colour = (1.0 - marker) * colour + marker * np.array(MARKER_BGR)
+        light += look.peak * (disc * level)[..., None] * colour + look.peak * (glow * level)[..., None]
+    if look.blur > 0.0:
+        light = cv2.GaussianBlur(light, (0, 0), look.blur)
+    light += rng.normal(0.0, look.noise, light.shape)
+    image = np.clip(np.rint(light), 0, 255).astype(np.uint8)
+    if look.jpeg:
+        image = cv2.imdecode(cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, 90])[1], cv2.IMREAD_COLOR)
+    return image
+
+
+def lamp_parameters(lamps: Sequence[DrawnLamp], frequencies: Sequence[float] | None) -> dict[str, Any]:
+    """Return the ``leds`` parameters of the map the drawn lamps belong to."""
+    leds: dict[str, Any] = {'names': [f'lamp_{i}' for i in range(len(lamps))]}
+    for i, lamp in enumerate(lamps):
+        entry: dict[str, Any] = {'id': i + 1, 'position': [lamp.x, lamp.y, LAMP_HEIGHT], 'radius': lamp.radius}
+        if lamp.radius > 0.0:
+            entry.update(marker_angle=lamp.marker_angle or 0.0, marker_distance=MARKER_DISTANCE)
+        if frequencies is not None:
+            entry['frequency'] = frequencies[i]
+        leds[f'lamp_{i}'] = entry
+    return leds
+
+
+def packet_lamps(radius: float = LAMP_RADIUS, marker: bool = True) -> list[DrawnLamp]:
+    """Return three packet lamps, IDs 1-3 (the map of ``lamp_parameters``)."""
+    return [DrawnLamp(x, y, radius, packet_waveform(i + 1, CHIP_RATE, 0.5, ID_BITS, offset=1e-3 * i),
+                      0.6 + i if marker else None) for i, (x, y) in enumerate(LAYOUT)]
+
+
+def tone_lamps(frequencies: Sequence[float], radius: float = LAMP_RADIUS) -> list[DrawnLamp]:
+    """Return three tone lamps of ``frequencies``, where ``packet_lamps`` puts its lamps."""
+    return [DrawnLamp(x, y, radius, tone_waveform(frequency, 0.5), 0.6 + i)
+            for i, ((x, y), frequency) in enumerate(zip(LAYOUT, frequencies))]
+
+
+def run_frames(parameters: dict[str, Any], frames: Sequence[np.ndarray]) -> None:
+    """Each frame through one pipeline: in colour with gravity and as mono8 without, writable and read-only."""
+    pipeline = Pipeline(settings_from_tree(parameters))
+    for stamp, image in enumerate(frames):
         for pixels in (image, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)):
             for frame in (pixels, read_only(pixels)):
-                pipeline.process(frame, scenario.camera, stamp, up if frame.ndim == 3 else None)
+                pipeline.process(frame, CAMERA, float(stamp), UP if frame.ndim == 3 else None)
 
 
 def read_only(pixels: np.ndarray) -> np.ndarray:
-    """A view of ``pixels`` that cannot be written, like an array over a message's buffer."""
+    """Return a view of ``pixels`` that cannot be written, like an array over a message's buffer."""
     view = pixels.view()
     view.flags.writeable = False
     return view
 
 
-def read_tone_lamps(trials: int) -> None:
-    """Tone-mode lamps (which the scenarios' packet lamps do not reach) read with and without the exposure."""
-    rng = np.random.default_rng(0)
-    for condition in (TONE_BASE, replace(TONE_BASE, exposure_given=False)):
-        for _ in range(trials):
-            tone_trial(rng, condition, Tally(), Timer())
+def warm_packet_lamps(rng: np.random.Generator) -> None:
+    """Packet lamps, sharp and clipped with glow, one and three at once; a markerless lamp off the map."""
+    lamps = packet_lamps()
+    beacon = {'mode': 'packet', 'chip_rate': CHIP_RATE, 'id_bits': ID_BITS, 'row_time': ROW_TIME,
+              'exposure': EXPOSURE}
+    parameters = {'leds': lamp_parameters(lamps, None), 'beacon': beacon}
+    steady = DrawnLamp(0.2, 0.1, LAMP_RADIUS, Waveform(np.ones(1, dtype=np.uint8), CHIP_RATE, 0.0), None)
+    frames = [draw(lamps[1:2], SHARP, ROW_TIME, EXPOSURE, rng), draw(lamps, SHARP, ROW_TIME, EXPOSURE, rng),
+              draw(lamps[1:2], CLIPPED, ROW_TIME, EXPOSURE, rng), draw(lamps, CLIPPED, ROW_TIME, EXPOSURE, rng),
+              draw([lamps[1], steady], SHARP, ROW_TIME, EXPOSURE, rng)]
+    run_frames(parameters, frames)
+    run_frames({**parameters, 'solver': 'paper'}, frames[:1])
 
 
-def warm_up() -> None:
-    """Every kernel the pipeline calls compiled, or loaded from the cache, for the types the nodes give it."""
-    run_scenario(paper_scenario('1080p', points=3, postures=1), frames=3)
-    run_scenario(robot_scenario(), frames=3)
-    # Clipped, blurred lamps with glare: the beacon reads them over their light (glow included).
-    run_scenario(apply_look(paper_scenario('4k', points=3, postures=1), LOOKS['realistic']), frames=1)
-    # Steady lamps without a marker among the mapped ones, and bare LEDs (point lamps, solved from their
-    # centres; clipped cores without a marker), as JPEG: without these, the first frame of each compiled
-    # kernels (a fresh process's first bare-LED JPEG frame 51 s, a tone robot's 21-25 s).
-    run_scenario(apply_look(paper_scenario('1080p', points=3, postures=1), LOOKS['clutter']), frames=1)
-    run_scenario(bare_led_scenario('4k', photos=1, row_time_error=0.02, jpeg_quality=90), frames=1)
-    read_tone_lamps(trials=4)
-    update_by_up()
-    compare_candidates()
+def warm_tone_lamps(rng: np.random.Generator) -> None:
+    """Tone lamps, sharp and clipped, read with the exposure and without it."""
+    frequencies = (2000.0, 2600.0, 3200.0)
+    lamps = tone_lamps(frequencies)
+    frames = [draw(lamps, SHARP, TONE_ROW_TIME, TONE_EXPOSURE, rng),
+              draw(lamps, CLIPPED, TONE_ROW_TIME, TONE_EXPOSURE, rng)]
+    for exposure in (TONE_EXPOSURE, 0.0):
+        beacon = {'mode': 'tone', 'row_time': TONE_ROW_TIME, 'exposure': exposure}
+        run_frames({'leds': lamp_parameters(lamps, frequencies), 'beacon': beacon}, frames)
+
+
+def warm_bare_leds(rng: np.random.Generator) -> None:
+    """Bare LEDs (point lamps: clipped cores without a marker, solved from their centres), as JPEG, both modes."""
+    frequencies = (2000.0, 2600.0, 3200.0)
+    lamps = [DrawnLamp(lamp.x, lamp.y, 0.008, lamp.waveform, None) for lamp in tone_lamps(frequencies)]
+    mapped = [DrawnLamp(lamp.x, lamp.y, 0.0, lamp.waveform, None) for lamp in lamps]
+    beacon = {'mode': 'tone', 'row_time': TONE_ROW_TIME, 'exposure': TONE_EXPOSURE}
+    parameters = {'leds': lamp_parameters(mapped, frequencies), 'beacon': beacon}
+    image = draw(lamps, BARE_LED, TONE_ROW_TIME, TONE_EXPOSURE, rng)
+    run_frames(parameters, [image])
+    refine_from_an_opencv_start(image, settings_from_tree(parameters).lamps)
+    packet = [DrawnLamp(lamp.x, lamp.y, 0.008, lamp.waveform, None) for lamp in packet_lamps()]
+    beacon = {'mode': 'packet', 'chip_rate': CHIP_RATE, 'id_bits': ID_BITS, 'row_time': ROW_TIME,
+              'exposure': EXPOSURE}
+    mapped = [DrawnLamp(lamp.x, lamp.y, 0.0, lamp.waveform, None) for lamp in packet]
+    run_frames({'leds': lamp_parameters(mapped, None), 'beacon': beacon},
+               [draw(packet, BARE_LED, ROW_TIME, EXPOSURE, rng)])
+
+
+def refine_from_an_opencv_start(image: np.ndarray, lamps: LampMap) -> None:
+    """Refine the pose of point lamps from a start as OpenCV's P3P gives it (a transposed rotation, in Fortran
+    order), which a tilted view of bare LEDs starts from and the drawn level view does not reach."""
+    points = [PointLampMeasurement.from_observation(observation, lamp, CAMERA)
+              for observation, lamp in zip(detect_lamps(image), lamps)]
+    refine_pose(pose_from_opencv(np.array([1e-3, 0.0, 0.0]), np.zeros(3)), points, [UpMeasurement(UP, 0.01)])
 
 
 def update_by_up() -> None:
-    """The Kalman update by an up direction, which the scenarios' frames do not reach (it runs when
-    gravity must settle a candidate): a level pose and a vertical up, arrays as the solver builds them."""
+    """Run the Kalman update by an up direction (when gravity must settle a candidate) on a level pose."""
     _up_update(Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4), [UpMeasurement(np.array([0.0, 0.0, 1.0]), 0.01)])
 
 
 def compare_candidates() -> None:
-    """The test whether two candidate poses are apart by their covariance (``inverse_form``), which the
-    scenarios' frames do not reach (the realistic look's second hand-held frame does): a covariance and a
-    separation as the solvers give them, writable and read-only."""
+    """Test whether two candidate poses are apart by their covariance, writable and read-only."""
     covariance, separation = np.eye(6) * 1e-4, np.full(6, 1e-2)
     inverse_form(covariance, separation)
     inverse_form(read_only(covariance), read_only(separation))
 
 
+def warm_up() -> None:
+    """Compile, or load from the cache, every kernel the pipeline calls, for the types the nodes give it."""
+    rng = np.random.default_rng(0)
+    warm_packet_lamps(rng)
+    warm_tone_lamps(rng)
+    warm_bare_leds(rng)
+    update_by_up()
+    compare_candidates()
+
+
 def main() -> None:
     started = time.perf_counter()
     warm_up()
-    print(f'numba kernels compiled and cached in {time.perf_counter() - started:.1f} s')
+    print(f'numba kernels ready in {time.perf_counter() - started:.1f} s')
 
 
 if __name__ == '__main__':

@@ -336,6 +336,11 @@ def settings_from_params_file(path: Path | str, node: str = 'vlp_locator') -> Lo
     section = next((document[key] for key in (node, f'/{node}', '/**') if key in document), None)
     if not isinstance(section, Mapping) or 'ros__parameters' not in section:
         raise ConfigError('params file', f'{path} has no {node}: ros__parameters section')
+    return settings_from_tree(section['ros__parameters'])
+
+
+def settings_from_tree(tree: Mapping[str, Any]) -> LocatorSettings:
+    """Return the settings that nested ``ros__parameters`` (as in a params file) give over the defaults."""
     values = default_parameters()
-    values.update(flatten_parameters(section['ros__parameters']))
+    values.update(flatten_parameters(tree))
     return settings_from_parameters(values)

@@ -16,7 +16,6 @@ from vlp_ros.beacon.encoding import packet_length, packet_waveform, tone_wavefor
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import STANDARD_GRAVITY
 from vlp_ros.core.lamp_map import Lamp
-from vlp_ros.pipeline.config import LocatorSettings, default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, RenderedFrame, SimLamp, render_frame
 from vlp_ros.sim.sensor import SensorModel
@@ -135,12 +134,6 @@ class Scenario:
         if self.independent_frames:
             params['continuity'] = {'max_age': 0.0}
         return params
-
-    def locator_settings(self, imu: bool = True) -> LocatorSettings:
-        """The locator's settings for this scenario: its parameters over the defaults."""
-        values = default_parameters()
-        values.update(flatten_parameters(self.locator_parameters(imu)))
-        return settings_from_parameters(values)
 
 
 def design_beacon(span_rows: float, row_time: float, max_id: int, depth: float,
