@@ -4,9 +4,8 @@ Levenberg-Marquardt loop over them.
 A fit is a few iterations on a few hundred residuals, where each numpy or OpenCV call
 costs more in argument handling than in arithmetic: the loop runs whole in one kernel.
 The measurements enter as ``Terms``, flat arrays of every kind at once (rim points of
-any number of lamps, markers, up directions), residuals in that order. All kernels
-stay in this one module because numba's cache of a kernel notices changes to its own
-file only, and the loop compiles the others into itself.
+any number of lamps, markers, up directions), residuals in that order. The small
+solves and inverses come from ``vlp_ros.compiled.linalg``.
 
 Formulas (derived in ``measurement`` and ``up_measurement``): rim residual s = v / (2|P|)
 with v = h^T C h for the rim conic C = H^-T diag(1, 1, -r^2) H^-1, H = R^T [e_x, e_y,
