@@ -123,8 +123,9 @@ def located_through_the_nodes(test_node, start_process: Callable[..., RosProcess
     """Every frame of the recording at ``bag`` played by the installed replay into the installed
     locator (``params``), one frame at a time; each frame's outcome against the bag's truth, once
     every frame was answered with its own stamp."""
-    from vlp_ros.evaluation.demo import PoseListener, outcomes_from_answers
+    from vlp_ros.evaluation.demo import outcomes_from_answers
     from vlp_ros.evaluation.recording import ground_truth
+    from vlp_ros.nodes.pose_listener import PoseListener
     truth = ground_truth(bag, topics.ground_truth)
     listener = PoseListener(test_node)
     locator = start_process('locator', '--ros-args', '--params-file', params)

@@ -9,8 +9,9 @@ from geometry_msgs.msg import PoseStamped
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.benchmarks.base_frame import MOUNTING, mounted_robot_scenario
-from vlp_ros.evaluation.demo import PoseListener, play_through_nodes
+from vlp_ros.evaluation.demo import PLAYED_TOPICS
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
+from vlp_ros.nodes.pose_listener import PoseListener, play_through_nodes
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.recording import LOCATOR_NODE, record, write_params
 from vlp_ros.sim.scenarios import robot_scenario
@@ -48,7 +49,7 @@ def test_published_base_poses_match_the_truth_with_an_honest_covariance(test_nod
         msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, _pose_of(msg)), 100)
 
     listener = PoseListener(test_node)
-    play_through_nodes(bag, params, FRAMES, listener, tmp_path)
+    play_through_nodes(bag, params, FRAMES, listener, tmp_path, PLAYED_TOPICS)
 
     assert len(listener.poses) >= 0.9 * FRAMES, listener.outcomes
     base_truth = {stamp: MOUNTING.base_pose(pose) for stamp, pose in camera_truth.items()}

@@ -11,8 +11,9 @@ from test_locator_node import STAMP_NS, Feeder, _header, _image_bytes, _serializ
 
 from vlp_ros.benchmarks.camera_models import EQUIDISTANT_D, robot_cameras, robot_scenario_with
 from vlp_ros.core.camera import COEFFICIENTS, EQUIDISTANT, RATIONAL_POLYNOMIAL
-from vlp_ros.evaluation.demo import PoseListener, play_through_nodes
+from vlp_ros.evaluation.demo import PLAYED_TOPICS
 from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
+from vlp_ros.nodes.pose_listener import PoseListener, play_through_nodes
 from vlp_ros.sim.bag_writer import camera_info_message
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.render import render_frame
@@ -32,7 +33,7 @@ def test_a_wide_robot_camera_reaches_the_robot_accuracy(test_node, tmp_path, mod
     truth = ground_truth(bag, RecordingTopics().ground_truth)
 
     listener = PoseListener(test_node)
-    play_through_nodes(bag, params, FRAMES, listener, tmp_path)
+    play_through_nodes(bag, params, FRAMES, listener, tmp_path, PLAYED_TOPICS)
 
     assert len(listener.poses) >= 0.9 * FRAMES, listener.outcomes
     errors = [estimate.position_error(truth[stamp]) for stamp, estimate in listener.poses.items()]

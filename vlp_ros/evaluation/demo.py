@@ -13,21 +13,15 @@ from __future__ import annotations
 import argparse
 import resource
 import shutil
-import signal
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.node import Node
-from std_msgs.msg import Header
 
-from vlp_ros.nodes.dds_environment import claim_domain_id, installed_executable, loopback_profile, use_loopback_dds
+from vlp_ros.nodes.dds_environment import claim_domain_id, loopback_profile, use_loopback_dds
 from vlp_ros.evaluation import figures
 from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, summarize
@@ -40,6 +34,10 @@ from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, AIMED_TWIST_DEG, paper_scenario
 
+if TYPE_CHECKING:
+    # Only the nodes import rclpy: this module imports vlp_ros.nodes.pose_listener where it plays.
+    from vlp_ros.nodes.pose_listener import PoseListener
+
 TOPICS = RecordingTopics()
 PLAYED_TOPICS = (TOPICS.image, TOPICS.camera_info, TOPICS.imu)
 PERSPECTIVE = 'vlp_ros (perspective, over DDS)'
@@ -49,96 +47,6 @@ POSTURE_TITLES = {
               f'with its top toward the lamp, twisted by up to {AIMED_TWIST_DEG:g} deg)'),
     'anywhere': 'Anywhere (the lamp anywhere in view: tilt up to 30 deg, or more to keep it in view; any roll)',
 }
-
-
-class PoseListener:
-    """Collects the locator's answers (poses with covariance, and per-frame outcomes) by image stamp."""
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        self.poses: dict[int, Pose] = {}
-        self.outcomes: dict[int, str] = {}
-        self.latency_ms = float('nan')
-        self.node.create_subscription(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', self._on_pose, 100)
-        self.node.create_subscription(Header, 'vlp/processed', self._on_processed, 100)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
-
-    @staticmethod
-    def _stamp(header) -> int:
-        return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-    def _on_pose(self, msg) -> None:
-        p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        pose = Pose.from_quaternion([q.x, q.y, q.z, q.w], [p.x, p.y, p.z])
-        pose.covariance = np.array(msg.pose.covariance).reshape(6, 6)
-        self.poses[self._stamp(msg.header)] = pose
-
-    def _on_processed(self, msg) -> None:
-        self.outcomes[self._stamp(msg)] = msg.frame_id
-
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            for kv in status.values:
-                if kv.key == 'latency median (ms)' and kv.value != 'nan':
-                    self.latency_ms = float(kv.value)
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            rclpy.spin_once(self.node, timeout_sec=0.02)
-
-
-def _start(name: str, *args: str, log: Path) -> subprocess.Popen:
-    with open(log, 'wb') as out:
-        return subprocess.Popen([str(installed_executable(name)), *map(str, args)], stdout=out,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
-
-
-def _stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-
-def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListener, logs: Path) -> float:
-    """Replay ``bag`` into a fresh locator and wait for every frame's answer; returns the wall time (s).
-
-    The listener's answers are reset first: recordings may share stamps.
-    """
-    listener.poses.clear()
-    listener.outcomes.clear()
-    locator = _start('locator', '--ros-args', '--params-file', params, log=logs / f'{bag.name}_locator.log')
-    replay = None
-    try:
-        # The locator loads its kernels (a minute when their cache is cold) before it subscribes
-        # (to the IMU only when its params enable it).
-        while not all(listener.node.count_subscribers(topic) for topic in PLAYED_TOPICS[:2]):
-            if locator.poll() is not None:
-                raise RuntimeError(f'locator exited: see {logs / (bag.name + "_locator.log")}')
-            listener.spin_for(0.1)
-        started = time.monotonic()
-        replay = _start('replay', bag, '--deterministic', '--topics', *PLAYED_TOPICS,
-                        log=logs / f'{bag.name}_replay.log')
-        answered = -1
-        while replay.poll() is None:
-            listener.spin_for(0.1)
-            count = len(listener.outcomes)
-            if count != answered:
-                answered = count
-                progress_bar(min(count, frames), frames, 'frames located')
-        listener.spin_for(0.5)
-        progress_bar(frames, frames, 'frames located')
-        if replay.returncode != 0:
-            raise RuntimeError(f'replay failed: see {logs / (bag.name + "_replay.log")}')
-        return time.monotonic() - started
-    finally:
-        for process in (replay, locator):
-            if process is not None:
-                _stop(process)
 
 
 def outcomes_from_answers(truth: dict[int, Pose], listener: PoseListener, group: str) -> list[FrameOutcome]:
@@ -189,7 +97,9 @@ def play_recording(model: str, height: float, args: argparse.Namespace, listener
            lambda done, total: progress_bar(done, total, 'frames rendered'))
     write_params(params, scenario, imu=True)
     truth = ground_truth(bag, TOPICS.ground_truth)
-    seconds = play_through_nodes(bag, params, len(truth), listener, args.out)
+    from vlp_ros.nodes.pose_listener import play_through_nodes
+    seconds = play_through_nodes(bag, params, len(truth), listener, args.out, PLAYED_TOPICS,
+                                 lambda done, total: progress_bar(done, total, 'frames located'))
     ours = outcomes_from_answers(truth, listener, group)
     paper_settings = replace(settings_from_params_file(params), solver='paper')
     theirs = evaluate_offline(bag, paper_settings, TOPICS, group, gate_fit=False, paper_tiebreak=args.paper_tiebreak)
@@ -232,18 +142,15 @@ def main(argv: list[str] | None = None) -> int:
     wall_start = time.monotonic()
     args.out.mkdir(parents=True, exist_ok=True)
     use_loopback_dds(loopback_profile(), claim_domain_id(101, 200))
-    rclpy.init()
-    listener = PoseListener(rclpy.create_node('vlp_demo_listener'))
+    from vlp_ros.nodes.pose_listener import listening_node
     played: dict[str, list[Played]] = {}
     try:
-        for model in args.models:
-            played[model] = [play_recording(model, height, args, listener) for height in args.heights]
+        with listening_node('vlp_demo_listener') as listener:
+            for model in args.models:
+                played[model] = [play_recording(model, height, args, listener) for height in args.heights]
     except (RuntimeError, ValueError, OSError) as err:
         print(f'demo: {err}', file=sys.stderr)
         return 1
-    finally:
-        listener.node.destroy_node()
-        rclpy.try_shutdown()
     evaluations = [posture_evaluation(model, runs, args) for model, runs in played.items()]
     for evaluation in evaluations:
         print()

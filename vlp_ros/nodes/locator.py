@@ -9,18 +9,14 @@ so its first frames take no longer than later ones.
 from __future__ import annotations
 
 import os
-import signal
 import sys
 import threading
 import time
 
 import numpy as np
-import rclpy
-from rclpy._rclpy_pybind11 import RCLError
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from scipy.spatial.transform import Rotation
@@ -39,6 +35,7 @@ from vlp_ros.images.message import MessageFormatError, parse_compressed_image, p
 from vlp_ros.pipeline.config import ConfigError, settings_from_parameters
 from vlp_ros.core.mounting import publishable_covariance
 from vlp_ros.nodes.diagnostics import diagnostic_array
+from vlp_ros.nodes.lifecycle import run_node
 from vlp_ros.nodes.parameters import declare_locator_parameters
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
 from vlp_ros.pipeline.frame import FrameResult, Pipeline
@@ -49,7 +46,8 @@ THROTTLE_S = 5.0
 
 class Locator(Node):
     def __init__(self) -> None:
-        super().__init__('vlp_locator')
+        # Overrides declared on arrival, so that misspelt parameters can be named (nodes.parameters).
+        super().__init__('vlp_locator', automatically_declare_parameters_from_overrides=True)
         self.settings = settings_from_parameters(declare_locator_parameters(self))
         self.pipeline = Pipeline(self.settings)
         self.stats = FrameStats()
@@ -272,11 +270,13 @@ class Locator(Node):
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 
-    def stop(self) -> None:
+    def destroy_node(self) -> None:
+        """Stop the worker thread (letting its frame finish), then destroy the node."""
         with self._wake:
             self._running = False
             self._wake.notify()
         self._worker.join(timeout=5.0)
+        super().destroy_node()
 
 
 def _pose_message(pose: Pose) -> PoseMsg:
@@ -287,33 +287,11 @@ def _pose_message(pose: Pose) -> PoseMsg:
     return msg
 
 
-def main(args: list[str] | None = None) -> None:
-    try:
-        _run(args)
-    except KeyboardInterrupt:  # Ctrl-C while starting up or shutting down is a clean stop too
-        pass
-    except RCLError:
-        if rclpy.ok():
-            raise
-        pass  # Ctrl-C shut the context down while the node was still being built
-    finally:
-        # Stopping anyway: a Ctrl-C during interpreter shutdown must not turn a clean exit into a signal death.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+def main(args: list[str] | None = None) -> int:
+    """Run the locator until Ctrl-C; exit status 2 after a parameter error."""
+    return run_node(Locator, args=args, start_errors=(ConfigError,), on_start_error=_report_parameter_error)
 
 
-def _run(args: list[str] | None) -> None:
-    rclpy.init(args=args)
-    try:
-        node = Locator()
-    except ConfigError as err:
-        print(f'[vlp_locator] parameter error: {err}', file=sys.stderr)
-        rclpy.try_shutdown()
-        sys.exit(2)
-    try:
-        rclpy.spin(node)
-    except ExternalShutdownException:
-        pass
-    finally:
-        node.stop()
-        node.destroy_node()
-        rclpy.try_shutdown()
+def _report_parameter_error(err: Exception) -> int:
+    print(f'[vlp_locator] parameter error: {err}', file=sys.stderr)
+    return 2

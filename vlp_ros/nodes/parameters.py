@@ -52,19 +52,28 @@ def _declare(node: Node, name: str, spec: ParameterSpec) -> Any:
     return list(value) if isinstance(value, (tuple, array.array)) else value
 
 
+def _redeclare(node: Node, name: str, spec: ParameterSpec) -> Any:
+    if node.has_parameter(name):  # declared from an override, without our descriptor
+        node.undeclare_parameter(name)
+    return _declare(node, name, spec)
+
+
 def declare_locator_parameters(node: Node) -> dict[str, Any]:
     """Declare every locator parameter (lamps as listed in leds.names) and return their values.
 
-    Overrides that match no declared parameter are returned too when they look like
-    lamp fields (so the validation can name a misspelt lamp) and rejected otherwise.
+    The node must be built with ``automatically_declare_parameters_from_overrides=True``:
+    rclpy lists the overrides it was given only as declared parameters. Each of ours is
+    declared again with its descriptor (type, range, read-only), which checks the given
+    value. Overrides that match none of ours are returned too when they look like lamp
+    fields (so the validation can name a misspelt lamp) and rejected otherwise.
     """
-    values = {spec.name: _declare(node, spec.name, spec) for spec in PARAMETERS}
+    given = node.get_parameters_by_prefix('')
+    values = {spec.name: _redeclare(node, spec.name, spec) for spec in PARAMETERS}
     for lamp in values['leds.names'] or []:
         for spec in LAMP_PARAMETERS:
             name = f'leds.{lamp}.{spec.name}'
-            values[name] = _declare(node, name, spec)
-    # rclpy has no public API listing the overrides it was given (only declared ones).
-    for name, parameter in node._parameter_overrides.items():
+            values[name] = _redeclare(node, name, spec)
+    for name, parameter in given.items():
         if name in values or name.startswith(_INFRASTRUCTURE):
             continue
         if name.startswith('leds.'):

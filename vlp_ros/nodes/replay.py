@@ -14,18 +14,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
 
-import rclpy
-from rclpy._rclpy_pybind11 import RCLError
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
@@ -37,6 +34,7 @@ from std_msgs.msg import Header
 from vlp_ros.bags.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, PlaybackTally, Timeline,
                                    playback_origin, progress_line, select_topics)
 from vlp_ros.bags.reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
+from vlp_ros.nodes.lifecycle import run_node
 
 DISCOVERY_WAIT_S = 5.0  # at most, for subscribers to match first (a lost announcement costs 3 s)
 DISCOVERY_SETTLE_S = 0.5  # once some matched, this long without another match ends the wait
@@ -333,36 +331,21 @@ class Replay(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    try:
-        return _run(args)
-    except KeyboardInterrupt:  # Ctrl-C while starting up or shutting down is a clean stop too
-        return 0
-    except RCLError:
-        if rclpy.ok():
-            raise
-        return 0  # Ctrl-C shut the context down while the node was still being built
-    finally:
-        # Stopping anyway: a Ctrl-C during interpreter shutdown must not turn a clean exit into a signal death.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _run(args: list[str] | None) -> int:
+    """Play the bag the command line names; exit status 1 for an unplayable bag, 2 for bad options."""
     own, ros = split_ros_arguments(sys.argv if args is None else args)
     parser = command_line_parser()
     command_line = parser.parse_args(own[1:])
-    rclpy.init(args=own[:1] + ros)
-    try:
-        node = Replay(command_line)
-    except (ValueError, ParameterException) as err:
-        rclpy.try_shutdown()
-        parser.error(str(err))
+
+    def usage_error(err: Exception) -> int:
+        parser.error(str(err))  # exits with status 2
+
+    return run_node(lambda: Replay(command_line), _play, args=own[:1] + ros,
+                    start_errors=(ValueError, ParameterException), on_start_error=usage_error)
+
+
+def _play(node: Replay) -> int:
     try:
         return node.play()
     except ValueError as err:
         print(f'replay: error: {err}', file=sys.stderr, flush=True)
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return 0
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
