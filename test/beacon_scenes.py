@@ -10,13 +10,13 @@ from vlp_ros.core.observation import LampObservation
 
 def row_brightness(waveform: Waveform, rows: int, row_time: float, exposure: float,
                    start: float = 0.0) -> np.ndarray:
-    """What ``rows`` consecutive rows see, the first starting at ``start`` (s)."""
+    """Return what ``rows`` consecutive rows see, the first starting at ``start`` (s)."""
     return waveform.mean_brightness(start + row_time * np.arange(rows), exposure)
 
 
 def flat_profile(waveform: Waveform, rows: int, row_time: float, exposure: float, start: float = 0.0,
                  noise: float = 0.0, weight: float = 100.0, rng: np.random.Generator | None = None) -> RowProfile:
-    """A profile of equally weighted rows at brightness 100 x level, with per-row noise ``noise``."""
+    """Return a profile of equally weighted rows at brightness 100 x level, with per-row noise ``noise``."""
     values = 100.0 * row_brightness(waveform, rows, row_time, exposure, start)
     if noise > 0.0:
         values = values + (rng or np.random.default_rng(0)).normal(0.0, noise, rows)
@@ -27,7 +27,8 @@ def lamp_image(waveform: Waveform, row_time: float, exposure: float, semi_axes: 
                angle: float = 0.0, peak: float = 180.0, noise: float = 2.0, falloff: float = 0.2,
                background: float = 12.0, start: float = 0.0, top: int = 40, bgr: bool = False,
                marker: bool = True, rng: np.random.Generator | None = None) -> tuple[np.ndarray, LampObservation]:
-    """An 8-bit frame holding one lamp, and the observation a detector would report for it.
+    """
+    Return an 8-bit frame holding one lamp, and the observation a detector would report for it.
 
     The disc (semi-axes ``semi_axes`` px, major axis at ``angle``) is ``peak`` DN bright at
     its centre, ``falloff`` dimmer at its rim, with a marker a third as bright near
@@ -64,10 +65,14 @@ def glaring_lamp(waveform: Waveform, row_time: float, exposure: float, radius: f
                  halo: float = 0.2, blur: float = 1.6, falloff: float = 0.3, noise: float = 2.0,
                  background: float = 12.0,
                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, LampObservation]:
-    """An 8-bit mono frame of a round lamp as real optics show it: a diffuser ``falloff`` dimmer at the rim, a
-    glare halo (Gaussian of 0.35 of the diameter, ``halo`` of the disc's level at its peak) lit row by row
-    like the disc, a Gaussian blur of ``blur`` px, and a disc ``peak`` DN bright at its centre (above 255:
-    clipped); the observation holds the disc's ellipse and mask."""
+    """
+    Return an 8-bit mono frame of a round lamp as real optics show it.
+
+    A diffuser ``falloff`` dimmer at the rim, a glare halo (Gaussian of 0.35 of the diameter, ``halo`` of
+    the disc's level at its peak) lit row by row like the disc, a Gaussian blur of ``blur`` px, and a disc
+    ``peak`` DN bright at its centre (above 255: clipped); the observation holds the disc's ellipse and
+    mask.
+    """
     import cv2
     rng = rng or np.random.default_rng(0)
     size = int(8 * radius)

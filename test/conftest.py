@@ -1,4 +1,5 @@
-"""Shared harness for tests that start the real vlp_ros executables as separate processes.
+"""
+Shared harness for tests that start the real vlp_ros executables as separate processes.
 
 Isolation: every test run holds its own ROS_DOMAIN_ID (a lock file per domain, so
 concurrent runs on one machine never share one), DDS traffic stays on loopback and
@@ -7,12 +8,12 @@ process a test starts is stopped by PID afterwards.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 import os
+from pathlib import Path
 import signal
 import subprocess
 import time
-from collections.abc import Callable, Iterator
-from pathlib import Path
 
 import pytest
 
@@ -76,7 +77,11 @@ class RosProcess:
 
 @pytest.fixture
 def start_process(tmp_path: Path) -> Iterator[Callable[..., RosProcess]]:
-    """start_process('locator', '--ros-args', ..., env=None) runs an installed executable; all are stopped after the test."""
+    """
+    start_process('locator', '--ros-args', ..., env=None) runs an installed executable.
+
+    All are stopped after the test.
+    """
     started: list[RosProcess] = []
 
     def start(name: str, *args: str, env: dict[str, str] | None = None) -> RosProcess:
@@ -120,9 +125,11 @@ def spin_until(node, condition: Callable[[], bool], timeout: float) -> bool:
 
 def located_through_the_nodes(test_node, start_process: Callable[..., RosProcess], bag: Path, params: Path,
                               topics, imu: bool, group: str) -> list:
-    """Every frame of the recording at ``bag`` played by the installed replay into the installed
+    """
+    Every frame of the recording at ``bag`` played by the installed replay into the installed
     locator (``params``), one frame at a time; each frame's outcome against the bag's truth, once
-    every frame was answered with its own stamp."""
+    every frame was answered with its own stamp.
+    """
     from vlp_ros.evaluation.demo import outcomes_from_answers
     from vlp_ros.evaluation.recording import ground_truth
     from vlp_ros.nodes.pose_listener import PoseListener

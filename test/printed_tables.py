@@ -7,7 +7,8 @@ CELL_GAP = re.compile(r'\s{2,}')
 
 
 def printed_tables(text: str) -> list[dict[str, dict[str, str]]]:
-    """Return every table in ``text``: each row's cells by column name, the rows by their first cell.
+    """
+    Return every table in ``text``: each row's cells by column name, the rows by their first cell.
 
     A table is a header line, a line of dashes and rows up to a blank line; cells are separated by two
     spaces or more.

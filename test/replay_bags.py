@@ -1,19 +1,19 @@
 """Synthetic rosbag2 directories for the replay tests, written with rosbags (ROS-free)."""
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable
-import sqlite3
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
+import shutil
+import sqlite3
 
+from conftest import SHARED_DATA
 import numpy as np
-import yaml
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-from conftest import SHARED_DATA
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import get_typestore, Stores
+import yaml
 
 SHARED_BAGS = SHARED_DATA / 'rosbag2'
 TYPESTORE = get_typestore(Stores.ROS2_KILTED)
@@ -76,7 +76,7 @@ def chatter(count: int, period_s: float, topic: str = '/chatter') -> list[Record
 
 def write_bag(path: Path, messages: list[Recorded], *, storage: str = 'sqlite3', version: int = 9,
               compression: str | None = None, qos: dict[str, list[Qos]] | None = None) -> Path:
-    """A bag as rosbags writes it; ``compression`` is a zstd mode name: 'file', 'message' or 'storage'."""
+    """Return a bag as rosbags writes it; ``compression`` is a zstd mode name: 'file', 'message' or 'storage'."""
     writer = Writer(path, version=version, storage_plugin=StoragePlugin[storage.upper()])
     if compression:
         writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
@@ -103,7 +103,8 @@ def write_split_bag(path: Path, messages: list[Recorded], parts: int, *, storage
 
 
 def write_overlapping_split_bag(path: Path, files: list[list[Recorded]], *, storage: str = 'sqlite3') -> Path:
-    """One bag of several files that overlap in time, as several writers leave it.
+    """
+    One bag of several files that overlap in time, as several writers leave it.
 
     Its metadata.yaml takes starting_time from the first file, which need not
     hold the earliest message (rosbag2's own multi-file test recordings do so).
@@ -158,7 +159,7 @@ def set_metadata_version(path: Path, version: int) -> Path:
 
 
 def copy_bag(source: Path, target: Path) -> Path:
-    """A writable copy (the shared recordings are read-only)."""
+    """Return a writable copy (the shared recordings are read-only)."""
     shutil.copytree(source, target)
     for item in target.iterdir():
         item.chmod(0o644)
@@ -177,8 +178,11 @@ def storage_file(path: Path) -> Path:
 
 
 def sqlite3_topic_data(database: Path, topic: str, start_ns: int = 0) -> list[bytes]:
-    """The raw messages of ``topic`` from ``start_ns`` on, in time order, read with plain sqlite3:
-    an oracle independent of rosbags."""
+    """
+    Return the raw messages of ``topic`` from ``start_ns`` on, in time order, read with plain sqlite3.
+
+    An oracle independent of rosbags.
+    """
     with closing(sqlite3.connect(f'file:{database}?mode=ro', uri=True)) as connection:
         rows = connection.execute(
             'SELECT data FROM messages JOIN topics ON messages.topic_id = topics.id '
@@ -187,8 +191,12 @@ def sqlite3_topic_data(database: Path, topic: str, start_ns: int = 0) -> list[by
 
 
 def overlapping_recording() -> list[list[Recorded]]:
-    """Three files of one recording that overlap in time, the first starting last: /a in files 0 and 2,
-    /b in file 1, and /c from two connections, one in file 1 and one in file 2 (160 messages)."""
+    """
+    Three files of one recording that overlap in time, the first starting last.
+
+    /a in files 0 and 2, /b in file 1, and /c from two connections, one in file 1 and one in file 2
+    (160 messages).
+    """
 
     def strings(topic: str, steps: range, connection: int = 0) -> list[Recorded]:
         # Topics a nanosecond apart, so that the recorded order is the timestamp order.

@@ -8,8 +8,8 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
-from vlp_ros.sim.scenarios import paper_camera
 from vlp_ros.sim.exact_observations import synthetic_observation
+from vlp_ros.sim.scenarios import paper_camera
 
 
 def camera_4k() -> CameraModel:
@@ -42,14 +42,18 @@ def looking_up(position, tilt=(0.0, 0.0, 0.0)) -> Pose:
 def observe(lamp: Lamp, pose: Pose, camera: CameraModel, rim_count: int = 120, rim_sigma: float = 0.3,
             marker_sigma: float = 0.2, rng: np.random.Generator | None = None,
             with_marker: bool = True) -> LampObservation:
-    """The lamp's exactly projected rim points and marker, plus Gaussian noise of the stated sigmas if ``rng``."""
+    """
+    The lamp's exactly projected rim points and marker, plus Gaussian noise of the stated sigmas if ``rng``.
+    """
     return synthetic_observation(lamp, pose, camera, rim_count, rim_sigma, marker_sigma, rng, with_marker)
 
 
 def measured_up(pose: Pose, sigma: float = 0.0, rng: np.random.Generator | None = None,
                 error: np.ndarray = np.zeros(2)) -> np.ndarray:
-    """``pose``'s up direction in the camera, turned by ``error`` (rad, about two fixed axes
-    perpendicular to it) plus N(0, sigma) about each of them if ``rng``."""
+    """
+    ``pose``'s up direction in the camera, turned by ``error`` (rad, about two fixed axes
+    perpendicular to it) plus N(0, sigma) about each of them if ``rng``.
+    """
     up = pose.up_in_camera()
     first = np.cross(up, [1.0, 0.0, 0.0])
     first /= np.linalg.norm(first)

@@ -3,9 +3,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from solver_scenes import camera_4k, looking_up, measured_up, observe, small_lamp
-from vlp_ros.solvers.ambiguity import COST_GAP, DisambiguationHints, UpHint, choose_candidate
+
+from vlp_ros.solvers.ambiguity import choose_candidate, COST_GAP, DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.perspective import solve_lamp
 

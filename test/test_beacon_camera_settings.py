@@ -1,5 +1,9 @@
-"""The start-up advice on camera settings: silent inside the limits the beacon benchmark reads reliably,
-specific (setting, value, lamps) outside them."""
+"""
+The start-up advice on camera settings.
+
+Silent inside the limits the beacon benchmark reads reliably, specific (setting, value, lamps)
+outside them.
+"""
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.sim.scenarios import robot_scenario

@@ -1,4 +1,5 @@
-"""A clipped, blurred disc read with its clipped chips censored: "at least this bright", not "this bright".
+"""
+A clipped, blurred disc read with its clipped chips censored: "at least this bright", not "this bright".
 
 The simulator's realistic look puts the paper's lamp 2.2 times over the sensor's ceiling behind a 1.6 px
 blur and a diffuser 30 % dimmer at its rim: the bright chips all read the ceiling, whether a run or one chip
@@ -16,7 +17,7 @@ from vlp_ros.beacon.profile import RowProfile
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 
 # The paper scenario's 4K beacon: 8-bit IDs at 5.68 rows per chip, 50 us exposure (3.2 rows).
@@ -28,8 +29,12 @@ MAP = [11, 90, 200]
 
 def clipped_disc(lamp_id: int, seed: int, packets: float = 1.5, gain: float = 2.2, blur_rows: float = 1.6,
                  falloff: float = 0.3, depth: float = 0.6, steady: bool = False) -> RowProfile:
-    """A disc's row profile: each row's pixels lit by the diffuser's 1 - falloff (r/R)^2, blurred across rows
-    with the stripes, clipped pixel by pixel at the ceiling (1.0), averaged with the clipped ones at it."""
+    """
+    Return a disc's row profile.
+
+    Each row's pixels lit by the diffuser's 1 - falloff (r/R)^2, blurred across rows with the stripes,
+    clipped pixel by pixel at the ceiling (1.0), averaged with the clipped ones at it.
+    """
     rng = np.random.default_rng([lamp_id, seed])
     rows = int(packets * packet_length(8) / (CHIP_RATE * ROW_TIME))
     wave = packet_waveform(lamp_id, CHIP_RATE, 0.0 if steady else depth, 8,
@@ -72,9 +77,13 @@ def test_a_clipped_disc_is_never_read_as_another_id(packets, gain, blur_rows):
 
 
 def test_censored_readings_below_a_packet_add_up_across_frames():
-    """The simulator's realistic drive: a clipped, blurred disc showing 0.7 of a packet reads its ID at 0.97-0.999
-    in each frame, never certain alone. ``read_lamp`` passes those readings on, and the tracker sums them: certain
-    within six frames, and never of another ID (every 34th ID, new packet phase each frame)."""
+    """
+    The simulator's realistic drive.
+
+    A clipped, blurred disc showing 0.7 of a packet reads its ID at 0.97-0.999 in each frame, never certain alone.
+    ``read_lamp`` passes those readings on, and the tracker sums them: certain within six frames, and never of
+    another ID (every 34th ID, new packet phase each frame).
+    """
     first_certain = []
     for lamp_id in range(0, 256, 34):
         tracker = EvidenceTracker(MAP + [lamp_id])
@@ -102,8 +111,11 @@ def test_an_unclipped_window_is_left_to_the_gaussian_reading():
 
 
 def test_the_simulators_realistic_stills_are_identified():
-    """The accuracy benchmark's hand-held realistic stills (paper's 4K lamp at 2 m, rim marker, clutter): the
-    locator's reading of each mapped lamp (main: 1 of 9), and never of a clutter lamp."""
+    """
+    The accuracy benchmark's hand-held realistic stills (paper's 4K lamp at 2 m, rim marker, clutter).
+
+    The locator's reading of each mapped lamp (main: 1 of 9), and never of a clutter lamp.
+    """
     scenario = apply_look(with_rim_markers(paper_scenario('4k', height=2.0, points=3, postures=1, seed=0), 0.9, 0.1),
                           LOOKS['realistic'], 0)
     pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=True)))

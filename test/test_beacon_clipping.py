@@ -1,4 +1,5 @@
-"""Clipped, blurred stripes and complement-closed codebooks: a lamp is read as itself or as nothing.
+"""
+Clipped, blurred stripes and complement-closed codebooks: a lamp is read as itself or as nothing.
 
 A lamp bright enough to clip at the ceiling, seen through an ordinary blur, lifts its isolated dark chips to
 the ceiling too: the chips then look like a packet that was never sent, and with odd ``id_bits`` the
@@ -24,8 +25,10 @@ MAP = list(range(1, 8))
 
 
 def clipped_profile(lamp_id: int, seed: int, blur_rows: float, gain: float = 1.64, depth: float = 0.6) -> RowProfile:
-    """A lamp ``gain`` times the ceiling at full brightness (the realistic look's overexposure), its rows blurred
-    by a Gaussian of ``blur_rows`` before the sensor clips them, as a lens does."""
+    """
+    A lamp ``gain`` times the ceiling at full brightness (the realistic look's overexposure), its rows blurred
+    by a Gaussian of ``blur_rows`` before the sensor clips them, as a lens does.
+    """
     rng = np.random.default_rng([lamp_id, seed])
     wave = packet_waveform(lamp_id, CHIP_RATE, depth, ID_BITS, offset=rng.uniform(0.0, 14.0 / CHIP_RATE))
     pad = 10
@@ -55,8 +58,12 @@ def test_clipped_sharp_stripes_are_still_read():
 
 @pytest.mark.parametrize('lamp_id', MAP)
 def test_inverted_stripes_give_no_id(lamp_id):
-    """Polarity is evidence: a 1 chip is the brighter level, so a lamp whose light is inverted (every chip's
-    complement, which with odd id_bits is the complement ID's packet with an inverted preamble) is no lamp."""
+    """
+    Polarity is evidence.
+
+    A 1 chip is the brighter level, so a lamp whose light is inverted (every chip's complement, which with
+    odd id_bits is the complement ID's packet with an inverted preamble) is no lamp.
+    """
     for seed in range(5):
         profile = clipped_profile(lamp_id, seed, 0.0, gain=0.9)
         inverted = RowProfile(255.0 - profile.values, profile.weights, profile.saturated, 0)

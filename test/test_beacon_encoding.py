@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from vlp_ros.beacon.encoding import (PREAMBLE, decode_chips, packet_bits, packet_chips, packet_length,
-                                     packet_waveform, tone_waveform)
+from vlp_ros.beacon.encoding import (decode_chips, packet_bits, packet_chips, packet_length, packet_waveform, PREAMBLE,
+                                     tone_waveform)
 
 
 @pytest.mark.parametrize('id_bits', [1, 4, 8, 12])

@@ -1,9 +1,9 @@
 """Evidence across frames: a lamp too small to read at once becomes certain, and only its own frames count."""
 import dataclasses
 
+from beacon_scenes import flat_profile
 import numpy as np
 import pytest
-from beacon_scenes import flat_profile
 
 from vlp_ros.beacon.decoding import decode_packet
 from vlp_ros.beacon.encoding import packet_waveform
@@ -126,8 +126,12 @@ def test_a_frame_delivered_twice_adds_no_evidence():
 
 
 def test_a_lamp_near_where_a_certain_lamp_was_does_not_inherit_its_id():
-    """A hand-held camera moved between stills: lamp 201 is read now elsewhere, and an unmodulated lamp stands
-    where the track left it. One lamp cannot be in two places: only the one read now keeps the ID."""
+    """
+    A hand-held camera moved between stills.
+
+    Lamp 201 is read now elsewhere, and an unmodulated lamp stands where the track left it. One lamp cannot
+    be in two places: only the one read now keeps the ID.
+    """
     tracker = EvidenceTracker(MAP)
     for frame in range(8):
         tracker.update([observation_at(100.0, 50.0)], [half_packet(201, frame)], 0.033 * frame)

@@ -1,9 +1,13 @@
-"""The independent renderer's hand-held 4K frames (foreign_frames/README.md): a clipped, blurred, glaring lamp
-whose disc alone fits no packet is read on its light, with blur weighed in, and never to a wrong ID."""
-import pytest
-from conftest import SHARED_DATA
+"""
+The independent renderer's hand-held 4K frames (foreign_frames/README.md).
 
-from vlp_ros.evaluation.recording import RecordingTopics, recorded_frames
+A clipped, blurred, glaring lamp whose disc alone fits no packet is read on its light, with blur weighed
+in, and never to a wrong ID.
+"""
+from conftest import SHARED_DATA
+import pytest
+
+from vlp_ros.evaluation.recording import recorded_frames, RecordingTopics
 from vlp_ros.pipeline.config import settings_from_params_file
 from vlp_ros.pipeline.frame import Pipeline
 

@@ -1,4 +1,5 @@
-"""The glow decoder on a clipped, glaring, blurred 4K lamp: an ID the chip grid alone decides is not certain.
+"""
+The glow decoder on a clipped, glaring, blurred 4K lamp: an ID the chip grid alone decides is not certain.
 
 On the accuracy benchmark's realistic hand-held stills (seed 2, still 49), main's glow decoder found the chip
 period 6 % short and read lamp 11 as ID 107 at 0.99999 (on the nominal period: 11 at 1.0). 107 is not in the
@@ -9,7 +10,7 @@ import numpy as np
 from vlp_ros.beacon.decoding import decode_glow, decode_packet, read_lamp
 from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline.config import settings_from_tree
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 
 # The benchmark's setup number and still (its frames' random streams are seeded with [seed, number, still]).

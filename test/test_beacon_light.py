@@ -1,10 +1,10 @@
 """The light profile: every row a lamp's light reaches, its glow included, and clipped discs read on it."""
+from beacon_scenes import glaring_lamp
 import numpy as np
 import pytest
-from beacon_scenes import glaring_lamp
 
 from vlp_ros.beacon.decoding import decode_packet, decode_tone, light_profile, read_lamp
-from vlp_ros.beacon.encoding import Waveform, packet_waveform
+from vlp_ros.beacon.encoding import packet_waveform, Waveform
 
 ROW_TIME = 1.5e-5
 CHIP_RATE = 1.0 / (5 * ROW_TIME)

@@ -4,7 +4,7 @@ import numpy as np
 from vlp_ros.beacon.decoding import decode_packet, read_lamp
 from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline.config import settings_from_tree
-from vlp_ros.sim.looks import LOOKS, apply_look
+from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 
 

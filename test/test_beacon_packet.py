@@ -1,12 +1,12 @@
 """Packet-mode decoding: the right ID or None, never another one."""
+from beacon_scenes import flat_profile, lamp_image
 import numpy as np
 import pytest
-from beacon_scenes import flat_profile, lamp_image
 
 from vlp_ros.beacon import packet
 from vlp_ros.beacon.chips import chip_levels
 from vlp_ros.beacon.decoding import decode_packet, row_profile
-from vlp_ros.beacon.encoding import Waveform, packet_chips, packet_waveform
+from vlp_ros.beacon.encoding import packet_chips, packet_waveform, Waveform
 
 ROW_TIME = 2e-5
 ROWS_PER_CHIP = 5.0
@@ -174,9 +174,12 @@ def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift(mix):
 
 
 def test_trying_grids_around_the_found_one_never_finds_a_wrong_id_in_chips_it_does_not_model():
-    """An exposure of two chips smears each chip over three (beyond the blur mixes): the found grid misfits, and
-    trying grids around it must not find one where another ID fits (12 of 264 such profiles were read as
-    other IDs before the found grid had to fit and the others to fit well)."""
+    """
+    An exposure of two chips smears each chip over three (beyond the blur mixes).
+
+    The found grid misfits, and trying grids around it must not find one where another ID fits (12 of 264
+    such profiles were read as other IDs before the found grid had to fit and the others to fit well).
+    """
     row_time = 1.5e-5
     for rows_per_chip in (4.0, 7.7):
         rate = 1.0 / (rows_per_chip * row_time)

@@ -1,14 +1,14 @@
 """Row profiles: which pixels a lamp's brightness per row is read from, and its envelope."""
 import dataclasses
 
+from beacon_scenes import lamp_image
 import cv2
 import numpy as np
 import pytest
-from beacon_scenes import lamp_image
 
-from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.beacon.decoding import decode_packet, decode_tone
-from vlp_ros.beacon.profile import RowProfile, relative_brightness, row_profile
+from vlp_ros.beacon.encoding import packet_waveform
+from vlp_ros.beacon.profile import relative_brightness, row_profile, RowProfile
 
 ROW_TIME = 2e-5
 EXPOSURE = 3e-5
@@ -64,7 +64,7 @@ def test_saturated_pixels_are_counted_and_kept_at_the_ceiling():
 
 
 def opencv_profile(image, observation, margin, ceiling):
-    """The profile written with OpenCV's morphology on whole masks: eroded disc, minus dilated marker."""
+    """Return the profile written with OpenCV's morphology on whole masks: eroded disc, minus dilated marker."""
     x0, y0, x1, y1 = observation.bbox
     square = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
     mask = cv2.erode(observation.disc_mask.astype(np.uint8), square, borderType=cv2.BORDER_CONSTANT, borderValue=0)

@@ -1,15 +1,15 @@
 """Tone-mode decoding: the lamp whose frequency band holds the stripes' frequency, or None."""
 import itertools
 
+from beacon_scenes import flat_profile, lamp_image
 import cv2
 import numpy as np
 import pytest
-from beacon_scenes import flat_profile, lamp_image
 
-from vlp_ros.beacon.tone import model, scan
-from vlp_ros.beacon.decoding import UNMAPPED, decode_tone, row_profile
-from vlp_ros.beacon.encoding import Waveform, tone_waveform
+from vlp_ros.beacon.decoding import decode_tone, row_profile, UNMAPPED
+from vlp_ros.beacon.encoding import tone_waveform, Waveform
 from vlp_ros.beacon.profile import RowProfile
+from vlp_ros.beacon.tone import model, scan
 
 ROW_TIME = 2e-5
 # Lamps 200 Hz apart from 1 to 5 kHz, ids 10, 11, ...
@@ -141,8 +141,11 @@ def test_bad_inputs_are_rejected():
 
 
 def demosaiced_profile(frequency, row_time, exposure, rows, seed):
-    """A white lamp's rows through an RGGB mosaic, demosaiced as the locator reads bayer_rggb8: each row's
-    luma mixes in its neighbours (w about 0.13 and 0.22 on alternate rows)."""
+    """
+    Return a white lamp's rows through an RGGB mosaic, demosaiced as the locator reads bayer_rggb8.
+
+    Each row's luma mixes in its neighbours (w about 0.13 and 0.22 on alternate rows).
+    """
     rng = np.random.default_rng(seed)
     profile = flat_profile(tone_waveform(frequency, 0.7, offset=rng.uniform(0.0, 1e-3)), rows + 2, row_time,
                            exposure, noise=0.3, rng=rng)

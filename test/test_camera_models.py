@@ -1,5 +1,9 @@
-"""The camera_info models: OpenCV's projection and undistortion for each, what camera_info is
-accepted and how, and the solvers' view of lamps through a lens they do not model."""
+"""
+The camera_info models.
+
+OpenCV's projection and undistortion for each, what camera_info is accepted and how, and
+the solvers' view of lamps through a lens they do not model.
+"""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -7,18 +11,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
 from solver_scenes import grid_lamps, looking_up
+
 from vlp_ros.benchmarks import camera_models
 from vlp_ros.benchmarks.camera_models import EQUIDISTANT_D, RATIONAL_D, robot_cameras, wide_camera
-from vlp_ros.core.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, RECTIFIED, CameraModel
+from vlp_ros.core.camera import CameraModel, EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, RECTIFIED
 from vlp_ros.core.ellipse import geometric_distances
-from vlp_ros.solvers.pinhole_view import seen_through_pinhole, solver_view
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.sim.render import _rim_ellipse
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.covariance import nees
 from vlp_ros.solvers.fusion import solve_lamps
-from vlp_ros.sim.exact_observations import synthetic_observation
+from vlp_ros.solvers.pinhole_view import seen_through_pinhole, solver_view
 
 # A thousandth of a pixel: far below the 0.1-0.3 px the detector measures rim points and markers to.
 PIXEL_TOLERANCE = 1e-3
@@ -43,7 +47,7 @@ def _rational(x: np.ndarray, D: np.ndarray) -> np.ndarray:
 
 
 def _equidistant(x: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """The equidistant fisheye model written out: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)."""
+    """Return the equidistant fisheye model written out: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)."""
     r = np.linalg.norm(x, axis=1)
     theta = np.arctan(r)
     theta_d = theta * (1 + sum(k * theta ** (2 * (i + 1)) for i, k in enumerate(D)))

@@ -1,7 +1,9 @@
-"""A lamp whose beacon is not yet certain, identified by where the recent pose says it can be
+"""
+A lamp whose beacon is not yet certain, identified by where the recent pose says it can be
 (``solvers.continuity_ids``, issue 13: a robot that loses the lamps for half a second must get a
 pose again within a few frames): only when exactly one lamp of the map can be there and the beacon
-leans to it."""
+leans to it.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +13,7 @@ from solver_scenes import observe
 from vlp_ros.beacon.reading import BeaconReading
 from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.pose import Pose
-from vlp_ros.sim.scenarios import ROBOT_CAMERA_MOUNT, robot_1080p_camera
+from vlp_ros.sim.scenarios import robot_1080p_camera, ROBOT_CAMERA_MOUNT
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.continuity_ids import settled_by_continuity
 from vlp_ros.solvers.fusion import solve_lamps
@@ -30,7 +32,7 @@ MAPPED = CANDIDATES >= 10
 
 
 def evidence(leaning: dict[int, float]) -> BeaconReading:
-    """A beacon reading that is not certain: likelihood ``leaning[id]`` for the IDs given, 0.003 the rest."""
+    """Return a beacon reading that is not certain: likelihood ``leaning[id]`` for the IDs given, 0.003 the rest."""
     likelihood = np.array([leaning.get(int(c), 0.003) for c in CANDIDATES])
     return BeaconReading(None, 0.0, CANDIDATES, np.log(likelihood), np.where(MAPPED, 0.0, np.log(0.01)), MAPPED)
 

@@ -1,10 +1,10 @@
 """The covariance is honest (NEES) and the solver adds no bias."""
 import numpy as np
 import pytest
-
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
+
 from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
+from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints, UpHint
 from vlp_ros.solvers.covariance import covariance_from_jacobian, nees, perturbed, with_rotation_curvature
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement

@@ -2,9 +2,8 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
-
 from printed_tables import printed_tables
+import pytest
 
 from vlp_ros.benchmarks import covariance_honesty
 

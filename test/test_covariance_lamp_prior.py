@@ -1,12 +1,15 @@
-"""Two lamps whose rims depart from the model each its own way: the frame's estimate of that departure
-rests on little redundancy, and each lamp's own prior (``LampObservation.rim_model_sigma``) bounds what
-the fit may claim (issue 13: a robot under two realistic lamps was centimetres off with NEES in the
-hundreds)."""
+"""
+Two lamps whose rims depart from the model each its own way.
+
+The frame's estimate of that departure rests on little redundancy, and each lamp's own prior
+(``LampObservation.rim_model_sigma``) bounds what the fit may claim (issue 13: a robot under two
+realistic lamps was centimetres off with NEES in the hundreds).
+"""
 from dataclasses import replace
 
 import numpy as np
-
 from solver_scenes import camera_wide, grid_lamps, looking_up, observe
+
 from vlp_ros.solvers.ambiguity import DisambiguationHints
 from vlp_ros.solvers.covariance import nees
 from vlp_ros.solvers.fusion import solve_lamps
@@ -17,9 +20,11 @@ BOUND = 22.46
 
 
 def _smoothly_warped(observation, sigma_px: float, rng: np.random.Generator):
-    """The observation with its rim points moved outward by a random offset and first two harmonics
+    """
+    The observation with its rim points moved outward by a random offset and first two harmonics
     of the angle round the rim, each of sigma ``sigma_px``: what falloff, glare, clipping and blur
-    leave in a lamp's crossings, and what its ellipse absorbs."""
+    leave in a lamp's crossings, and what its ellipse absorbs.
+    """
     outward = observation.rim_points - observation.ellipse[:2]
     angle = np.arctan2(outward[:, 1], outward[:, 0])
     a0, a1, b1, a2, b2 = rng.normal(0.0, sigma_px, 5)
@@ -29,9 +34,11 @@ def _smoothly_warped(observation, sigma_px: float, rng: np.random.Generator):
 
 
 def _two_lamp_poses(prior_px: float, seed: int) -> list:
-    """The poses of 40 frames of two lamps, 30 rim points each (0.1 px noise), each rim warped by
+    """
+    The poses of 40 frames of two lamps, 30 rim points each (0.1 px noise), each rim warped by
     0.3 px per pattern, solved with ``prior_px`` as each lamp's prior of such patterns (None where
-    the lamps disagree too plainly for one pose)."""
+    the lamps disagree too plainly for one pose).
+    """
     rng = np.random.default_rng(seed)
     estimates = []
     for _ in range(40):

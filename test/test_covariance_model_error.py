@@ -1,10 +1,12 @@
-"""The covariance stays honest when the lamps depart from the model (issue 13: a rim that falloff,
-glare or soft edges draw inside the true edge; an up direction the lamps tilt away from)."""
+"""
+The covariance stays honest when the lamps depart from the model (issue 13: a rim that falloff,
+glare or soft edges draw inside the true edge; an up direction the lamps tilt away from).
+"""
 from dataclasses import replace
 
 import numpy as np
-
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, observe, small_lamp
+
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import DisambiguationHints
 from vlp_ros.solvers.covariance import nees, perturbed, widened_toward_up
@@ -15,15 +17,17 @@ TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
 
 
 def _drawn_inside(observation, by_px: float):
-    """The observation with every rim point moved ``by_px`` toward the ellipse's centre."""
+    """Return the observation with every rim point moved ``by_px`` toward the ellipse's centre."""
     inward = observation.ellipse[:2] - observation.rim_points
     rim = observation.rim_points + by_px * inward / np.linalg.norm(inward, axis=1, keepdims=True)
     return replace(observation, rim_points=rim)
 
 
 def _poses_of_lamps_seen_as(lamps, count: int, rng: np.random.Generator, seen_as) -> list:
-    """``count`` poses solved from ``lamps`` observed at ``TRUTH`` (60 rim points, 0.1 px noise), each
-    observation passed through ``seen_as``; every frame must be solved."""
+    """
+    ``count`` poses solved from ``lamps`` observed at ``TRUTH`` (60 rim points, 0.1 px noise), each
+    observation passed through ``seen_as``; every frame must be solved.
+    """
     estimates = []
     for _ in range(count):
         pairs = [(seen_as(observe(lamp, TRUTH, camera_wide(), rim_count=60, rim_sigma=0.1, marker_sigma=0.1,
@@ -58,9 +62,12 @@ def test_a_disagreeing_up_direction_widens_the_pose_to_cover_it() -> None:
 
 
 def _warped(observation, amplitude_px: float, phase: float):
-    """The observation with its rim points moved outward by ``amplitude_px`` cos 2(angle - ``phase``):
-    a rim read wider along one axis than across it (rows and columns of a rolling-shutter lamp
-    under blur and falloff), which an ellipse absorbs as a change of shape."""
+    """
+    Return the observation with its rim points moved outward by ``amplitude_px`` cos 2(angle - ``phase``).
+
+    A rim read wider along one axis than across it (rows and columns of a rolling-shutter lamp
+    under blur and falloff), which an ellipse absorbs as a change of shape.
+    """
     outward = observation.rim_points - observation.ellipse[:2]
     angle = np.arctan2(outward[:, 1], outward[:, 0])
     moved = amplitude_px * np.cos(2.0 * (angle - phase))
@@ -84,9 +91,11 @@ def test_two_lamps_whose_rims_are_warped_each_its_own_way_get_a_covariance_that_
 
 
 def _single_lamp_nees(model_sigma_px: float, seed: int) -> tuple[list[float], list[float]]:
-    """NEES and position errors (m) of one 4K lamp 2 m up, seen 10 degrees off frontal, whose rim is
+    """
+    NEES and position errors (m) of one 4K lamp 2 m up, seen 10 degrees off frontal, whose rim is
     drawn 0.3 px inside the edge and 0.5 px wider along a random axis than across it (0.1 px noise),
-    solved with ``model_sigma_px`` as the detector's prior of such patterns."""
+    solved with ``model_sigma_px`` as the detector's prior of such patterns.
+    """
     rng = np.random.default_rng(seed)
     lamp = small_lamp((0.3, 0.2, 2.0))
     truth = looking_up((0.0, 0.0, 0.0), (0.12, -0.1, 0.4))

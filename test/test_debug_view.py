@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from visualization_msgs.msg import Marker
 
-from vlp_ros.pipeline.config import settings_from_tree
-from vlp_ros.pipeline.debug_view import DISPLAY_WIDTH, IDENTIFIED, MARKER, UNIDENTIFIED, debug_view
 from vlp_ros.nodes.visualization import lamp_markers
+from vlp_ros.pipeline.config import settings_from_tree
+from vlp_ros.pipeline.debug_view import debug_view, DISPLAY_WIDTH, IDENTIFIED, MARKER, UNIDENTIFIED
 from vlp_ros.pipeline.frame import FrameResult, Pipeline, SeenLamp
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario

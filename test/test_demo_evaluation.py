@@ -2,14 +2,14 @@
 import numpy as np
 import pytest
 
+from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, point_average_errors, summarize
 from vlp_ros.evaluation.tiebreak import appendix_b_choice, faces_up_toward_user, picks_mirror
-from vlp_ros.core.pose import Pose
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, paper_scenario
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.paper import solve_lamp_paper
-from vlp_ros.sim.exact_observations import synthetic_observation
 
 
 @pytest.mark.parametrize('height', [1.5, 2.0])

@@ -1,5 +1,8 @@
-"""Lamp detection on simulated frames: accuracy against the simulator's ground truth, and robustness;
-its compiled kernels against direct formulations."""
+"""
+Lamp detection on simulated frames: accuracy against the simulator's ground truth, and robustness.
+
+Its compiled kernels against direct formulations.
+"""
 from dataclasses import replace
 
 import cv2
@@ -9,14 +12,14 @@ from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.detection import DetectionOptions, detect_lamps
-from vlp_ros.detection.blobs import _quantiles, histogram
-from vlp_ros.detection.detector import _box_levels
 from vlp_ros.core.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
-from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.detection import detect_lamps, DetectionOptions
+from vlp_ros.detection.blobs import _quantiles, histogram
+from vlp_ros.detection.detector import _box_levels
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
+from vlp_ros.sim.render import render_frame, SimLamp
 from vlp_ros.sim.scenarios import paper_scenario
 from vlp_ros.sim.sensor import SensorModel
 
@@ -34,7 +37,7 @@ def tilted_pose(tilt=15.0, yaw=30.0) -> Pose:
 
 def sim_lamp(cam: CameraModel, pose: Pose, at, diameter_px, lamp_id=7, depth=0.5, stripe_rows=8,
              marker_angle=0.7, peak_dn=200.0, phase=0.0) -> SimLamp:
-    """A lamp whose image is centred near pixel ``at`` and about ``diameter_px`` across."""
+    """Return a lamp whose image is centred near pixel ``at`` and about ``diameter_px`` across."""
     ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
     position = ray * HEIGHT / ray[2]
     radius = 0.5 * diameter_px * np.linalg.norm(position) / cam.focal
@@ -232,8 +235,10 @@ def test_rim_points_lie_on_the_edge_on_average_whatever_the_blur(blur):
 
 
 def ellipse_chi_square(ellipse, points, sigma):
-    """Chi-square, under ``sigma``, of the points' distances from ``ellipse`` that a fitted
-    ellipse absorbs (5 degrees of freedom if the points' errors are independent with ``sigma``)."""
+    """
+    Chi-square, under ``sigma``, of the points' distances from ``ellipse`` that a fitted
+    ellipse absorbs (5 degrees of freedom if the points' errors are independent with ``sigma``).
+    """
     cx, cy, a, b, theta = ellipse
     rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
     shape = rotation @ np.diag([a ** -2, b ** -2]) @ rotation.T
@@ -320,7 +325,7 @@ def marker_z(observations, marker_pixel):
 
 
 def rim_marker_lamp(cam, pose, at, diameter_px, marker_angle, peak_dn, phase):
-    """The paper's marker: a dot of radius 0.1 r centred at 0.9 r, its edge touching the rim."""
+    """Return the paper's marker: a dot of radius 0.1 r centred at 0.9 r, its edge touching the rim."""
     ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
     position = ray * HEIGHT / ray[2]
     radius = 0.5 * diameter_px * np.linalg.norm(position) / cam.focal
@@ -347,8 +352,12 @@ def test_rim_marker_is_found_saturated_and_in_dark_stripes_with_an_honest_sigma(
 
 
 def bare_led_photo(centres, core_radius, peak, seed, width=1200, height=800):
-    """Bare LEDs as real photos show them: a soft bright core, a glow still at 10 % 120 px out,
-    stripes 16-22 rows a period across both, clipped bright rows, noise and JPEG q90."""
+    """
+    Bare LEDs as real photos show them.
+
+    A soft bright core, a glow still at 10 % 120 px out, stripes 16-22 rows a period across
+    both, clipped bright rows, noise and JPEG q90.
+    """
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)
     light = np.zeros((height, width), np.float32)
@@ -384,10 +393,12 @@ def test_bare_leds_with_glow_are_points_with_their_centre(core_radius, peak):
 
 @pytest.mark.parametrize('glare, falloff', [(0.2, 0.3), (0.0, 0.3), (0.2, 0.0)])
 def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, falloff):
-    """Blur 2 px, a row-lit glare halo of 20 % (Gaussian of 0.35 of the image diameter) and a diffuser
+    """
+    Blur 2 px, a row-lit glare halo of 20 % (Gaussian of 0.35 of the image diameter) and a diffuser
     30 % dimmer at the rim: half of the chord's middle lay inside the edge, and the semi-axes came out
     0.2-0.5 px short. Now the rim fits the edge to within 0.2 px in every frame (the halo alone lengthens the
-    axes by about 0.13 px), less than the common rim offset the pose fit allows for (0.5 px)."""
+    axes by about 0.13 px), less than the common rim offset the pose fit allows for (0.5 px).
+    """
     cam, pose = camera(), tilted_pose()
     sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=2.0, glare=glare)
     errors, distances = [], []
@@ -407,7 +418,7 @@ def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, fallof
 
 
 def drive_marker_lamp(cam, pose, at, marker_distance, marker_angle, peak_dn, phase):
-    """A robot's lamp (issue 13): 77 px across, 8-bit packets at 4 rows a chip, a marker of 0.1 r."""
+    """Return a robot's lamp (issue 13): 77 px across, 8-bit packets at 4 rows a chip, a marker of 0.1 r."""
     ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
     position = ray * HEIGHT / ray[2]
     radius = 0.5 * 77.0 * np.linalg.norm(position) / cam.focal
@@ -427,9 +438,13 @@ def as_jpeg(image, quality=92):
     (0.9, 200.0, 0.8, 12), (0.9, 500.0, 0.8, 12), (0.5, 500.0, 0.8, 12), (0.9, 500.0, 2.0, 11), (1.0, 500.0, 0.8, 10)])
 def test_small_marker_under_stripes_of_few_rows_is_found_with_an_honest_sigma(marker_distance, peak_dn, blur,
                                                                               least_found):
-    """The marker 8 rows tall, stripes 4-8 rows (a chip each), bright rows clipped, JPEG: most rows
-    through the marker are mixed by blur with a neighbour of another level. Such rows were left out,
-    and the marker was missed on 10 of 60 foreign robot frames (and 20 of 47 tone-lamp ones)."""
+    """
+    The marker 8 rows tall, stripes 4-8 rows (a chip each), bright rows clipped, JPEG.
+
+    Most rows through the marker are mixed by blur with a neighbour of another level. Such rows were
+    left out, and the marker was missed on 10 of 60 foreign robot frames (and 20 of 47 tone-lamp
+    ones).
+    """
     cam, pose = camera(), tilted_pose(tilt=10.0)
     found, z = 0, []
     for seed in range(12):
@@ -448,9 +463,13 @@ def test_small_marker_under_stripes_of_few_rows_is_found_with_an_honest_sigma(ma
 
 
 def test_marker_blurred_across_stripes_of_changing_level_is_placed_where_it_is():
-    """The simulator's blur look (2 px over stripes and all): every row's level differs from its
-    neighbours', and blur moved the fitted marker toward the dimmer rows by blur^2 x L'/L (up to
-    0.8 px). The marker was missed on 4 of 6 frames and, when found, 4 sigmas off in y."""
+    """
+    The simulator's blur look (2 px over stripes and all).
+
+    Every row's level differs from its neighbours', and blur moved the fitted marker toward the
+    dimmer rows by blur^2 x L'/L (up to 0.8 px). The marker was missed on 4 of 6 frames and,
+    when found, 4 sigmas off in y.
+    """
     scenario = paper_scenario('1080p', points=3, postures=1, seed=1)
     scenario = apply_look(replace(scenario, lamps=[replace(s, peak_dn=210.0) for s in scenario.lamps]), LOOKS['blur'],
                           1)

@@ -1,8 +1,8 @@
 """A lamp whose rim lies a few pixels inside the frame's border is a whole lamp."""
 import numpy as np
 
-from vlp_ros.detection import detect_lamps
 from vlp_ros.core.ellipse import fit_ellipse
+from vlp_ros.detection import detect_lamps
 from vlp_ros.sim.scenarios import robot_drive_scenario
 
 

@@ -1,10 +1,11 @@
 """The README and the example params file stay true to the code."""
 from __future__ import annotations
 
-import yaml
 from conftest import ROOT
 
 from vlp_ros.pipeline.config import LAMP_PARAMETERS, PARAMETERS, settings_from_params_file
+
+import yaml
 
 
 def test_readme_documents_every_parameter() -> None:

@@ -7,7 +7,7 @@ import pytest
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
-from vlp_ros.images.conversion import ImageConversionError, decode_compressed, pixels_of
+from vlp_ros.images.conversion import decode_compressed, ImageConversionError, pixels_of
 from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
 
 

@@ -1,6 +1,10 @@
-"""IDs settled jointly with the geometry (issue 14): with several lamps in view, a lamp whose tone lies
-where two lamps' bands meet (a row time known to 2 % leaves it open) is identified when one pose
-explains every lamp with it, and a lamp that is not in the map is never given an ID that way."""
+"""
+IDs settled jointly with the geometry (issue 14).
+
+With several lamps in view, a lamp whose tone lies where two lamps' bands meet (a row time known to
+2 % leaves it open) is identified when one pose explains every lamp with it, and a lamp that is not
+in the map is never given an ID that way.
+"""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -11,14 +15,14 @@ import pytest
 from vlp_ros.beacon.encoding import tone_waveform
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
-from vlp_ros.core.pose import Pose
+from vlp_ros.sim.imu import specific_force
+from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook, PointSimLamp, render_point_lamps
 from vlp_ros.solvers.candidates import Choice, Reason
 from vlp_ros.solvers.joint_ids import OpenLamp, settle
-from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.point_lamps import PointLampLook, PointSimLamp, bare_led_scenario, render_point_lamps
 
 # 3500 and 3650 Hz: each band reaches 60 Hz + 2 % (70-73 Hz) out, so they meet between 3517 and 3633 Hz.
 FREQUENCIES = (2000.0, 2500.0, 3000.0, 3500.0, 3650.0)
@@ -27,8 +31,10 @@ PHOTOS = 4
 
 @pytest.fixture(scope='module')
 def photos():
-    """Photos of the rig with its tones as FREQUENCIES and the row time 2 % off, and a sixth LED that
-    is not in the map, at 3575 Hz (between the two close bands), beside the centre."""
+    """
+    Photos of the rig with its tones as FREQUENCIES and the row time 2 % off, and a sixth LED that
+    is not in the map, at 3575 Hz (between the two close bands), beside the centre.
+    """
     scenario = bare_led_scenario('4k', photos=PHOTOS, seed=21, look=PointLampLook(), row_time_error=0.02)
     rng = np.random.default_rng(3)
     lamps = [PointSimLamp(replace(sim.lamp, frequency=f), tone_waveform(f, 0.75, float(rng.uniform(0.0, 1.0 / f))))
@@ -47,8 +53,12 @@ def photos():
 
 
 def located(scenario, photos) -> list[tuple[int, int, float | None]]:
-    """Per (frame, up) photo: lamps identified right and wrong (against the LED nearest to each), and
-    the pose's position error (m; None without a pose)."""
+    """
+    Per (frame, up) photo.
+
+    Lamps identified right and wrong (against the LED nearest to each), and the pose's position
+    error (m; None without a pose).
+    """
     pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=True)))
     found = []
     for frame, up in photos:

@@ -1,4 +1,5 @@
-"""The shared small linear algebra of the kernels equals numpy's, and reports what numpy raises on.
+"""
+The shared small linear algebra of the kernels equals numpy's, and reports what numpy raises on.
 
 Tolerances: a millionth relative, far above rounding and far below anything a fit could notice.
 """
@@ -6,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vlp_ros.compiled.linalg import (OPENCV_PIVOT_FLOOR, inverse3_into, lu_solve, pseudo_inverse, pseudo_inverse_form,
+from vlp_ros.compiled.linalg import (inverse3_into, lu_solve, OPENCV_PIVOT_FLOOR, pseudo_inverse, pseudo_inverse_form,
                                      rcond_cutoff, svd_cutoff, symmetric_eigen)
 
 

@@ -1,21 +1,25 @@
-"""The installed locator with base_frame set, over DDS: a robot whose camera is offset and pitched on
-its base; the published base poses and their covariance against the truth; bad mountings refused."""
+"""
+The installed locator with base_frame set, over DDS: a robot whose camera is offset and pitched on its base.
+
+The published base poses and their covariance against the truth; bad mountings refused.
+"""
 from __future__ import annotations
 
+from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-import yaml
-from geometry_msgs.msg import PoseStamped
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.benchmarks.base_frame import MOUNTING, mounted_robot_scenario
-from vlp_ros.evaluation.demo import PLAYED_TOPICS
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
-from vlp_ros.nodes.pose_listener import PoseListener, play_through_nodes
+from vlp_ros.benchmarks.base_frame import mounted_robot_scenario, MOUNTING
 from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.demo import PLAYED_TOPICS
+from vlp_ros.evaluation.recording import ground_truth, RecordingTopics
+from vlp_ros.nodes.pose_listener import play_through_nodes, PoseListener
 from vlp_ros.sim.recording import LOCATOR_NODE, record, write_params
 from vlp_ros.sim.scenarios import robot_scenario
 from vlp_ros.solvers.covariance import nees
+
+import yaml
 
 FRAMES = 120
 

@@ -1,19 +1,23 @@
-"""The installed locator over DDS with the lens models robot cameras are calibrated with: a 100 deg
-robot camera as rational_polynomial and as equidistant fisheye, recorded, replayed and located."""
+"""
+The installed locator over DDS with the lens models robot cameras are calibrated with.
+
+A 100 deg robot camera as rational_polynomial and as equidistant fisheye, recorded, replayed and
+located.
+"""
 from __future__ import annotations
 
 from dataclasses import replace
 
+from conftest import spin_until
 import numpy as np
 import pytest
-from conftest import spin_until
-from test_locator_node import STAMP_NS, Feeder, _header, _image_bytes, _serialized, _start_locator
+from test_locator_node import _header, _image_bytes, _serialized, _start_locator, Feeder, STAMP_NS
 
 from vlp_ros.benchmarks.camera_models import EQUIDISTANT_D, robot_cameras, robot_scenario_with
 from vlp_ros.core.camera import COEFFICIENTS, EQUIDISTANT, RATIONAL_POLYNOMIAL
 from vlp_ros.evaluation.demo import PLAYED_TOPICS
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
-from vlp_ros.nodes.pose_listener import PoseListener, play_through_nodes
+from vlp_ros.evaluation.recording import ground_truth, recorded_frames, RecordingTopics
+from vlp_ros.nodes.pose_listener import play_through_nodes, PoseListener
 from vlp_ros.sim.bag_writer import camera_info_message
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.render import render_frame

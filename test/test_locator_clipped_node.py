@@ -1,16 +1,19 @@
-"""Clipped, blurred lamps through the installed executables over DDS (issue 14: saturation with blur): the
-simulator's realistic hand-held stills (lamp 2.2 x the ceiling, blur 1.6 px, glare, falloff, two clutter
-lamps) -> replay -> locator. In the core (one noise draw), main got a pose on 3 of these 9 stills (its
-Gaussian chip fit refuses a clipped disc, whose glow then rarely carries the ID); read with its clipped
-chips censored, 5 of them; never a wrong fix."""
+"""
+Clipped, blurred lamps through the installed executables over DDS (issue 14: saturation with blur).
+
+The simulator's realistic hand-held stills (lamp 2.2 x the ceiling, blur 1.6 px, glare, falloff, two
+clutter lamps) -> replay -> locator. In the core (one noise draw), main got a pose on 3 of these 9
+stills (its Gaussian chip fit refuses a clipped disc, whose glow then rarely carries the ID); read with
+its clipped chips censored, 5 of them; never a wrong fix.
+"""
 from __future__ import annotations
 
-import numpy as np
 from conftest import located_through_the_nodes
+import numpy as np
 
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics
-from vlp_ros.sim.looks import LOOKS, apply_look
+from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import as_stills, paper_scenario, with_rim_markers
 

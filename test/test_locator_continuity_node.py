@@ -1,27 +1,32 @@
-"""The installed locator over DDS: hand-held stills that jump from one test point to the next
-0.1 s apart are not locked out by the recent pose (issue 13: 31 of 60 such frames ended
-``no_candidate_agrees`` when the 0.3 m gate ignored the time and overrode gravity).
+"""
+The installed locator over DDS.
+
+Hand-held stills that jump from one test point to the next 0.1 s apart are not locked out
+by the recent pose (issue 13: 31 of 60 such frames ended ``no_candidate_agrees`` when the
+0.3 m gate ignored the time and overrode gravity).
 
 The stills are played from a bag by the installed replay in deterministic mode, one at a time,
 each waiting for its answer however busy the machine is (``conftest.located_through_the_nodes``).
 Publishing them from the test with a few seconds per answer made the test flaky under load: the
 locator's warm-up could outlast the 20 s the test waited for its subscriptions, a still answered
 late was sent again and processed twice (its beacon evidence added twice to the tracker, its pose
-continuing itself), and the restarts in /diagnostics were awaited for only 5 s."""
+continuing itself), and the restarts in /diagnostics were awaited for only 5 s.
+"""
 from __future__ import annotations
 
-import numpy as np
-import yaml
 from conftest import located_through_the_nodes, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
+import numpy as np
 
-from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.recording import EPOCH_NS, LOCATOR_NODE, write_params
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario
+
+import yaml
 
 SPACING_NS = 100_000_000  # 0.1 s between stills
 # One still per test point (0.6 m apart), in the order a person walks the grid.

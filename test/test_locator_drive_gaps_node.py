@@ -1,17 +1,20 @@
-"""The installed replay and locator over DDS: a robot that drives under packet lamps 2.4 m apart and
-loses sight of them gets a pose again within 3 frames of each gap (issue 13's target), never a wrong
-one. A lamp that comes into view holds 0.8 of a packet a frame, so its beacon alone needs 2-4 frames;
-where only one lamp of the map can be, near the recent pose, the geometry settles its ID on the first
-(``solvers.continuity_ids``). Before that, as the last lamp of a row left and the next came in, three
-frames in a row had no pose."""
+"""
+The installed replay and locator over DDS.
+
+A robot that drives under packet lamps 2.4 m apart and loses sight of them gets a pose again within 3
+frames of each gap (issue 13's target), never a wrong one. A lamp that comes into view holds 0.8 of a
+packet a frame, so its beacon alone needs 2-4 frames; where only one lamp of the map can be, near the
+recent pose, the geometry settles its ID on the first (``solvers.continuity_ids``). Before that, as
+the last lamp of a row left and the next came in, three frames in a row had no pose.
+"""
 from __future__ import annotations
 
 import math
 
-import numpy as np
 from conftest import located_through_the_nodes
+import numpy as np
 
-from vlp_ros.benchmarks.accuracy import FRAMES_AFTER_GAP, SetupRun, availability
+from vlp_ros.benchmarks.accuracy import availability, FRAMES_AFTER_GAP, SetupRun
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.recording import record, write_params

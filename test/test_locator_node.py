@@ -4,22 +4,23 @@ from __future__ import annotations
 import os
 import time
 
-import cv2
-import numpy as np
-import pytest
-import yaml
 from conftest import spin_until
+import cv2
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+import numpy as np
+import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from vlp_ros.core.pose import Pose
-from vlp_ros.sim.bag_writer import TYPESTORE, camera_info_message, image_message
+from vlp_ros.sim.bag_writer import camera_info_message, image_message, TYPESTORE
 from vlp_ros.sim.recording import LOCATOR_NODE, write_params
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario
+
+import yaml
 
 STAMP_NS = 1_700_000_123_456_789_000
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -30,7 +31,7 @@ CONNECT_S = 120.0
 
 @pytest.fixture(scope='module')
 def robot_frame():
-    """A robot frame with two lamps in view, its scenario and truth."""
+    """Return a robot frame with two lamps in view, its scenario and truth."""
     scenario = robot_scenario(seed=3)
     pose = scenario.poses[90]
     frame = render_frame(scenario.camera, pose, scenario.lamps, scenario.sensor, 2.0, np.random.default_rng(5))
@@ -128,8 +129,12 @@ def test_locator_publishes_the_pose_of_a_simulated_frame(start_process, test_nod
 
 
 def test_bad_frames_are_dropped_counted_and_reported(start_process, test_node, tmp_path, robot_frame) -> None:
-    """Each bad frame is sent once the previous one was counted: a frame that arrives while the worker is
-    busy replaces the waiting one, so frames sent back to back would be counted as fast as the machine is."""
+    """
+    Each bad frame is sent once the previous one was counted.
+
+    A frame that arrives while the worker is busy replaces the waiting one, so frames sent back to back
+    would be counted as fast as the machine is.
+    """
     scenario, frame = robot_frame
     locator = _start_locator(start_process, tmp_path, scenario)
     feeder = Feeder(test_node)
@@ -208,14 +213,14 @@ def test_bad_parameters_stop_the_node_with_one_line_naming_them(start_process, t
 
 
 def _start_without_transport_setup(start_process, tmp_path, scenario, **kwargs):
-    """The locator as a user would start it without our DDS setup (discovery still kept on loopback)."""
+    """Return the locator as a user would start it without our DDS setup (discovery still kept on loopback)."""
     env = {k: v for k, v in os.environ.items() if k != 'FASTDDS_DEFAULT_PROFILES_FILE'}
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     return _output_once_locating(_start_locator(start_process, tmp_path, scenario, env=env, **kwargs))
 
 
 def _output_once_locating(locator) -> str:
-    """What the locator printed up to its start-up line, then stopped."""
+    """Return what the locator printed up to its start-up line, then stopped."""
     deadline = time.monotonic() + CONNECT_S
     while 'locating with' not in locator.output() and time.monotonic() < deadline:
         time.sleep(0.2)

@@ -3,18 +3,18 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-import pytest
 from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.debug_view import DISPLAY_WIDTH, IDENTIFIED
-from vlp_ros.sim.bag_writer import TYPESTORE, camera_info_message, image_message
+from vlp_ros.sim.bag_writer import camera_info_message, image_message, TYPESTORE
 from vlp_ros.sim.recording import write_params
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario
@@ -65,7 +65,7 @@ class Camera:
         return False
 
     def drawn(self) -> int | None:
-        """The locator's count of drawn debug images, from its latest diagnostics."""
+        """Return the locator's count of drawn debug images, from its latest diagnostics."""
         if not self.diagnostics:
             return None
         values = {kv.key: kv.value for kv in self.diagnostics[-1].status[0].values}

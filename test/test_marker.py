@@ -1,4 +1,5 @@
-"""The marker's compiled kernels against their numpy formulation.
+"""
+The marker's compiled kernels against their numpy formulation.
 
 ``fit_marker``, ``find_seed`` and ``redness`` run as numba kernels
 (vlp_ros.detection.marker). The reference here is the numpy code they replaced, kept
@@ -12,11 +13,11 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-import vlp_ros.detection.detector as detector
+from vlp_ros.core.ellipse import geometric_distances
 from vlp_ros.detection import detect_lamps
 from vlp_ros.detection import marker
-from vlp_ros.detection.marker import MarkerSeed, find_seed, fit_marker, redness, redness_and_peaks
-from vlp_ros.core.ellipse import geometric_distances
+import vlp_ros.detection.detector as detector
+from vlp_ros.detection.marker import find_seed, fit_marker, MarkerSeed, redness, redness_and_peaks
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 
@@ -53,6 +54,7 @@ def _shape_root(ellipse):
 
 
 class _Model:
+
     def __init__(self, data, pixels, lamp_disc, root, row_level):
         self.data = data.ravel()
         self.rows = pixels.shape[0]
@@ -90,8 +92,10 @@ class _Model:
 
 
 def reference_inflation(residual, rows):
-    """(1 + rho) / (1 - rho) per axis, rho the residuals' lag-one correlation (clipped to [0, 0.8])
-    along rows and between adjacent used rows."""
+    """
+    (1 + rho) / (1 - rho) per axis, rho the residuals' lag-one correlation (clipped to [0, 0.8])
+    along rows and between adjacent used rows.
+    """
     factor = 1.0
     adjacent = np.flatnonzero(np.diff(rows) == 1)
     pairs = ((residual[:, :-1], residual[:, 1:]), (residual[adjacent], residual[adjacent + 1]))

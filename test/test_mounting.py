@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.core.gravity import STANDARD_GRAVITY, GravityBuffer
-from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters, settings_from_tree
+from vlp_ros.core.gravity import GravityBuffer, STANDARD_GRAVITY
 from vlp_ros.core.mounting import (MIN_POSITION_VARIANCE, MIN_ROTATION_VARIANCE, Mounting, publishable_covariance)
-from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.core.pose import Pose
+from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters, settings_from_tree
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario
 
@@ -39,7 +39,7 @@ def test_camera_looking_straight_up_on_a_robot() -> None:
 
 
 def _camera_covariance(rng: np.random.Generator) -> np.ndarray:
-    """A correlated camera covariance: ~5 mm in position, ~10 mrad in rotation."""
+    """Return a correlated camera covariance: ~5 mm in position, ~10 mrad in rotation."""
     scales = np.array([5e-3, 5e-3, 8e-3, 1e-2, 1e-2, 4e-3])
     correlation = np.corrcoef(rng.normal(size=(6, 12)))
     return correlation * np.outer(scales, scales)
@@ -88,7 +88,7 @@ def test_published_covariance_has_no_zero_negative_or_nan_variance() -> None:
     assert publishable_covariance(np.full((6, 6), np.nan)) is None
     assert publishable_covariance(-np.eye(6)) is None
     rounded = publishable_covariance(np.diag([4e-6, -1e-12, 1e-5, 1e-6, 1e-6, 2e-7]))
-    assert rounded[1, 1] == MIN_POSITION_VARIANCE, "a rounding-level negative variance is raised to the floor"
+    assert rounded[1, 1] == MIN_POSITION_VARIANCE, 'a rounding-level negative variance is raised to the floor'
 
 
 def _values(**overrides):
@@ -131,9 +131,13 @@ def test_bad_mounting_is_refused_naming_the_parameter(overrides, parameter: str,
 
 
 def test_prior_and_imu_stay_in_the_camera_frame_with_a_tilted_mounting() -> None:
-    """A camera pitched 15 deg back on a level robot: prior.up_in_camera and the IMU (mounted
-    in the base, imu.rotation turning base vectors into the camera) are camera-frame
-    quantities, and the published base pose comes out level and where the robot is."""
+    """
+    A camera pitched 15 deg back on a level robot.
+
+    Prior.up_in_camera and the IMU (mounted in the base, imu.rotation turning base vectors
+    into the camera) are camera-frame quantities, and the published base pose comes out
+    level and where the robot is.
+    """
     scenario = robot_scenario(seed=3)
     mounting = Mounting(Rotation.from_euler('y', -15, degrees=True).as_matrix() @ LOOKING_UP.rotation,
                         np.array([0.25, -0.1, 0.45]))

@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import shutil
 import stat
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -43,7 +43,7 @@ def writable_again(path: Path) -> None:
 
 @pytest.fixture
 def read_only_install(tmp_path: Path):
-    """A copy of the installed package without numba's cache, read-only, as an apt install is."""
+    """Yield a copy of the installed package without numba's cache, read-only, as an apt install is."""
     if AS_AN_ACCOUNT and shutil.which('setpriv') is None:
         pytest.skip('running as root without setpriv: permission bits cannot be enforced')
     site = tmp_path / 'site'

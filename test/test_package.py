@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import os
 
-import pytest
 from conftest import ROOT, spin_until
+import pytest
 
 from vlp_ros.nodes.dds_environment import installed_executable
 

@@ -16,7 +16,7 @@ from vlp_ros.sim.scenarios import paper_scenario
 
 @pytest.fixture(scope='module')
 def oblique_photo():
-    """A hand-held 4K photo with the lamp well off the optical axis, its settings and gravity."""
+    """Return a hand-held 4K photo with the lamp well off the optical axis, its settings and gravity."""
     scenario = paper_scenario('4k', height=2.0, points=6, postures=2, seed=2017)
     values = default_parameters()
     values.update(flatten_parameters(scenario.locator_parameters(imu=True)))

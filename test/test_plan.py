@@ -6,10 +6,10 @@ import re
 import numpy as np
 import pytest
 
-from vlp_ros.evaluation.floor_plan import (BeaconPlan, Decodability, Deployment, MeasurementNoise, ceiling_lamp,
-                                           expected_position_error, lamp_observations, plan_floor, visible_spans)
-from vlp_ros.evaluation.plan import main, preset_camera
 from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.floor_plan import (BeaconPlan, ceiling_lamp, Decodability, Deployment, expected_position_error,
+                                           lamp_observations, MeasurementNoise, plan_floor, visible_spans)
+from vlp_ros.evaluation.plan import main, preset_camera
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.fusion import solve_lamps
 

@@ -1,7 +1,10 @@
-"""Bare LEDs as the five-LED rig's photos show them (issue 14): a 1 cm core in a glow at 40 % of it,
-stripes on every row the light reaches. Their tones are read over core and glow, raw and as JPEG with
-the row time 2 % off nominal; and a map whose spacing the row-time tolerance cannot separate is named
-at start."""
+"""
+Bare LEDs as the five-LED rig's photos show them (issue 14).
+
+A 1 cm core in a glow at 40 % of it, stripes on every row the light reaches. Their tones are read
+over core and glow, raw and as JPEG with the row time 2 % off nominal; and a map whose spacing the
+row-time tolerance cannot separate is named at start.
+"""
 from __future__ import annotations
 
 import cv2
@@ -9,14 +12,14 @@ import numpy as np
 import pytest
 
 from vlp_ros.beacon.camera_settings import tone_setting_advice
-from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
-                                    reading)
+from vlp_ros.beacon.reading import (BeaconReading, log_prior, MIN_CONFIDENCE, no_evidence, reading, UNMAPPED,
+                                    UNMAPPED_WEIGHT)
 from vlp_ros.beacon.tone import agreeing
 from vlp_ros.detection import detect_lamps
-from vlp_ros.pipeline.config import ConfigError, beacon_from_parameters, default_parameters, settings_from_tree
+from vlp_ros.pipeline.config import beacon_from_parameters, ConfigError, default_parameters, settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
+from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.sensor import encode_jpeg
 
 PHOTOS = 3
@@ -80,7 +83,7 @@ def test_every_led_of_the_rigs_photos_is_detected_at_its_centre() -> None:
 
 
 def _reading_for(lamp_id: int) -> BeaconReading:
-    """A reading certain of ``lamp_id`` among lamps 1-3 and UNMAPPED."""
+    """Return a reading certain of ``lamp_id`` among lamps 1-3 and UNMAPPED."""
     candidates, mapped = np.array([1, 2, 3, UNMAPPED]), np.array([True, True, True, False])
     evidence = np.where(candidates == lamp_id, 30.0, 0.0)
     return reading(candidates, mapped, evidence, log_prior(mapped, UNMAPPED_WEIGHT), MIN_CONFIDENCE)

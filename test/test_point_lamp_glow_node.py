@@ -1,15 +1,18 @@
-"""Bare LEDs as the five-LED rig's photos show them, through the installed nodes: 1 cm cores in a
-glow at 40 % of them, JPEG q90 over ``image_transport: compressed``, the row time 2 % off nominal
-(issue 14). The locator reads each LED's tone over its glow and places the camera from the centres."""
+"""
+Bare LEDs as the five-LED rig's photos show them, through the installed nodes.
+
+1 cm cores in a glow at 40 % of them, JPEG q90 over ``image_transport: compressed``, the row time 2
+% off nominal (issue 14). The locator reads each LED's tone over its glow and places the camera
+from the centres.
+"""
 from __future__ import annotations
 
-import numpy as np
-
 from conftest import located_through_the_nodes
+import numpy as np
 
 from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC
-from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
+from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.recording import record, write_params
 
 FRAMES = 3

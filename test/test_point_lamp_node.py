@@ -1,14 +1,17 @@
-"""Point lamps through the installed nodes: a rendered bare-LED bag (tone mode, ``radius: 0``
-lamps, no marker) replayed into the locator, which places the camera from the LEDs' centres."""
+"""
+Point lamps through the installed nodes.
+
+A rendered bare-LED bag (tone mode, ``radius: 0`` lamps, no marker) replayed into the
+locator, which places the camera from the LEDs' centres.
+"""
 from __future__ import annotations
 
-import numpy as np
-
 from conftest import located_through_the_nodes
+import numpy as np
 
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics
-from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
+from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.recording import record, write_params
 
 FRAMES = 4

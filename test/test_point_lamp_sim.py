@@ -1,21 +1,28 @@
-"""The simulator's bare-LED look: a core where the LED projects, a glow at the measured level,
-tone stripes on every row it reaches, and the ``bare_leds`` scenario on the command line."""
+"""
+The simulator's bare-LED look.
+
+A core where the LED projects, a glow at the measured level, tone stripes on every row it
+reaches, and the ``bare_leds`` scenario on the command line.
+"""
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import yaml
 
 from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters, settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim import __main__ as cli
-from vlp_ros.sim.point_lamps import RIG_FREQUENCIES, PointLampLook, bare_led_scenario
+from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook, RIG_FREQUENCIES
+
+import yaml
 
 
 @pytest.fixture(scope='module')
 def full_resolution_photo():
-    """One noise-free photo at the rig's full 7712 px, with the tone unmodulated (depth ~0)
-    for the profile and a second one striped."""
+    """
+    One noise-free photo at the rig's full 7712 px, with the tone unmodulated (depth ~0)
+    for the profile and a second one striped.
+    """
     flat = bare_led_scenario('full', photos=1, seed=2, depth=1e-6)
     striped = bare_led_scenario('full', photos=1, seed=2, depth=0.75)
     return flat.render(0, None), striped.render(0, None)
@@ -81,9 +88,12 @@ def test_a_look_refuses_impossible_values() -> None:
 @pytest.mark.parametrize('look, poses', [(PointLampLook(core_radius=0.02, glow_level=0.1), 3),
                                          (PointLampLook(), 0)])
 def test_bare_led_photos_through_the_pipeline_give_right_ids_and_poses_or_none(look, poses) -> None:
-    """The soft-glow look is read today: a pose from the five LEDs on each photo. The rig's
-    measured look is not yet (its glow hides the cores from this detector): no ID and no pose,
-    and never a wrong one."""
+    """
+    The soft-glow look is read today: a pose from the five LEDs on each photo.
+
+    The rig's measured look is not yet (its glow hides the cores from this detector): no ID
+    and no pose, and never a wrong one.
+    """
     scenario = bare_led_scenario('4k', photos=3, seed=4, look=look)
     pipeline = Pipeline(settings_from_tree(scenario.locator_parameters(imu=False)))
     rng = np.random.default_rng(9)

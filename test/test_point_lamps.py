@@ -1,15 +1,19 @@
-"""Point lamps (``leds.N.radius: 0``): the map accepts them, and poses come from three of them,
-two and an up direction, or with disc lamps, with an honest covariance and never a wrong pick."""
+"""
+Point lamps (``leds.N.radius: 0``).
+
+The map accepts them, and poses come from three of them, two and an up direction, or with disc
+lamps, with an honest covariance and never a wrong pick.
+"""
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from solver_scenes import camera_4k, camera_wide, looking_up, measured_up, observe
+
 from vlp_ros.core.lamp_map import Lamp
-from vlp_ros.pipeline.config import default_parameters, settings_from_parameters
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
+from vlp_ros.pipeline.config import default_parameters, settings_from_parameters
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.fusion import solve_lamps
@@ -25,8 +29,10 @@ SIGMA_PX = 0.5
 
 def point_observation(lamp: Lamp, pose: Pose, camera, rng: np.random.Generator | None,
                       sigma: float = SIGMA_PX) -> LampObservation:
-    """A round blob centred on the lamp's projection plus N(0, sigma) per axis, its centre's
-    sigma measured by the detector."""
+    """
+    A round blob centred on the lamp's projection plus N(0, sigma) per axis, its centre's
+    sigma measured by the detector.
+    """
     centre = camera.project(pose.map_to_camera(lamp.position))[0]
     if rng is not None:
         centre = centre + rng.normal(0.0, sigma, 2)
@@ -113,8 +119,12 @@ def test_a_lamp_misplaced_in_the_map_gives_no_pose() -> None:
 
 @pytest.mark.parametrize('count, with_imu', [(5, False), (3, True), (2, True)])
 def test_covariance_is_honest(count: int, with_imu: bool) -> None:
-    """Mean NEES over 300 noisy frames: 6 for an honest 6-DoF covariance, with a Monte Carlo
-    spread of 0.2, so the 4-8 band fails only for a covariance off by over a third."""
+    """
+    Mean NEES over 300 noisy frames.
+
+    6 for an honest 6-DoF covariance, with a Monte Carlo spread of 0.2, so the 4-8 band
+    fails only for a covariance off by over a third.
+    """
     rng = np.random.default_rng(count)
     nees, wrong = [], 0
     for _ in range(300):

@@ -2,19 +2,20 @@
 from __future__ import annotations
 
 import os
-import struct
 from pathlib import Path
+import struct
 
 import pytest
-import yaml
-from replay_bags import (IMAGE, SHARED_BAGS, STRING, T0_NS, Recorded, chatter, copy_bag, edit_metadata, image_data,
-                         offer, overlapping_recording, set_metadata_version, sqlite3_topic_data, storage_file,
-                         write_bag, write_overlapping_split_bag, write_split_bag)
+from replay_bags import (chatter, copy_bag, edit_metadata, IMAGE, image_data, offer, overlapping_recording, Recorded,
+                         set_metadata_version, SHARED_BAGS, sqlite3_topic_data, storage_file, STRING, T0_NS, write_bag,
+                         write_overlapping_split_bag, write_split_bag)
 from rosbags.interfaces import QosDurability, QosReliability
 
-from vlp_ros.bags.playback_plan import (PlaybackOptions, PlaybackTally, Timeline, parse_remaps, playback_origin,
-                                   progress_line, select_topics)
-from vlp_ros.bags.reader import Bag, BagError, BagMessage, OfferedQos, adapt_offers, header_stamp
+from vlp_ros.bags.playback_plan import (parse_remaps, playback_origin, PlaybackOptions, PlaybackTally, progress_line,
+                                        select_topics, Timeline)
+from vlp_ros.bags.reader import adapt_offers, Bag, BagError, BagMessage, header_stamp, OfferedQos
+
+import yaml
 
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 

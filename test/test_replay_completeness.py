@@ -1,4 +1,5 @@
-"""The `replay` executable delivers every recorded message of the selection, or says which it did not.
+"""
+The `replay` executable delivers every recorded message of the selection, or says which it did not.
 
 Each test subscribes to every played topic and wants, per topic, exactly the
 recorded messages in timestamp order; bags whose files overlap in time and
@@ -9,8 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from replay_bags import (T0_NS, Recorded, by_topic, chatter, edit_metadata, overlapping_recording,
-                         string_data, write_bag, write_overlapping_split_bag)
+from replay_bags import (by_topic, chatter, edit_metadata, overlapping_recording, Recorded, string_data, T0_NS,
+                         write_bag, write_overlapping_split_bag)
 from test_replay_node import deserialized, run_to_end, subscribe
 
 

@@ -1,14 +1,14 @@
 """The `replay` executable as a real process over DDS: what arrives, on which topic, in which order."""
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from pathlib import Path
+import time
 
-import pytest
 from conftest import spin_until
-from replay_bags import (CAMERA_INFO, IMAGE, SHARED_BAGS, T0_NS, Recorded, camera_info_data, chatter, copy_bag,
-                         image_data, sqlite3_topic_data, write_bag, write_split_bag)
+import pytest
+from replay_bags import (CAMERA_INFO, camera_info_data, chatter, copy_bag, IMAGE, image_data, Recorded, SHARED_BAGS,
+                         sqlite3_topic_data, T0_NS, write_bag, write_split_bag)
 
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 TALKER_MCAP = SHARED_BAGS / 'talker_mcap'
@@ -90,9 +90,12 @@ def test_topic_selection_remapping_and_start_offset_by_options_or_parameters(sta
 
 
 def test_rate_scales_playback_time(start_process, test_node, tmp_path: Path) -> None:
-    """A message never arrives before the replay's schedule allows, whatever the machine's speed:
-    message k no earlier than (its bag time - the first's) / rate after the replay was started.
-    (How late it comes depends on the machine, so no upper bound is asserted.)"""
+    """
+    A message never arrives before the replay's schedule allows, whatever the machine's speed.
+
+    Message k no earlier than (its bag time - the first's) / rate after the replay was started.
+    (How late it comes depends on the machine, so no upper bound is asserted.)
+    """
     bag = write_bag(tmp_path / 'bag', chatter(10, 0.1))  # 0.9 s of messages
     from std_msgs.msg import String
     fast = subscribe(test_node, '/fast', String)

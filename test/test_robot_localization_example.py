@@ -1,8 +1,8 @@
 """config/robot_localization.example.yaml fuses the locator's topic as robot_localization expects."""
 from __future__ import annotations
 
-import yaml
 from conftest import ROOT
+import yaml
 
 # robot_localization's 15-state order: x y z, roll pitch yaw, velocities, angular velocities, accelerations.
 X, Y, YAW, VX, VY, VYAW = 0, 1, 5, 6, 7, 11

@@ -1,7 +1,7 @@
 """Everything below vlp_ros/ but the nodes imports without ROS: the core and the tools run on plain Python."""
+from pathlib import Path
 import subprocess
 import sys
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 # Measures the cost of the locator's visualization messages, so it builds them.

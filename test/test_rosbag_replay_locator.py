@@ -1,10 +1,9 @@
 """Rosbag replay end to end: simulator bag -> replay -> locator -> poses compared with the bag's truth."""
 from __future__ import annotations
 
+from conftest import located_through_the_nodes
 import numpy as np
 import pytest
-
-from conftest import located_through_the_nodes
 
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics

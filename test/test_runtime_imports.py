@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNTIME = ('vlp_ros.nodes.locator', 'vlp_ros.nodes.replay', 'vlp_ros.compiled.warm_up')

@@ -2,13 +2,12 @@
 from __future__ import annotations
 
 import numpy as np
+from printed_tables import printed_tables
 import pytest
 
-from printed_tables import printed_tables
-
 from vlp_ros.benchmarks import accuracy
-from vlp_ros.evaluation.metrics import FrameOutcome
 from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.metrics import FrameOutcome
 
 TRUTH = Pose(np.eye(3), [0.0, 0.0, 0.0])
 

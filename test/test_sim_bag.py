@@ -4,22 +4,23 @@ import sys
 
 import numpy as np
 import pytest
-import yaml
 from rosbags.rosbag2 import Reader
 
+from vlp_ros.bags.reader import Bag
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.gravity import STANDARD_GRAVITY
-from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
+from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
-from vlp_ros.bags.reader import Bag
+from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim.bag_writer import TYPESTORE
 from vlp_ros.sim.recording import EPOCH_NS, record, write_params
 from vlp_ros.sim.render import SimLamp
 from vlp_ros.sim.scenarios import BeaconDesign, Scenario
 from vlp_ros.sim.sensor import SensorModel
+
+import yaml
 
 TOPICS = {'/image_raw': 'sensor_msgs/msg/Image', '/camera_info': 'sensor_msgs/msg/CameraInfo',
           '/imu': 'sensor_msgs/msg/Imu', '/ground_truth/pose': 'geometry_msgs/msg/PoseStamped'}

@@ -1,26 +1,27 @@
 """The looks of real lamps and cameras: each effect renders what it claims, within physical tolerances."""
 import numpy as np
 import pytest
-import yaml
 from rosbags.rosbag2 import Reader
 from scipy.integrate import quad
 from scipy.special import i0e
 from scipy.stats import norm
 
-from vlp_ros.beacon.encoding import Waveform, packet_waveform, tone_waveform
+from vlp_ros.beacon.encoding import packet_waveform, tone_waveform, Waveform
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.images.conversion import decode_compressed
-from vlp_ros.images.message import parse_compressed_image
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
+from vlp_ros.images.conversion import decode_compressed
+from vlp_ros.images.message import parse_compressed_image
 from vlp_ros.sim import __main__ as cli
 from vlp_ros.sim import look_check
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC, JPEG_FORMAT, TYPESTORE
-from vlp_ros.sim.looks import LOOKS, Look, apply_look, transported
+from vlp_ros.sim.looks import apply_look, Look, LOOKS, transported
 from vlp_ros.sim.recording import record, write_params
-from vlp_ros.sim.render import SimLamp, render_frame
+from vlp_ros.sim.render import render_frame, SimLamp
 from vlp_ros.sim.scenarios import paper_scenario, robot_tone_scenario, with_rim_markers
 from vlp_ros.sim.sensor import SensorModel
+
+import yaml
 
 STEADY = Waveform(np.array([1], dtype=np.uint8), 1.0, 0.0)
 WHITE = (1.0, 1.0, 1.0)
@@ -32,7 +33,7 @@ def camera(width=640, height=480) -> CameraModel:
 
 
 def lamp(radius=0.05, waveform=STEADY, marker_distance=0.88, marker_radius=0.09, **light) -> SimLamp:
-    """A lamp 1 m straight above the camera (image radius 600 * radius px, centred)."""
+    """Return a lamp 1 m straight above the camera (image radius 600 * radius px, centred)."""
     geometry = Lamp('l', 3, [0.0, 0.0, 1.0], radius, marker_angle=0.4, marker_distance=marker_distance * radius)
     light.setdefault('color_bgr', WHITE)
     return SimLamp(geometry, waveform, peak_dn=LEVEL, marker_radius=marker_radius * radius, **light)
@@ -52,7 +53,7 @@ def render(sim: SimLamp, sensor_model: SensorModel, cam: CameraModel | None = No
 
 
 def blurred_disc(d: float, radius: float, sigma: float) -> float:
-    """A uniform disc of ``radius`` blurred by an isotropic Gaussian, at distance ``d`` from its centre."""
+    """Return a uniform disc of ``radius`` blurred by an isotropic Gaussian, at distance ``d`` from its centre."""
     # Integrand rho/s^2 exp(-(rho^2 + d^2) / 2 s^2) I0(rho d / s^2), with I0 scaled for stability.
     def integrand(rho):
         return rho / sigma ** 2 * np.exp(-(rho - d) ** 2 / (2 * sigma ** 2)) * i0e(rho * d / sigma ** 2)
@@ -178,7 +179,7 @@ def test_jpeg_goes_into_the_bag_as_compressed_image_and_decodes_to_the_frame(tmp
 
 
 def stripe_period_rows(image: np.ndarray, rows: slice, column: int) -> float:
-    """The dominant period (rows) of the stripes down ``column``, from a zero-padded spectrum."""
+    """Return the dominant period (rows) of the stripes down ``column``, from a zero-padded spectrum."""
     profile = image[rows, column] - image[rows, column].mean()
     spectrum = np.abs(np.fft.rfft(profile * np.hanning(profile.size), 64 * profile.size))
     frequencies = np.fft.rfftfreq(64 * profile.size)

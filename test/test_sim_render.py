@@ -9,7 +9,7 @@ from vlp_ros.core.ellipse import fit_ellipse, geometric_distances
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.coverage import Circle, disc_coverage, plane_points
-from vlp_ros.sim.render import SimLamp, crop_camera, lamp_roi, render_frame
+from vlp_ros.sim.render import crop_camera, lamp_roi, render_frame, SimLamp
 from vlp_ros.sim.sensor import SensorModel
 
 WHITE = (1.0, 1.0, 1.0)

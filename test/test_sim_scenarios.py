@@ -4,12 +4,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_length
-from vlp_ros.core.pose import Pose
 from vlp_ros.core.gravity import STANDARD_GRAVITY
+from vlp_ros.core.pose import Pose
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import render_frame
-from vlp_ros.sim.scenarios import (PAPER_DESIGN_DISTANCE, as_stills, design_beacon, paper_scenario, robot_drive_scenario,
-                                   robot_scenario, robot_tone_scenario, with_rim_markers)
+from vlp_ros.sim.scenarios import (as_stills, design_beacon, PAPER_DESIGN_DISTANCE, paper_scenario,
+                                   robot_drive_scenario, robot_scenario, robot_tone_scenario, with_rim_markers)
 
 
 @pytest.mark.parametrize('kind, focal', [('4k', 3223.0), ('1080p', 1612.0)])

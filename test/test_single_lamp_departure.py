@@ -1,12 +1,15 @@
-"""One lamp whose light departs from a uniform disc on a sharp edge (issue 13 item 4): a glare halo
-or a diffuser's falloff moves its rim by patterns its ellipse absorbs, which the edge's blur alone
-did not show. The covariance must cover them."""
+"""
+One lamp whose light departs from a uniform disc on a sharp edge (issue 13 item 4).
+
+A glare halo or a diffuser's falloff moves its rim by patterns its ellipse absorbs, which the
+edge's blur alone did not show. The covariance must cover them.
+"""
 import numpy as np
 import pytest
 
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 from vlp_ros.solvers.covariance import nees
 

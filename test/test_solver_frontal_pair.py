@@ -4,7 +4,7 @@ import pytest
 
 from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline.config import settings_from_tree
-from vlp_ros.sim.looks import LOOKS, apply_look
+from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.scenarios import robot_drive_scenario
 from vlp_ros.solvers.candidates import explains_the_image
 from vlp_ros.solvers.perspective import solve_lamp

@@ -1,4 +1,5 @@
-"""The pose fit's kernels equal the direct numpy/OpenCV formulations they compute.
+"""
+The pose fit's kernels equal the direct numpy/OpenCV formulations they compute.
 
 Tolerances say what a fit could notice, far above rounding (which differs from one
 CPU, BLAS or compiler to the next): a micro-pixel, a nanometre or nanoradian, a
@@ -7,17 +8,17 @@ millionth of a sigma, six digits of a chi-square, step or covariance.
 import cv2
 import numpy as np
 import pytest
-
 from solver_scenes import camera_wide, grid_lamps, looking_up, measured_up, observe
-from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
+
 from vlp_ros.core.camera import CameraModel
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.circle_pose import circle_poses
+from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
 from vlp_ros.solvers.fit_kernels import forecast, inverse_form, project_point
-from vlp_ros.solvers.perspective import _kalman_update
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
+from vlp_ros.solvers.perspective import _kalman_update
 from vlp_ros.solvers.refinement import linearize
-from vlp_ros.solvers.up_measurement import UpMeasurement, _tangent_axes
+from vlp_ros.solvers.up_measurement import _tangent_axes, UpMeasurement
 
 WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
 AWAY = looking_up((0.7, 0.2, 0.5), (0.2, 0.1, 0.0))
@@ -47,7 +48,7 @@ def test_perturbation_is_the_rodrigues_rotation_on_the_left() -> None:
 
 
 def _direct_residuals(measurement: LampMeasurement, pose: Pose) -> np.ndarray:
-    """The rim points' distance from the rim conic's image and the marker's offset, over their sigmas."""
+    """Return the rim points' distance from the rim conic's image and the marker's offset, over their sigmas."""
     lamp, camera = measurement.lamp, measurement.camera
     plane = np.column_stack([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], lamp.position - pose.position])
     inverse = np.linalg.inv(pose.rotation.T @ plane)

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
 from solver_scenes import camera_4k, looking_up, observe, small_lamp
+
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate

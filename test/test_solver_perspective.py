@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
+
 from vlp_ros.core.ellipse import conic_from_ellipse, fit_ellipse
 from vlp_ros.core.lamp_map import Lamp
-from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
+from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints, UpHint
 from vlp_ros.solvers.circle_pose import circle_poses
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp

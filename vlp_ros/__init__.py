@@ -1,4 +1,5 @@
-"""vlp_ros: camera-based visible light positioning.
+"""
+vlp_ros: camera-based visible light positioning.
 
 The subpackages follow a frame through the locator: ``core`` (shared types),
 ``detection``, ``beacon``, ``solvers``, ``pipeline``, ``images`` and ``bags``

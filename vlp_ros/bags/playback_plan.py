@@ -5,7 +5,7 @@ from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
-from vlp_ros.bags.reader import BagMessage, BagTopic, absolute_topic
+from vlp_ros.bags.reader import absolute_topic, BagMessage, BagTopic
 
 DEFAULT_CLOCK_HZ = 40.0  # as `ros2 bag play --clock` without a rate
 
@@ -54,7 +54,8 @@ def parse_remaps(rules: Sequence[str]) -> dict[str, str]:
 
 def select_topics(bag_topics: Mapping[str, BagTopic],
                   requested: Sequence[str]) -> tuple[list[BagTopic], list[str]]:
-    """The bag topics to play and the requested names the bag does not have.
+    """
+    Return the bag topics to play and the requested names the bag does not have.
 
     Raises ValueError when nothing requested is in the bag or the selection holds no message.
     """
@@ -110,7 +111,8 @@ def progress_line(published: int, total: int, bag_time_ns: int, origin_ns: int, 
 
 @dataclass
 class PlaybackTally:
-    """One pass's books, per topic: what metadata.yaml promises, what was read, published or skipped.
+    """
+    One pass's books, per topic: what metadata.yaml promises, what was read, published or skipped.
 
     The promise for the selection is the metadata's count less what was read
     before the start offset: the metadata counts whole topics only.
@@ -123,7 +125,7 @@ class PlaybackTally:
     published: Counter = field(default_factory=Counter)
 
     def from_origin(self, messages: Iterable[BagMessage], origin_ns: int) -> Iterator[BagMessage]:
-        """The messages at or after ``origin_ns`` that are to be published; counts all of them."""
+        """Yield the messages at or after ``origin_ns`` that are to be published; counts all of them."""
         for message in messages:
             if message.timestamp_ns < origin_ns:
                 self.before_start[message.topic] += 1

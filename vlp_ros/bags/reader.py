@@ -1,4 +1,5 @@
-"""Reading rosbag2 directories for playback: validation, topics, recorded QoS, raw messages.
+"""
+Reading rosbag2 directories for playback: validation, topics, recorded QoS, raw messages.
 
 A thin layer over ``rosbags`` that turns every way a bag can be unusable
 (missing, empty, corrupt, unsupported) into one ``BagError`` with a message
@@ -6,11 +7,11 @@ a user can act on.
 """
 from __future__ import annotations
 
-import heapq
-import struct
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
+import heapq
 from pathlib import Path
+import struct
 from typing import TypeVar
 
 from rosbags.interfaces import Connection, ConnectionExtRosbag2, Qos
@@ -66,7 +67,8 @@ class BagMessage:
 
 
 def adapt_offers(offers: Sequence[Qos]) -> tuple[OfferedQos, bool]:
-    """The offer that reproduces the recorded publishers' QoS, as `ros2 bag play` chooses it.
+    """
+    Return the offer that reproduces the recorded publishers' QoS, as `ros2 bag play` chooses it.
 
     Recorded offers that agree on reliability and durability are kept (history
     becomes keep-last 10); disagreeing ones fall back to the default offer and
@@ -116,7 +118,8 @@ def header_stamp(data: bytes) -> tuple[int, int]:
 
 
 class Bag:
-    """An open rosbag2 directory (sqlite3 or mcap, split, zstd-compressed; metadata v4 to v9).
+    """
+    An open rosbag2 directory (sqlite3 or mcap, split, zstd-compressed; metadata v4 to v9).
 
     Topics are keyed by absolute name and gather every connection recorded on
     them, in metadata.yaml and in the storage files: real bags list a topic once
@@ -167,7 +170,8 @@ class Bag:
         return max(0, self.end_ns - self.start_ns)
 
     def messages(self, topics: Collection[str]) -> Iterator[BagMessage]:
-        """Every raw message of ``topics`` (absolute names) in timestamp order, over all files and connections.
+        """
+        Every raw message of ``topics`` (absolute names) in timestamp order, over all files and connections.
 
         The storage reads are not given a start time: callers skip what they do
         not want, and can count it. Raises BagError when the storage turns out

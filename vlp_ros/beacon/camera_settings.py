@@ -1,4 +1,5 @@
-"""Whether the camera's settings let the decoders read the map's lamps (docs/beacon.md, "Camera settings").
+"""
+Whether the camera's settings let the decoders read the map's lamps (docs/beacon.md, "Camera settings").
 
 Inside these limits the beacon benchmark reads over 99 % of single frames (packet: 1.3 packets in
 view; tone: 3 stripe periods). Outside them frames are still decoded, never with a wrong ID, but
@@ -25,11 +26,11 @@ MIN_TRANSMISSION = 0.3
 
 def packet_setting_advice(chip_rate: float, row_time: float, exposure: float | None,
                           id_bits: int = 8) -> list[str]:
-    """What to change so that packet-mode frames are read reliably (empty: nothing)."""
+    """Return what to change so that packet-mode frames are read reliably (empty: nothing)."""
     advice = []
     if complement_closed(id_bits):
         advice.append(f'beacon.id_bits {id_bits} is odd: the complement of every ID passes parity too, so a lamp is '
-                      f'told from the lamp of its complement ID only by the stripes\' polarity, which clipped, '
+                      f"told from the lamp of its complement ID only by the stripes' polarity, which clipped, "
                       f'blurred stripes can hide (such lamps then stay unidentified); an even beacon.id_bits avoids it')
     rows_per_chip = 1.0 / (chip_rate * row_time)
     if rows_per_chip < MIN_ROWS_PER_CHIP:
@@ -45,15 +46,18 @@ def packet_setting_advice(chip_rate: float, row_time: float, exposure: float | N
 def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, exposure: float | None,
                         frequency_tolerance: float = 60.0,
                         row_time_tolerance: float = ROW_TIME_TOLERANCE) -> list[str]:
-    """What to change so that tone-mode frames are read reliably and never wrongly (empty: nothing);
-    ``frequencies`` by lamp name, the tolerances as ``decode_tone``'s."""
+    """
+    Return what to change so that tone-mode frames are read reliably and never wrongly (empty: nothing).
+
+    ``frequencies`` by lamp name, the tolerances as ``decode_tone``'s.
+    """
     advice = []
     if exposure is None:
         advice.append('beacon.exposure is 0 (unknown): tone lamps are then identified only from about ten stripe '
-                      'periods in view; set it to the camera\'s exposure time')
+                      "periods in view; set it to the camera's exposure time")
     elif exposure < row_time:
         advice.append(f'beacon.exposure {exposure * 1e6:g} us is shorter than beacon.row_time {row_time * 1e6:g} us: '
-                      f'stripe edges between the rows\' exposures cannot be placed, and lamps are identified less '
+                      f"stripe edges between the rows' exposures cannot be placed, and lamps are identified less "
                       f'often; an exposure of at least a row time reads them best')
     few_rows = {name: 1.0 / (f * row_time) for name, f in frequencies.items() if f * row_time * MIN_ROWS_PER_PERIOD > 1.0}
     if few_rows:

@@ -1,4 +1,5 @@
-"""Packet likelihood of a clipped window: a chip at the sensor's ceiling says only "at least this bright".
+"""
+Packet likelihood of a clipped window: a chip at the sensor's ceiling says only "at least this bright".
 
 A disc's row means keep clipped pixels at the ceiling (``row_profile``), so a chip whose rows are
 mostly clipped is a lower bound on its light, not a measurement of it: the light of a lamp 2x over
@@ -13,15 +14,15 @@ could not have lifted above the ceiling.
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
+import math
 
 import numpy as np
 
 from vlp_ros.beacon.chips import ChipLevels, interior_bounds
 from vlp_ros.beacon.encoding import packet_chips
 from vlp_ros.compiled import kernel
-from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve
+from vlp_ros.compiled.linalg import lu_solve, OPENCV_PIVOT_FLOOR
 
 # A chip whose interior rows have more than this share of their pixels clipped is censored.
 CENSORED_SHARE = 0.5
@@ -44,12 +45,14 @@ def _signs(id_bits: int) -> np.ndarray:
 
 
 def clipped_run_grids(share: np.ndarray, period: float, tolerance: float) -> list[tuple[float, float]]:
-    """Chip grids (period, where a chip begins, in rows) from where the rows cross half clipped.
+    """
+    Chip grids (period, where a chip begins, in rows) from where the rows cross half clipped.
 
     Blur erodes a dark run and widens a bright one by the same rows at both ends, so the middles of the runs
     between crossings lie on chip edges (runs of even length) or chip middles (odd): on a lattice of half
     chips. The period within +-``tolerance`` (relative) that puts them best on such a lattice, and its two
-    readings (chips beginning on the lattice, or half a chip off it); none with fewer than three runs."""
+    readings (chips beginning on the lattice, or half a chip off it); none with fewer than three runs.
+    """
     above = share > 0.5
     edges = np.flatnonzero(above[1:] != above[:-1])
     # Sub-row crossing positions (row r covers [r, r + 1)): where the share passes 0.5 between row middles.
@@ -68,9 +71,11 @@ def clipped_run_grids(share: np.ndarray, period: float, tolerance: float) -> lis
 
 def raw_chips(z: np.ndarray, w: np.ndarray, share: np.ndarray, levels: ChipLevels,
               margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each chip of ``levels`` as the rows it averages show it, before the local extremes normalise it
+    """
+    Each chip of ``levels`` as the rows it averages show it, before the local extremes normalise it
     (they squeeze a clipped neighbourhood's contrast to the ceiling's): its relative brightness, the weight
-    of its rows, and the weighted share of its pixels that are clipped."""
+    of its rows, and the weighted share of its pixels that are clipped.
+    """
     sums = [np.concatenate([[0.0], np.cumsum(values)]) for values in (w, w * z, w * share)]
     low, high = interior_bounds(levels, margin, len(w))
 
@@ -86,9 +91,11 @@ def raw_chips(z: np.ndarray, w: np.ndarray, share: np.ndarray, levels: ChipLevel
 
 def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
                              mixes: tuple[float, ...]) -> tuple[np.ndarray, float]:
-    """Log-likelihood of each ID (shift and mix marginalised, equally likely a priori) of chip levels ``x``
+    """
+    Log-likelihood of each ID (shift and mix marginalised, equally likely a priori) of chip levels ``x``
     (weights ``v``, chip indices ``k``, ``censored`` ones lower bounds), and the best hypothesis's deviance
-    (weighted squared residuals of the measured chips plus -2 log P of the censored ones)."""
+    (weighted squared residuals of the measured chips plus -2 log P of the censored ones).
+    """
     fits = _censored_fits(np.asarray(x, dtype=float), np.asarray(v, dtype=float), np.asarray(k, dtype=np.int64),
                           np.asarray(censored, dtype=np.bool_), _signs(id_bits), np.asarray(mixes, dtype=float))
     top = fits.max()
@@ -100,11 +107,15 @@ def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censor
 @kernel
 def _censored_fits(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, signs: np.ndarray,
                    mixes: np.ndarray) -> np.ndarray:
-    """The maximised censored log-likelihood of every (mix, shift, ID), (mixes, L, ids). Chip j's light is
-    an envelope times (1 + contrast x its template s_p + mix (s_p-1 + s_p+1)), p = (k_j + shift) % L: the
-    lamp's light (falloff, chords, glare) scales bright and dark chips alike, which is what decides where
-    blur lifts a dark chip over the ceiling. Linear in its parameters: the envelope quadratic in the chip
-    index, contrast-times-envelope linear in it and positive over the window (a bright chip is brighter)."""
+    """
+    Return the maximised censored log-likelihood of every (mix, shift, ID), (mixes, L, ids).
+
+    Chip j's light is an envelope times (1 + contrast x its template s_p + mix (s_p-1 + s_p+1)), p = (k_j
+    + shift) % L: the lamp's light (falloff, chords, glare) scales bright and dark chips alike, which is
+    what decides where blur lifts a dark chip over the ceiling. Linear in its parameters: the envelope
+    quadratic in the chip index, contrast-times-envelope linear in it and positive over the window (a
+    bright chip is brighter).
+    """
     n, ids, length = len(x), signs.shape[0], signs.shape[1]
     out = np.empty((len(mixes), length, ids))
     design = np.empty((n, _PARAMETERS))
@@ -127,8 +138,10 @@ def _censored_fits(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.nda
 
 @kernel
 def _fit(design: np.ndarray, x: np.ndarray, v: np.ndarray, root: np.ndarray, censored: np.ndarray) -> float:
-    """Newton's method from the least-squares fit of every chip (censored ones at their bounds), halving
-    steps that do not raise the log-likelihood; the contrast is kept positive (``_positive_contrast``)."""
+    """
+    Newton's method from the least-squares fit of every chip (censored ones at their bounds), halving
+    steps that do not raise the log-likelihood; the contrast is kept positive (``_positive_contrast``).
+    """
     n, size = len(x), _PARAMETERS
     gradient, hessian = np.zeros(size), np.zeros((size, size))
     for j in range(n):
@@ -205,7 +218,7 @@ def _log_likelihood(design: np.ndarray, x: np.ndarray, v: np.ndarray, root: np.n
 
 @kernel
 def _log_normal_cdf(u: float) -> float:
-    """log Phi(u), with its asymptote far in the lower tail (where erfc underflows)."""
+    """Log Phi(u), with its asymptote far in the lower tail (where erfc underflows)."""
     if u > -30.0:
         return math.log(0.5 * math.erfc(-u / math.sqrt(2.0)))
     return -0.5 * u * u - math.log(-u) - _LOG_SQRT_2PI
@@ -219,8 +232,10 @@ def _mills(u: float) -> float:
 
 @kernel
 def _solve(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
-    """matrix^-1 vector for a small symmetric positive semi-definite matrix, a tiny ridge against a singular
-    one (a hypothesis whose template the envelope explains)."""
+    """
+    matrix^-1 vector for a small symmetric positive semi-definite matrix, a tiny ridge against a singular
+    one (a hypothesis whose template the envelope explains).
+    """
     ridged = matrix.copy()
     for a in range(len(vector)):
         ridged[a, a] += 1e-9 * matrix[a, a] + 1e-12

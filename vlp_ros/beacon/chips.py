@@ -1,4 +1,5 @@
-"""From a row profile to chip levels: find the chip grid, then average each chip's rows.
+"""
+From a row profile to chip levels: find the chip grid, then average each chip's rows.
 
 Positions are in rows: row r of the profile covers [r, r + 1). The chip period in
 rows is known only to a few percent (``row_time`` and ``chip_rate`` are both
@@ -9,8 +10,8 @@ so a candidate grid costs one look-up per chip, not per row.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -38,7 +39,8 @@ _CHI2_1_MEDIAN = 0.4549
 
 @dataclass(frozen=True)
 class ChipLevels:
-    """Chip-wise averages of a modulation profile on the found grid.
+    """
+    Chip-wise averages of a modulation profile on the found grid.
 
     Chip k spans rows [phase + k period, phase + (k + 1) period); ``index`` lists the
     chips that hold enough rows to be measured (increasing), ``levels`` their
@@ -55,9 +57,11 @@ class ChipLevels:
 
 @kernel
 def _cumulative(z: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cumulative sums of w, w z, w z^2 and of used rows up to each row boundary (4, n + 1), and each
+    """
+    Cumulative sums of w, w z, w z^2 and of used rows up to each row boundary (4, n + 1), and each
     row's own terms (4, n + 1; 0 past the end): a sum to position u (rows split pro rata) is
-    ``_at(sums, rows, field, u)``."""
+    ``_at(sums, rows, field, u)``.
+    """
     n = len(z)
     sums = np.zeros((4, n + 1))
     rows = np.zeros((4, n + 1))
@@ -80,9 +84,11 @@ def _at(sums: np.ndarray, rows: np.ndarray, field: int, u: float) -> float:
 
 @kernel
 def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
-    """Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges).
+    """
+    Per-pixel noise variance of a profile from row-to-row differences (robust to stripe edges).
 
-    Pairs with an empty row count as noiseless; the median shrugs them off."""
+    Pairs with an empty row count as noiseless; the median shrugs them off.
+    """
     if np.count_nonzero(w) < 4:
         return np.inf
     d = z[1:] - z[:-1]
@@ -92,7 +98,8 @@ def _noise_variance(z: np.ndarray, w: np.ndarray) -> float:
 
 def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
                 margin: float | None, thorough: bool = False) -> ChipLevels | None:
-    """Chip levels of modulation ``z`` (weights ``w``) with a nominal chip ``period`` in rows.
+    """
+    Chip levels of modulation ``z`` (weights ``w``) with a nominal chip ``period`` in rows.
 
     The period is searched within +-``tolerance`` (relative). Each chip averages only
     the rows more than ``margin`` rows from its edges, where a row's exposure lies in
@@ -113,17 +120,22 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
 
 def levels_on_grid(z: np.ndarray, w: np.ndarray, period: float, phase: float,
                    margin: float | None) -> ChipLevels | None:
-    """Chip levels of modulation ``z`` (weights ``w``) on the grid whose chips begin at ``phase`` + k ``period``
-    rows (None: no chip holds enough rows)."""
+    """
+    Chip levels of modulation ``z`` (weights ``w``) on the grid whose chips begin at ``phase`` + k ``period``
+    rows (None: no chip holds enough rows).
+    """
     sums, rows = _cumulative(z, w)
     return _on_grid(sums, rows, period, phase, margin, max(_noise_variance(z, w), 1e-12))
 
 
 def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float | None,
                  offsets: tuple[float, ...], scales: tuple[float, ...]) -> list[ChipLevels]:
-    """Chip levels on the grids around ``found``'s: its chip edges moved by each of ``offsets`` (in chips) and
-    its period scaled by each of ``scales``, anchored at the window's weighted middle (grids with no chip left
-    out)."""
+    """
+    Chip levels on the grids around ``found``'s.
+
+    Its chip edges moved by each of ``offsets`` (in chips) and its period scaled by each of ``scales``,
+    anchored at the window's weighted middle (grids with no chip left out).
+    """
     sigma2 = max(_noise_variance(z, w), 1e-12)
     sums, rows = _cumulative(z, w)
     anchor = _weighted_middle(rows)
@@ -170,9 +182,12 @@ class _Chips(NamedTuple):
 @kernel
 def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, margin: float,
             sigma2: float) -> _Chips:
-    """Chip averages over each chip's interior, normalised by the local extremes: the chips that hold
-    enough rows (indices from the first of them), their levels and variances, and where the first
-    begins (no chips if none holds enough rows)."""
+    """
+    Chip averages over each chip's interior, normalised by the local extremes.
+
+    The chips that hold enough rows (indices from the first of them), their levels and variances,
+    and where the first begins (no chips if none holds enough rows).
+    """
     size = sums.shape[1] - 1
     first = int(np.floor(-phase / period))
     count = int(np.ceil((size - phase) / period)) - first
@@ -231,7 +246,8 @@ def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, mar
 @kernel
 def _search_grid(sums: np.ndarray, rows: np.ndarray, period: float, tolerance: float,
                  sigma2: float, thorough: bool) -> tuple[float, float]:
-    """A coarse grid, then a fine one around its best on the whole window (a period error drifts the grid in
+    """
+    A coarse grid, then a fine one around its best on the whole window (a period error drifts the grid in
     proportion to the rows it spans from where it is anchored).
 
     Quick: the coarse grid on the window's first 24 chips, 6 phases. ``thorough``: on the whole window, its
@@ -259,7 +275,7 @@ def _search_grid(sums: np.ndarray, rows: np.ndarray, period: float, tolerance: f
 
 @kernel
 def _weighted_middle(rows: np.ndarray) -> float:
-    """The rows' centre of weight (row r covers [r, r + 1)), from their own terms."""
+    """Return the rows' centre of weight (row r covers [r, r + 1)), from their own terms."""
     weight, moment = 0.0, 0.0
     for r in range(rows.shape[1]):
         weight += rows[0, r]
@@ -270,8 +286,11 @@ def _weighted_middle(rows: np.ndarray) -> float:
 @kernel
 def _best_grid(sums: np.ndarray, rows: np.ndarray, begin: float, end: float, anchor: float, periods: np.ndarray,
                phases: np.ndarray, sigma2: float) -> tuple[float, float]:
-    """The (period, phase) pair whose chip-wise constant fit of rows [begin, end) captures most energy
-    beyond noise; chip edges lie at anchor + phase + k period."""
+    """
+    Return the (period, phase) pair whose chip-wise constant fit of rows [begin, end) captures most energy beyond noise.
+
+    Chip edges lie at anchor + phase + k period.
+    """
     chips = math.ceil((end - begin) / periods.min()) + 3
     best, best_period, best_phase = -np.inf, 0.0, 0.0
     for period in periods:
@@ -294,7 +313,8 @@ def _best_grid(sums: np.ndarray, rows: np.ndarray, begin: float, end: float, anc
 
 @kernel
 def _baseline(mean: np.ndarray, solid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Midline and half-contrast of every chip from its neighbourhood's brightest and darkest chips.
+    """
+    Midline and half-contrast of every chip from its neighbourhood's brightest and darkest chips.
 
     ID-blind: no run of equal chips is longer than four (the preamble's three and a
     neighbouring Manchester chip), so any seven consecutive chips hold both levels. Following the

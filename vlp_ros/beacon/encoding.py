@@ -1,4 +1,5 @@
-"""The beacon contract (docs/beacon.md): what a lamp transmits, as chips and as light over time.
+"""
+The beacon contract (docs/beacon.md): what a lamp transmits, as chips and as light over time.
 
 Packet mode: preamble ``1 1 1 0 0 0``, then ``id_bits`` data bits MSB first, then one
 even-parity bit; every bit Manchester coded (1 -> ``1 0``, 0 -> ``0 1``); packets
@@ -21,7 +22,7 @@ def packet_length(id_bits: int) -> int:
 
 
 def packet_bits(lamp_id: int, id_bits: int = 8) -> list[int]:
-    """Data bits (MSB first) followed by the even-parity bit."""
+    """Return data bits (MSB first) followed by the even-parity bit."""
     if not 0 <= lamp_id < 2 ** id_bits:
         raise ValueError(f'lamp id {lamp_id} does not fit in {id_bits} bits')
     data = [(lamp_id >> (id_bits - 1 - k)) & 1 for k in range(id_bits)]
@@ -29,9 +30,12 @@ def packet_bits(lamp_id: int, id_bits: int = 8) -> list[int]:
 
 
 def complement_closed(id_bits: int) -> bool:
-    """Whether every packet's complement (each data and parity bit inverted) passes parity too: with odd
-    ``id_bits`` the word has an even number of bits. Its chips, all inverted, are then the complement ID's
-    packet with the preamble inverted, so only the stripes' polarity tells the two apart."""
+    """
+    Whether every packet's complement (each data and parity bit inverted) passes parity too.
+
+    With odd ``id_bits`` the word has an even number of bits. Its chips, all inverted, are then the
+    complement ID's packet with the preamble inverted, so only the stripes' polarity tells the two apart.
+    """
     return id_bits % 2 == 1
 
 
@@ -45,7 +49,8 @@ def packet_chips(lamp_id: int, id_bits: int = 8) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Waveform:
-    """A periodic chip sequence as light: level 1 for a 1 chip, ``1 - depth`` for a 0 chip.
+    """
+    A periodic chip sequence as light: level 1 for a 1 chip, ``1 - depth`` for a 0 chip.
 
     ``offset`` (s) is the time at which chip 0 of the sequence starts.
     """
@@ -88,7 +93,8 @@ class Waveform:
 
 
 def decode_chips(chips: np.ndarray, id_bits: int = 8) -> int | None:
-    """Hard-decision inverse of ``packet_chips``: the ID carried by a 0/1 chip sequence, or None.
+    """
+    Hard-decision inverse of ``packet_chips``: the ID carried by a 0/1 chip sequence, or None.
 
     Every complete packet in ``chips`` (found by its preamble) must decode, with valid
     Manchester pairs and even parity, to the same ID; no complete packet gives None.

@@ -1,4 +1,5 @@
-"""Beacon evidence across frames: a lamp too small to read in one frame is read over several.
+"""
+Beacon evidence across frames: a lamp too small to read in one frame is read over several.
 
 Each lamp is tracked by its image position: a moving camera carries lamps through
 the image by tens of pixels a frame, so each track predicts where its lamp is now
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlp_ros.beacon.reading import MIN_CONFIDENCE, BeaconReading, Decision, decide
+from vlp_ros.beacon.reading import BeaconReading, decide, Decision, MIN_CONFIDENCE
 from vlp_ros.core.observation import LampObservation
 
 
@@ -56,7 +57,8 @@ class _Track:
 
 
 class EvidenceTracker:
-    """Accumulates per-candidate evidence for every lamp in view until its ID is certain.
+    """
+    Accumulates per-candidate evidence for every lamp in view until its ID is certain.
 
     ``known_ids`` (None: any) limits the IDs it returns. A lamp continues a track when
     its centre lies within ``gate`` + ``reach`` x (time since the track was seen, s)
@@ -87,7 +89,7 @@ class EvidenceTracker:
 
     def update(self, observations: Sequence[LampObservation], readings: Sequence[BeaconReading],
                stamp: float) -> list[int | None]:
-        """The certain ID of each observation (None if not yet), after adding this frame's readings."""
+        """Return the certain ID of each observation (None if not yet), after adding this frame's readings."""
         if len(observations) != len(readings):
             raise ValueError(f'{len(observations)} observations but {len(readings)} readings')
         if self._stamp is not None and stamp < self._stamp:
@@ -123,10 +125,12 @@ class EvidenceTracker:
         return [d.lamp_id for d in self.decisions]
 
     def _inheriting_another_lamps_id(self, followed: list[_Track], readings: Sequence[BeaconReading]) -> list[int]:
-        """The observations whose track is certain of an ID that another lamp of this frame reads with certainty
+        """
+        The observations whose track is certain of an ID that another lamp of this frame reads with certainty
         on its own: one lamp cannot be in two places, and the frame's own reading says where it is now. The
         other track was continued by a lamp that came near the old place of a lamp now elsewhere (a hand-held
-        camera moved between stills, an unmodulated lamp beside the track's lamp)."""
+        camera moved between stills, an unmodulated lamp beside the track's lamp).
+        """
         read_now = {r.lamp_id for r in readings if r.lamp_id is not None}
         return [k for k, (track, reading) in enumerate(zip(followed, readings))
                 if reading.lamp_id is None and self._decide(track).lamp_id in read_now]

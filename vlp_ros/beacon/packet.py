@@ -1,4 +1,5 @@
-"""Packet mode: which ID explains a lamp's chip levels, weighed against every ID the bits can carry.
+"""
+Packet mode: which ID explains a lamp's chip levels, weighed against every ID the bits can carry.
 
 Soft maximum-likelihood decoding: each hypothesis (ID, where in the packet the
 window starts) predicts every chip of the window; the preamble search, Manchester
@@ -9,19 +10,18 @@ being matched to the nearest mapped one.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 from functools import lru_cache
+import math
 
 import numpy as np
 from scipy.stats import chi2
 
-from vlp_ros.beacon.censored import CENSORED_SHARE, censored_log_likelihoods, clipped_run_grids, raw_chips
-from vlp_ros.beacon.chips import ChipLevels, _noise_variance, chip_levels, levels_on_grid, nearby_grids
+from vlp_ros.beacon.censored import censored_log_likelihoods, CENSORED_SHARE, clipped_run_grids, raw_chips
+from vlp_ros.beacon.chips import _noise_variance, chip_levels, ChipLevels, levels_on_grid, nearby_grids
 from vlp_ros.beacon.encoding import packet_bits, packet_chips, packet_length
-from vlp_ros.beacon.profile import RowProfile, relative_brightness
-from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED_WEIGHT, BeaconReading, log_prior, no_evidence,
-                                    reading)
+from vlp_ros.beacon.profile import relative_brightness, RowProfile
+from vlp_ros.beacon.reading import BeaconReading, log_prior, MIN_CONFIDENCE, no_evidence, reading, UNMAPPED_WEIGHT
 from vlp_ros.compiled import kernel
 
 MIN_CHIPS = 6
@@ -56,15 +56,19 @@ MIN_CENSORED_MEASURED = 8
 
 @lru_cache(maxsize=4)
 def _neighbour_products(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every ID's products of chip signs one and two positions apart around the packet, (L, 2^id_bits)
-    each: s[p] s[p + 1] and s[p] s[p + 2]."""
+    """
+    Every ID's products of chip signs one and two positions apart around the packet, (L, 2^id_bits) each.
+
+    S[p] s[p + 1] and s[p] s[p + 2].
+    """
     signs = np.array([packet_chips(i, id_bits) for i in range(2 ** id_bits)], dtype=float) * 2 - 1
     return ((signs * np.roll(signs, -1, axis=1)).T.copy(), (signs * np.roll(signs, -2, axis=1)).T.copy())
 
 
 @lru_cache(maxsize=4)
 def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every ID's packet, factored: its chip signs (+1 bright, -1 dark) are ``chip_weights @ design``.
+    """
+    Every ID's packet, factored: its chip signs (+1 bright, -1 dark) are ``chip_weights @ design``.
 
     ``design`` (2 + id_bits, 2^id_bits) is a row of ones over the +-1 of each ID's bits and parity;
     ``chip_weights`` (L, 2 + id_bits) say what the constant (the preamble) and each bit put on
@@ -87,7 +91,8 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
                   timing_tolerance: float = 0.05, unmapped_weight: float = UNMAPPED_WEIGHT,
                   min_confidence: float = MIN_CONFIDENCE, model_error: float = 0.2,
                   blur_mixes: tuple[float, ...] = SHARP) -> BeaconReading:
-    """The ID a packet-mode lamp sends, from its row profile.
+    """
+    Return the ID a packet-mode lamp sends, from its row profile.
 
     ``chip_rate`` (Hz) and ``row_time`` (s) are nominal: the chip period is searched
     within +-``timing_tolerance``. ``exposure`` (s), when known, tells how many rows
@@ -125,10 +130,12 @@ def decode_clipped_packet(profile: RowProfile, chip_rate: float, row_time: float
                           timing_tolerance: float = 0.05, unmapped_weight: float = UNMAPPED_WEIGHT,
                           min_confidence: float = MIN_CONFIDENCE, model_error: float = 0.2,
                           blur_mixes: tuple[float, ...] = BLUR_MIXES) -> BeaconReading:
-    """``decode_packet`` of a clipped window of a disc's ``row_profile`` (clipped pixels kept at the ceiling),
+    """
+    ``decode_packet`` of a clipped window of a disc's ``row_profile`` (clipped pixels kept at the ceiling),
     its mostly clipped chips read as censored, "at least this bright" (vlp_ros.beacon.censored), blur weighed
     in (``blur_mixes``) on the thoroughly searched grid. No evidence for a window that is not clipped (the
-    Gaussian reading holds there), and for one whose best fit misfits even so."""
+    Gaussian reading holds there), and for one whose best fit misfits even so.
+    """
     period, margin = _chip_timing(chip_rate, row_time, id_bits, exposure)
     candidates, mapped, prior = _hypotheses(id_bits, None if known_ids is None else tuple(known_ids),
                                             unmapped_weight)
@@ -156,8 +163,11 @@ def decode_clipped_packet(profile: RowProfile, chip_rate: float, row_time: float
 
 def _censored_fit(z: np.ndarray, w: np.ndarray, clipped_share: np.ndarray, levels: ChipLevels, margin: float | None,
                   model_error: float, id_bits: int, mixes: tuple[float, ...]) -> np.ndarray | None:
-    """Every ID's censored log-likelihood on the grid of ``levels``; None when too few chips lie below the
-    ceiling or the best hypothesis misfits."""
+    """
+    Every ID's censored log-likelihood on the grid of ``levels``.
+
+    None when too few chips lie below the ceiling or the best hypothesis misfits.
+    """
     means, chip_weights, shares = raw_chips(z, w, clipped_share, levels, margin)
     censored = shares > CENSORED_SHARE
     measured = int(np.count_nonzero(~censored))
@@ -172,8 +182,10 @@ def _censored_fit(z: np.ndarray, w: np.ndarray, clipped_share: np.ndarray, level
 
 def _chip_timing(chip_rate: float, row_time: float, id_bits: int,
                  exposure: float | None) -> tuple[float, float | None]:
-    """The nominal chip period in rows, and the rows at each chip edge whose exposure sees both neighbours
-    (None: unknown exposure)."""
+    """
+    The nominal chip period in rows, and the rows at each chip edge whose exposure sees both neighbours
+    (None: unknown exposure).
+    """
     if not (chip_rate > 0.0 and row_time > 0.0):
         raise ValueError(f'chip_rate and row_time must be positive, got {chip_rate} and {row_time}')
     if not 1 <= id_bits <= 16:
@@ -184,8 +196,12 @@ def _chip_timing(chip_rate: float, row_time: float, id_bits: int,
 
 
 def _window(profile: RowProfile, period: float, id_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rows decoded: brightness relative to their mean, weights and clipped shares, the central
-    MAX_PACKETS packets at most."""
+    """
+    Return the rows decoded.
+
+    Brightness relative to their mean, weights and clipped shares, the central MAX_PACKETS
+    packets at most.
+    """
     # Only the mean level: a curve fitted through few chips bends with them, and the chip levels
     # follow the envelope locally anyway.
     z, w, _ = relative_brightness(profile)
@@ -197,8 +213,11 @@ def _window(profile: RowProfile, period: float, id_bits: int) -> tuple[np.ndarra
 def _packet_reading(grids: list[ChipLevels], model_error: float, id_bits: int, mixes: tuple[float, ...],
                     candidates: np.ndarray, mapped: np.ndarray, prior: np.ndarray,
                     min_confidence: float, clipped: bool) -> BeaconReading:
-    """The reading of the chips on ``grids`` under ``mixes``: the grid search's own (the first) and the ones
-    around it that fit well, equally likely a priori (their likelihoods are averaged).
+    """
+    Return the reading of the chips on ``grids`` under ``mixes``.
+
+    The grid search's own (the first) and the ones around it that fit well, equally likely a priori
+    (their likelihoods are averaged).
 
     The first grid must fit (more strictly where the window is ``clipped``: there the chips' levels are not
     linear in the light, so a misfit means the ceiling hid dark chips, and the fit then leans to IDs whose
@@ -228,7 +247,7 @@ def _packet_reading(grids: list[ChipLevels], model_error: float, id_bits: int, m
 
 
 def _central_rows(rows: float, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The window's ``arrays`` (one value per row) cut to their central ``rows`` when they hold more."""
+    """Return the window's ``arrays`` (one value per row) cut to their central ``rows`` when they hold more."""
     excess = len(arrays[0]) - math.ceil(rows)
     if excess <= 0:
         return arrays
@@ -262,7 +281,8 @@ def _hypotheses(id_bits: int, known_ids: tuple[int, ...] | None,
 
 def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: int,
                         mixes: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, float]:
-    """Log-likelihood of each ID (the window's start in the packet and the blur's mix marginalised), and the
+    """
+    Log-likelihood of each ID (the window's start in the packet and the blur's mix marginalised), and the
     best fit's weighted squared residual.
 
     Chip k of the window is packet position (k + shift) % L; its level is a
@@ -292,8 +312,11 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
 
 
 def _template_energy(by_weight: np.ndarray, mix: float, id_bits: int, total: float) -> np.ndarray:
-    """sum(v t^2) of every (shift, ID)'s template t_k = s_k + mix (s_k-1 + s_k+1), (L, ids) float32;
-    ``by_weight`` (L, L) holds the weights v summed by packet position for each shift."""
+    """
+    sum(v t^2) of every (shift, ID)'s template t_k = s_k + mix (s_k-1 + s_k+1), (L, ids) float32.
+
+    ``by_weight`` (L, L) holds the weights v summed by packet position for each shift.
+    """
     length = by_weight.shape[0]
     if mix == 0.0:
         return np.full((length, 2 ** id_bits), total, dtype=np.float32)
@@ -308,8 +331,10 @@ def _template_energy(by_weight: np.ndarray, mix: float, id_bits: int, total: flo
 @kernel
 def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.ndarray,
                   mix: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """What each hypothesis's fit needs, factored by bit: (4 L, 2 + id_bits) float32, row f L + shift;
-    the baseline's weighted squared residual; and the weights v summed by packet position for each
+    """
+    Return what each hypothesis's fit needs, factored by bit: (4 L, 2 + id_bits) float32, row f L + shift.
+
+    The baseline's weighted squared residual; and the weights v summed by packet position for each
     shift (L, L).
 
     With ``mix``, chip j's template also holds mix times its neighbours' signs: what it puts on its own
@@ -371,7 +396,8 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
 
 @kernel
 def _half_gains(sums: np.ndarray, energy: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
+    """
+    Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
     ID's best (float32 arithmetic, like the sums).
 
     With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
@@ -393,8 +419,10 @@ def _half_gains(sums: np.ndarray, energy: np.ndarray, length: int) -> tuple[np.n
 
 @kernel
 def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v`` (Gram-Schmidt,
-    written out through the weighted moments of t), (3, n)."""
+    """
+    1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v`` (Gram-Schmidt,
+    written out through the weighted moments of t), (3, n).
+    """
     n = len(k)
     middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
     t = np.empty(n)

@@ -1,4 +1,5 @@
-"""A lamp's brightness row by row: what a rolling shutter turns the beacon's light into.
+"""
+A lamp's brightness row by row: what a rolling shutter turns the beacon's light into.
 
 Every row of the sensor starts exposing ``row_time`` after the one above, so the
 mean over a row's lamp pixels samples the beacon's light at that row's time. The
@@ -7,9 +8,9 @@ the disc, so both are left out; rows that keep fewer pixels are weighted less.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import lru_cache
+import math
 
 import cv2
 import numpy as np
@@ -19,7 +20,8 @@ from vlp_ros.core.observation import LampObservation
 
 @dataclass(frozen=True)
 class RowProfile:
-    """Mean brightness of one lamp's usable pixels, one value per frame row.
+    """
+    Mean brightness of one lamp's usable pixels, one value per frame row.
 
     ``values[i]`` belongs to frame row ``first_row + i``; ``weights[i]`` is the number of
     pixels averaged (0: none usable, value meaningless; never negative: the decoders refuse
@@ -39,7 +41,8 @@ class RowProfile:
 
 def row_profile(image: np.ndarray, observation: LampObservation, edge_margin: int = 2,
                 marker_margin: int = 2, ceiling: float | None = None) -> RowProfile:
-    """Per-row mean of the lamp's pixels in a mono or BGR ``image`` (the full frame).
+    """
+    Per-row mean of the lamp's pixels in a mono or BGR ``image`` (the full frame).
 
     Pixels within ``edge_margin`` px of the disc's edge and within ``marker_margin``
     px of the marker are dropped. The disc mask must be convex along rows (one run of
@@ -82,7 +85,7 @@ def _integer_ceiling(dtype: np.dtype) -> float:
 
 
 def _mask(mask: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:
-    """A bbox mask as uint8 0/1 (a view of a boolean one)."""
+    """Return a bbox mask as uint8 0/1 (a view of a boolean one)."""
     mask = np.asarray(mask)
     if mask.shape != shape:
         raise ValueError(f'{name} shape {mask.shape} does not match the bbox size {shape}')
@@ -93,8 +96,11 @@ def _mask(mask: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:
 def _row_means(luma: np.ndarray, peak: np.ndarray, disc: np.ndarray, marker: np.ndarray | None,
                marker_box: tuple[int, int, int, int], edge_margin: int, marker_margin: int,
                ceiling: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of the bbox: mean ``luma`` of the usable pixels, their count, and the share of them whose
-    brightest channel (``peak``; empty: none saturates) is at ``ceiling``.
+    """
+    Per row of the bbox.
+
+    Mean ``luma`` of the usable pixels, their count, and the share of them whose brightest channel
+    (``peak``; empty: none saturates) is at ``ceiling``.
 
     Usable: the disc shrunk by ``edge_margin`` (a square: pixels whose (2 m + 1)^2 neighbourhood lies in
     the disc and the bbox), minus the ``marker`` (x, y, width, height of its box) grown by
@@ -131,7 +137,8 @@ def _row_means(luma: np.ndarray, peak: np.ndarray, disc: np.ndarray, marker: np.
 
 @kernel
 def _usable(disc: np.ndarray, margin: int) -> np.ndarray:
-    """Each row's span [start, end) of the disc shrunk by ``margin`` (pixels whose (2 margin + 1)^2 square
+    """
+    Each row's span [start, end) of the disc shrunk by ``margin`` (pixels whose (2 margin + 1)^2 square
     lies wholly in the disc and the bbox), (height, 2).
 
     The disc is convex: one run of pixels per row (a row whose pixels are not one run raises).
@@ -177,9 +184,11 @@ def _near(mask: np.ndarray, y: int, x: int, radius: int) -> bool:
 
 
 def relative_brightness(profile: RowProfile) -> tuple[np.ndarray, np.ndarray, int]:
-    """The rows from the first usable one (weight > 0) to the last: each one's brightness relative to
-    their weighted mean, minus 1, and its weight (0: unusable, its value meaningless); and how many are
-    usable. Empty when none is. Negative weights raise ValueError.
+    """
+    Return the rows from the first usable one (weight > 0) to the last.
+
+    Each one's brightness relative to their weighted mean, minus 1, and its weight (0: unusable, its
+    value meaningless); and how many are usable. Empty when none is. Negative weights raise ValueError.
 
     The slow envelope (vignetting, the disc's falloff, the rows' chords) stays in: each decoder
     takes it out with what it knows of its light (packet mode against each chip's neighbours, tone
@@ -220,7 +229,8 @@ _CLIPPED = 0.97
 
 def light_profile(image: np.ndarray, observation: LampObservation, marker_margin: int = 2,
                   ceiling: float | None = None, reach: float = LIGHT_REACH) -> RowProfile:
-    """The lamp's brightness per row from every pixel its light reaches, glow and glare included.
+    """
+    Return the lamp's brightness per row from every pixel its light reaches, glow and glare included.
 
     A lamp lights its pixels as ``background + light(rho) x brightness(row)``: the disc,
     its diffuser's falloff and the glare halo around it make one radial shape ``light``
@@ -265,7 +275,8 @@ def light_profile(image: np.ndarray, observation: LampObservation, marker_margin
 def _separable_light(pixels: np.ndarray, y0: int, y1: int, x0: int, x1: int, stride: int, cx: float, cy: float,
                      a: float, b: float, theta: float, reach: float, marker: np.ndarray, origin: tuple[int, int],
                      marker_margin: int, clipped: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """light_profile's fit: per row of [y0, y1), the brightness, the weight and the clipped share.
+    """
+    light_profile's fit: per row of [y0, y1), the brightness, the weight and the clipped share.
 
     One pass sums the pixels per (row, radial bin), unclipped ones apart; the fits work on those sums.
     """
@@ -342,9 +353,11 @@ def _separable_light(pixels: np.ndarray, y0: int, y1: int, x0: int, x1: int, str
 @kernel
 def _fit_light(total: np.ndarray, count: np.ndarray, use: np.ndarray, brightness: np.ndarray,
                measured: np.ndarray) -> np.ndarray:
-    """Each radial bin's light given the rows' brightness (least squares over the unclipped pixels of the
+    """
+    Each radial bin's light given the rows' brightness (least squares over the unclipped pixels of the
     bins in ``use`` and the rows ``measured`` > 0); bins dimmer than _MIN_LIGHT of the brightest are
-    background (0). Every bin's sums run over the rows in order, all bins at once (a row is contiguous)."""
+    background (0). Every bin's sums run over the rows in order, all bins at once (a row is contiguous).
+    """
     rows, bins = total.shape
     top, bottom = np.zeros(bins), np.zeros(bins)
     for r in range(rows):
@@ -366,8 +379,11 @@ def _fit_light(total: np.ndarray, count: np.ndarray, use: np.ndarray, brightness
 
 @kernel
 def _fit_rows(total_by_bin: np.ndarray, count_by_bin: np.ndarray, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's brightness given the light's shape, and sum(light^2) over its unclipped pixels: the sums
-    (bins, rows) run over the bins in order, all rows at once."""
+    """
+    Each row's brightness given the light's shape, and sum(light^2) over its unclipped pixels.
+
+    The sums (bins, rows) run over the bins in order, all rows at once.
+    """
     bins, rows = total_by_bin.shape
     top, weights = np.zeros(rows), np.zeros(rows)
     for k in range(bins):

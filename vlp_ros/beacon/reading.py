@@ -1,8 +1,8 @@
 """What decoding one lamp yields: evidence over candidate IDs, and a decision that prefers None to a guess."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -17,7 +17,8 @@ MIN_CONFIDENCE = 0.9999
 
 @dataclass(frozen=True)
 class BeaconReading:
-    """One lamp in one frame.
+    """
+    One lamp in one frame.
 
     ``candidates`` are the IDs the data were weighed against (``UNMAPPED`` for "none
     of the map's lamps"), ``log_likelihoods`` the evidence for each (any additive
@@ -61,7 +62,7 @@ def log_prior(mapped: np.ndarray, unmapped_weight: float) -> np.ndarray:
 
 def decide(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndarray,
            log_prior: np.ndarray, min_confidence: float) -> Decision:
-    """The most probable candidate if it is mapped and its posterior reaches ``min_confidence``."""
+    """Return the most probable candidate if it is mapped and its posterior reaches ``min_confidence``."""
     if not 0.0 < min_confidence < 1.0:
         raise ValueError(f'min_confidence must lie in (0, 1), got {min_confidence}')
     best, confidence = _most_probable(np.asarray(log_likelihoods, dtype=float), np.asarray(log_prior, dtype=float))
@@ -77,7 +78,7 @@ def decide(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndarr
 
 def reading(candidates: np.ndarray, mapped: np.ndarray, log_likelihoods: np.ndarray,
             log_prior: np.ndarray, min_confidence: float) -> BeaconReading:
-    """A reading with its decision made."""
+    """Return a reading with its decision made."""
     d = decide(candidates, mapped, log_likelihoods, log_prior, min_confidence)
     return BeaconReading(d.lamp_id, d.confidence, candidates, log_likelihoods, log_prior, mapped,
                          d.unknown, d.detail)
@@ -89,12 +90,12 @@ def has_evidence(reading: BeaconReading) -> bool:
 
 
 def no_evidence(candidates: np.ndarray, mapped: np.ndarray, log_prior: np.ndarray, detail: str) -> BeaconReading:
-    """A reading that adds nothing (flat likelihood), with why."""
+    """Return a reading that adds nothing (flat likelihood), with why."""
     return BeaconReading(None, 0.0, candidates, np.zeros(len(candidates)), log_prior, mapped, False, detail)
 
 
 def _most_probable(log_likelihoods: np.ndarray, log_prior: np.ndarray) -> tuple[int, float]:
-    """The most probable candidate and its posterior probability; -1 if none has a finite posterior."""
+    """Return the most probable candidate and its posterior probability; -1 if none has a finite posterior."""
     log_post = log_likelihoods + log_prior
     best = int(np.argmax(log_post))
     if np.isnan(log_post).any() or not math.isfinite(log_post[best]):

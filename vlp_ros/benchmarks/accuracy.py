@@ -1,4 +1,8 @@
-"""Pose accuracy in simulation: python -m vlp_ros.benchmarks.accuracy [--quick] [--seed S] [--frames N] [--only TEXT] [--drive-speed V] [--drive-turn-rate W] [--figures DIR].
+"""
+Pose accuracy in simulation.
+
+Python -m vlp_ros.benchmarks.accuracy [--quick] [--seed S] [--frames N] [--only TEXT] [--drive-speed V]
+[--drive-turn-rate W] [--figures DIR].
 
 The seed paper's experiment reproduced in this process (no ROS, no bags): every
 frame is rendered by the frame simulator and run through ``Pipeline.process``
@@ -28,29 +32,29 @@ view, and why the rest had none), wrong fixes, mean NEES and poses beyond their
 from __future__ import annotations
 
 import argparse
-import sys
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+import sys
 
 import numpy as np
 from scipy.stats import chi2
 
+from vlp_ros.core.gravity import GravityBuffer
 from vlp_ros.detection import detect_lamps
 from vlp_ros.evaluation.evaluate import grid_point
-from vlp_ros.evaluation.metrics import (TABLE_HEADER, WRONG_FIX_M, ErrorSummary, FrameOutcome, format_table,
-                                        nees_or_nan, summarize, summary_row)
-from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
-from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.evaluation.metrics import (ErrorSummary, format_table, FrameOutcome, nees_or_nan, summarize, summary_row,
+                                        TABLE_HEADER, WRONG_FIX_M)
+from vlp_ros.evaluation.progress import progress_bar
+from vlp_ros.evaluation.report import Evaluation, PAPER_PUBLISHED_MEAN_M, write_report
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import FrameResult, Pipeline
-from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import LampTruth, RenderedFrame
-from vlp_ros.sim.scenarios import (DRIVE_SPEED, DRIVE_TURN_RATE, Scenario, as_stills, paper_scenario,
-                                   robot_drive_scenario, robot_scenario, robot_tone_scenario, with_rim_markers)
+from vlp_ros.sim.scenarios import (as_stills, DRIVE_SPEED, DRIVE_TURN_RATE, paper_scenario, robot_drive_scenario,
+                                   robot_scenario, robot_tone_scenario, Scenario, with_rim_markers)
 
 SOLVERS = ('paper', 'perspective')
 HEIGHTS = (2.0, 1.5)
@@ -70,8 +74,12 @@ BAD_CENTRE_PX = 5.0
 
 @dataclass(frozen=True)
 class Setup:
-    """One simulated recording; ``number`` picks its random streams; ``targets`` name the
-    targets of issues 13 and 14 that apply to it (``ISSUE_TARGETS``), none for today's setups."""
+    """
+    One simulated recording; ``number`` picks its random streams.
+
+    ``targets`` name the targets of issues 13 and 14 that apply to it (``ISSUE_TARGETS``),
+    none for today's setups.
+    """
 
     family: str
     group: str
@@ -116,7 +124,9 @@ class Drive:
 
 
 def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -> list[Setup]:
-    """The paper's grid at both heights with both cameras, the robot's drive, then the looks and issue-13 cases."""
+    """
+    The paper's grid at both heights with both cameras, the robot's drive, then the looks and issue-13 cases.
+    """
     points, postures = (3, 1) if quick else (7, 3)
     made = []
     for family, kind in (('paper 4K', '4k'), ('paper 1080p', '1080p')):
@@ -133,7 +143,7 @@ def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -
 
 
 def look_setups(quick: bool, seed: int, drive: Drive = Drive()) -> list[Setup]:
-    """The looks of issue 14 and the cases of issue 13, each through the perspective solver only."""
+    """Return the looks of issue 14 and the cases of issue 13, each through the perspective solver only."""
     points, postures = (3, 1) if quick else (5, 2)
     paper = paper_scenario('4k', height=2.0, points=points, postures=postures, seed=seed)
     marginal = with_rim_markers(paper, 0.9, 0.1)
@@ -191,9 +201,12 @@ def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = 
 
 def diagnose(frame: RenderedFrame, image: np.ndarray, mapped: list[LampTruth], result: FrameResult,
              up: np.ndarray | None) -> tuple[str, str]:
-    """Which stage a wrong fix came from, and the evidence: the decoded IDs against the mapped lamps
-    in view, the detected ellipses and markers (in ``image``, as the locator got it) against their
-    true images, the fix against gravity."""
+    """
+    Which stage a wrong fix came from, and the evidence.
+
+    The decoded IDs against the mapped lamps in view, the detected ellipses and markers (in
+    ``image``, as the locator got it) against their true images, the fix against gravity.
+    """
     in_view = sorted(t.lamp_id for t in mapped if t.visible)
     findings = [f'decoded {sorted(result.decoded_ids)}, in view {in_view}']
     stages = []
@@ -227,7 +240,7 @@ def row_label(setup: Setup, solver: str) -> str:
 
 
 def results_table(runs: list[tuple[Setup, SetupRun]]) -> tuple[str, dict[str, ErrorSummary]]:
-    """The table of every setup x solver, and the summaries by row label."""
+    """Return the table of every setup x solver, and the summaries by row label."""
     rows, summaries = [], {}
     for setup, run in runs:
         for solver in setup.solvers:
@@ -272,12 +285,15 @@ def targets_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str, Error
 
 @dataclass
 class Availability:
-    """How often a row answered where it could: ``in_view`` frames show a mapped lamp fully,
-    ``posed`` of them got a pose (``elsewhere``: poses on the other frames); ``reasons`` why
-    the rest got none; ``gaps`` spans without such a lamp that the recording resumes after (for
-    FRAMES_AFTER_GAP frames with a lamp, or fewer with a pose), ``recovered`` of them with a pose
-    within FRAMES_AFTER_GAP frames with a lamp;
-    ``beyond_bound``: poses whose NEES is outside the 99.9 % chi-square bound."""
+    """
+    How often a row answered where it could.
+
+    ``in_view`` frames show a mapped lamp fully, ``posed`` of them got a pose (``elsewhere``:
+    poses on the other frames); ``reasons`` why the rest got none; ``gaps`` spans without such a
+    lamp that the recording resumes after (for FRAMES_AFTER_GAP frames with a lamp, or fewer with
+    a pose), ``recovered`` of them with a pose within FRAMES_AFTER_GAP frames with a lamp;
+    ``beyond_bound``: poses whose NEES is outside the 99.9 % chi-square bound.
+    """
 
     frames: int
     in_view: int
@@ -336,8 +352,11 @@ def _shown(value: float, unit: str = '') -> str:
 
 
 def _issue_targets(kind: str, a: Availability, s: ErrorSummary) -> list[tuple[str, str, str, bool]]:
-    """What a target kind of issues 13 and 14 asks of a row: (issue, target, measured, met) each.
-    A row without poses meets no target but 'wrong fixes = 0'."""
+    """
+    Return what a target kind of issues 13 and 14 asks of a row: (issue, target, measured, met) each.
+
+    A row without poses meets no target but 'wrong fixes = 0'.
+    """
     available = ('pose on >= 90 % of frames with a lamp in view', _shown(100 * a.rate, ' %'), a.rate >= 0.9)
     wrong = ('wrong fixes = 0', str(s.wrong_fixes), s.wrong_fixes == 0)
     nees_range = ('mean NEES in [4, 8]', _shown(s.mean_nees), 4.0 <= s.mean_nees <= 8.0)
@@ -358,7 +377,7 @@ def _issue_targets(kind: str, a: Availability, s: ErrorSummary) -> list[tuple[st
 
 
 def issue_targets_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str, ErrorSummary]) -> str:
-    """The targets of issues 13 and 14 next to what this run measured (no poses never meets one)."""
+    """Return the targets of issues 13 and 14 next to what this run measured (no poses never meets one)."""
     rows = []
     for setup, run in runs:
         for kind in setup.targets:
@@ -415,7 +434,7 @@ def write_figures(runs: list[tuple[Setup, SetupRun]], folder: Path) -> list[Path
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.accuracy', description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.accuracy', description=__doc__.strip().splitlines()[0])
     parser.add_argument('--quick', action='store_true',
                         help='3 x 3 grid, one posture, 3 s of robot row, 7 s of drive, 12 tone stills')
     parser.add_argument('--only', action='append', default=None, metavar='TEXT',
@@ -425,7 +444,7 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--examples', type=int, default=3, help='wrong fixes shown in full per row')
     parser.add_argument('--figures', type=Path, default=None, help='write paper-style figures into this folder')
     parser.add_argument('--drive-speed', type=float, default=Drive.speed, metavar='V',
-                        help=f'm/s of the drive rows\' robot (default {Drive.speed:g}, issue 13)')
+                        help=f"m/s of the drive rows' robot (default {Drive.speed:g}, issue 13)")
     parser.add_argument('--drive-turn-rate', type=float, default=Drive.turn_rate, metavar='W',
                         help=f'largest heading rate (rad/s) of its weave (default {Drive.turn_rate:g})')
     args = parser.parse_args(argv)

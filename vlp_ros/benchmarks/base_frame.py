@@ -1,4 +1,5 @@
-"""The robot base's pose: python -m vlp_ros.benchmarks.base_frame [--frames N] [--first K] [--seed S].
+"""
+The robot base's pose: python -m vlp_ros.benchmarks.base_frame [--frames N] [--first K] [--seed S].
 
 The robot scenario's drive with its camera mounted as robots carry it: ahead of and
 beside base_link and pitched toward the front (``MOUNTING``; prior.up_in_camera is
@@ -16,13 +17,13 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
 from vlp_ros.core.mounting import Mounting
+from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.metrics import format_table, FrameOutcome, summarize, summary_row
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
-from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import render_frame
-from vlp_ros.sim.scenarios import ROBOT_CAMERA_MOUNT, Scenario, robot_scenario
+from vlp_ros.sim.scenarios import ROBOT_CAMERA_MOUNT, robot_scenario, Scenario
 
 # 30 cm ahead of base_link, 10 cm to its right, 45 cm up, pitched 15 deg toward the front.
 MOUNTING = Mounting(Rotation.from_euler('y', 15.0, degrees=True).as_matrix() @ ROBOT_CAMERA_MOUNT,
@@ -32,8 +33,10 @@ _SCENARIO_MOUNTING = Mounting(ROBOT_CAMERA_MOUNT, np.array([0.0, 0.0, 0.45]))
 
 
 def mounted_robot_scenario(mounting: Mounting, first: int, frames: int, seed: int) -> tuple[Scenario, list[Pose]]:
-    """Frames ``first`` to ``first + frames`` of the robot scenario's drive, the camera mounted by
-    ``mounting`` on the same base path; (scenario, true base poses)."""
+    """
+    Frames ``first`` to ``first + frames`` of the robot scenario's drive, the camera mounted by
+    ``mounting`` on the same base path; (scenario, true base poses).
+    """
     scenario = robot_scenario(seed=seed)
     bases = [_SCENARIO_MOUNTING.base_pose(pose) for pose in scenario.poses[first:first + frames]]
     if len(bases) < frames:
@@ -66,7 +69,7 @@ def run(frames: int, first: int, seed: int) -> list[list[str]]:
 
 def drive_arguments(prog: str, doc: str, argv: list[str] | None) -> argparse.Namespace:
     """--frames, --first and --seed of a benchmark over part of the robot drive."""
-    parser = argparse.ArgumentParser(prog=f'python -m {prog}', description=doc.split('\n')[0])
+    parser = argparse.ArgumentParser(prog=f'python -m {prog}', description=doc.strip().splitlines()[0])
     parser.add_argument('--frames', type=int, default=240, help='frames of the drive')
     parser.add_argument('--first', type=int, default=0, help='first frame of the drive')
     parser.add_argument('--seed', type=int, default=1)

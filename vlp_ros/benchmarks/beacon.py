@@ -1,4 +1,5 @@
-"""Beacon decoding on simulated lamps: python -m vlp_ros.benchmarks.beacon [--trials N] [--seed S].
+"""
+Beacon decoding on simulated lamps: python -m vlp_ros.benchmarks.beacon [--trials N] [--seed S].
 
 Every trial renders one lamp with the frame simulator (vlp_ros.sim: exact disc,
 rolling shutter, blur, shot and read noise, saturation, bgr8; one tone row
@@ -23,28 +24,28 @@ same run as reference.
 from __future__ import annotations
 
 import argparse
-import itertools
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+import itertools
+import time
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vlp_ros.beacon.decoding import BeaconReading, decode_glow, decode_packet, decode_tone, read_lamp, row_profile
 from vlp_ros.beacon.camera_settings import MIN_ROWS_PER_PERIOD, MIN_TRANSMISSION
+from vlp_ros.beacon.decoding import BeaconReading, decode_glow, decode_packet, decode_tone, read_lamp, row_profile
 from vlp_ros.beacon.encoding import packet_chips, packet_length, packet_waveform, tone_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.profile import RowProfile
-from vlp_ros.beacon.reading import MIN_CONFIDENCE, UNMAPPED_WEIGHT, decide, log_prior
+from vlp_ros.beacon.reading import decide, log_prior, MIN_CONFIDENCE, UNMAPPED_WEIGHT
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
-from vlp_ros.sim.looks import LOOKS, STEADY, Look
-from vlp_ros.sim.render import RenderedFrame, SimLamp, lamp_roi, render_frame
-from vlp_ros.sim.sensor import SensorModel, encode_jpeg
+from vlp_ros.sim.looks import Look, LOOKS, STEADY
+from vlp_ros.sim.render import lamp_roi, render_frame, RenderedFrame, SimLamp
+from vlp_ros.sim.sensor import encode_jpeg, SensorModel
 
 CAMERA = CameraModel.from_horizontal_fov(2048, 2048, np.radians(60.0))
 RADIUS = 0.1
@@ -65,7 +66,10 @@ FRAME_PERIOD = 1.0 / 30.0
 
 @dataclass(frozen=True)
 class Condition:
-    """Ranges a trial draws from (uniformly). ``span``: usable packets, or stripe periods for tone mode.
+    """
+    Ranges a trial draws from (uniformly).
+
+    ``span``: usable packets, or stripe periods for tone mode.
 
     ``exposure``: as a fraction of the chip (packet mode) or in seconds (tone mode).
     """
@@ -135,8 +139,12 @@ class Scene:
 
 @dataclass
 class Timer:
-    """Seconds per lamp: the first read right after rendering (caches cold, as for a frame's first lamp
-    after detection), the same read repeated at once (warm, as for the frame's further lamps)."""
+    """
+    Seconds per lamp.
+
+    The first read right after rendering (caches cold, as for a frame's first lamp after detection),
+    the same read repeated at once (warm, as for the frame's further lamps).
+    """
 
     read: list[float] = field(default_factory=list)
     copy: list[float] = field(default_factory=list)
@@ -200,7 +208,7 @@ def observe(scene: Scene, rng: np.random.Generator) -> tuple[RenderedFrame, Lamp
 def timed_read(frame: RenderedFrame, observation: LampObservation, decode: Callable,
                timer: Timer, glow: bool = True,
                decode_glow: Callable | None = None) -> tuple[RowProfile, BeaconReading]:
-    """The pipeline's reading of one lamp, timed; and the disc's row profile (the rows it samples)."""
+    """Return the pipeline's reading of one lamp, timed; and the disc's row profile (the rows it samples)."""
     x0, y0, x1, y1 = observation.bbox
     start = time.perf_counter()
     frame.image[y0:y1, x0:x1].copy()
@@ -233,7 +241,9 @@ def packet_trial(rng: np.random.Generator, condition: Condition, tally: Tally, t
 
 def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
                  unmapped_weight: float = UNMAPPED_WEIGHT) -> tuple[Scene, Callable, Callable]:
-    """A lamp's scene, and the pipeline's decoders of its disc (sharp chips) and of its light (blur weighed in)."""
+    """
+    A lamp's scene, and the pipeline's decoders of its disc (sharp chips) and of its light (blur weighed in).
+    """
     row_time = rng.uniform(7e-6, 35e-6)
     rows_per_chip = rng.uniform(*condition.rows_per_chip)
     chip_rate = 1.0 / (row_time * rows_per_chip)
@@ -290,9 +300,13 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
 
 @dataclass
 class TrackLog:
-    """Per track of a lamp in the map: frames until the tracker was certain, and until a noiseless
-    decoder could be, with chips counted when at least half of them, or any part, is in view
-    (``TRACK_FRAMES + 1``, or more, for never)."""
+    """
+    Per track of a lamp in the map.
+
+    Frames until the tracker was certain, and until a noiseless decoder could be, with chips
+    counted when at least half of them, or any part, is in view (``TRACK_FRAMES + 1``, or more,
+    for never).
+    """
 
     tracker: list[int] = field(default_factory=list)
     bound_half: list[int] = field(default_factory=list)
@@ -301,8 +315,11 @@ class TrackLog:
 
 def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, log: TrackLog, timer: Timer,
                 unmapped_weight: float, max_frames: int = 10) -> None:
-    """Follow one lamp over frames until its ID is certain and ``TRACK_FRAMES`` frames are seen (or
-    ``max_frames``). A trusted map (``unmapped_weight`` 0) sees only mapped lamps."""
+    """
+    Follow one lamp over frames until its ID is certain and ``TRACK_FRAMES`` frames are seen (or ``max_frames``).
+
+    A trusted map (``unmapped_weight`` 0) sees only mapped lamps.
+    """
     share = UNMAPPED_SHARE if unmapped_weight > 0.0 else 0.0
     lamp_id, mapped = draw_id(rng, MAP_IDS, list(range(2 ** ID_BITS)), share)
     scene, decode, decode_glow = packet_setup(rng, condition, lamp_id, unmapped_weight)
@@ -331,8 +348,10 @@ def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, lo
 
 
 def sampled_chips(scene: Scene, frame: RenderedFrame, profile: RowProfile) -> tuple[float, float]:
-    """The stretch [a, b) of packet chips (a in [0, L)) that the profile's rows sample, each row one
-    row time around the middle of its exposure."""
+    """
+    The stretch [a, b) of packet chips (a in [0, L)) that the profile's rows sample, each row one
+    row time around the middle of its exposure.
+    """
     sensor, waveform = scene.sensor, scene.sim.waveform
     used = np.flatnonzero(profile.weights > 0)
     start = (frame.start_time + (profile.first_row + used[0] - 0.5) * sensor.row_time + 0.5 * sensor.exposure
@@ -341,7 +360,8 @@ def sampled_chips(scene: Scene, frame: RenderedFrame, profile: RowProfile) -> tu
 
 
 def ideal_frames(lamp_id: int, windows: list[tuple[float, float]], unmapped_weight: float, need: float) -> int:
-    """Frames after which a noiseless decoder is certain of ``lamp_id`` (``len(windows) + 1``: never).
+    """
+    Frames after which a noiseless decoder is certain of ``lamp_id`` (``len(windows) + 1``: never).
 
     It reads exactly every chip of which at least ``need`` (0: any part) lies in a frame's window,
     but, as the decoder, not where in the packet the window lies: each frame weighs every ID by
@@ -378,7 +398,7 @@ PACKET_TABLES: list[tuple[str, list[tuple[str, Condition]]]] = [
 
 
 def look_rows(base: Condition) -> list[tuple[str, Condition]]:
-    """The simulator's looks of real lamps and cameras (vlp_ros.sim.looks), and a steady lamp for clutter."""
+    """Return the simulator's looks of real lamps and cameras (vlp_ros.sim.looks), and a steady lamp for clutter."""
     rows = [(name, replace(base, look=look)) for name, look in LOOKS.items() if name != 'clutter']
     return rows + [('clutter (steady lamp)', replace(base, steady=True))]
 
@@ -434,7 +454,7 @@ def base_rate(rng: np.random.Generator, condition: Condition, trial: Callable, t
 
 
 def report_time(title: str, timer: Timer) -> float:
-    """Prints the medians per lamp; returns the reading's (profiles and decoding, ms)."""
+    """Print the medians per lamp; returns the reading's (profiles and decoding, ms)."""
     copy, read, repeated = (np.median(v) * 1e3 for v in (timer.copy, timer.read, timer.repeated))
     print(f'{title}: median per lamp: read (profiles + decode) {read:.3f} ms, ROI copy {copy:.4f} ms '
           f'(read / copy {read / copy:.0f}); repeated at once (warm): {repeated:.3f} ms')
@@ -443,8 +463,10 @@ def report_time(title: str, timer: Timer) -> float:
 
 def track_checks(name: str, results: dict[tuple[float, float, float], tuple[float, float, float]],
                  weight: float) -> list[tuple[str, bool]]:
-    """The tracker against the issue's 99 % over spans of at least half a packet, and at exactly half a
-    packet (where the frames' coverage alone leaves less than 99 %) against what that coverage allows."""
+    """
+    The tracker against the issue's 99 % over spans of at least half a packet, and at exactly half a
+    packet (where the frames' coverage alone leaves less than 99 %) against what that coverage allows.
+    """
     lo, hi = TRACK_TARGET
     within, half, any_part = results[(lo, hi, weight)]
     worst, worst_half, worst_any = results[(0.5, 0.5, weight)]
@@ -456,7 +478,7 @@ def track_checks(name: str, results: dict[tuple[float, float, float], tuple[floa
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--trials', type=int, default=10500,
                         help='single-frame trials per mode (default 10500: over 10 000 once lamps cut by the ROI '
                              'drop out)')

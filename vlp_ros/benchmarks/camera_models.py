@@ -1,5 +1,7 @@
-"""The robot's pose with the lens models robot cameras are calibrated with:
-python -m vlp_ros.benchmarks.camera_models [--frames N] [--first K] [--seed S].
+"""
+The robot's pose with the lens models robot cameras are calibrated with.
+
+Python -m vlp_ros.benchmarks.camera_models [--frames N] [--first K] [--seed S].
 
 The robot scenario's drive (1080p, 100 deg HFOV, looking up) seen through its own
 plumb_bob camera, a rational_polynomial wide-angle lens and an equidistant fisheye, each
@@ -14,12 +16,12 @@ from dataclasses import replace
 import numpy as np
 
 from vlp_ros.benchmarks.base_frame import drive_arguments
-from vlp_ros.core.camera import EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL, CameraModel
-from vlp_ros.evaluation.metrics import FrameOutcome, format_table, summarize, summary_row
+from vlp_ros.core.camera import CameraModel, EQUIDISTANT, PLUMB_BOB, RATIONAL_POLYNOMIAL
+from vlp_ros.evaluation.metrics import format_table, FrameOutcome, summarize, summary_row
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
-from vlp_ros.sim.scenarios import Scenario, robot_scenario
+from vlp_ros.sim.scenarios import robot_scenario, Scenario
 
 HFOV_DEG = 100.0
 # A wide-angle lens as OpenCV's rational model calibrates it (k1 k2 p1 p2 k3 k4 k5 k6): 27 %
@@ -40,14 +42,14 @@ def wide_camera(model: str, D: np.ndarray, width: int = 1920, height: int = 1080
 
 
 def robot_cameras() -> dict[str, CameraModel]:
-    """The robot scenario's plumb_bob camera and the two wide models, by distortion model."""
+    """Return the robot scenario's plumb_bob camera and the two wide models, by distortion model."""
     return {PLUMB_BOB: robot_scenario().camera,
             RATIONAL_POLYNOMIAL: wide_camera(RATIONAL_POLYNOMIAL, RATIONAL_D),
             EQUIDISTANT: wide_camera(EQUIDISTANT, EQUIDISTANT_D)}
 
 
 def robot_scenario_with(camera: CameraModel, seed: int) -> Scenario:
-    """The robot scenario's drive, lamps and beacon, seen through ``camera``."""
+    """Return the robot scenario's drive, lamps and beacon, seen through ``camera``."""
     return replace(robot_scenario(seed=seed), camera=camera)
 
 

@@ -1,4 +1,7 @@
-"""Covariance honesty on rendered frames: python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S] [--look NAME ...] [--ids-from-truth].
+"""
+Covariance honesty on rendered frames.
+
+Python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S] [--look NAME ...] [--ids-from-truth].
 
 Whether the published pose covariance is honest, and which measurement makes it
 not. Setups: the seed paper's grid with a 4K camera and the lamp 2 m and 1.5 m up
@@ -27,18 +30,18 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.detection import detect_lamps
 from vlp_ros.core.ellipse import geometric_distances
-from vlp_ros.evaluation.metrics import format_table, nees_or_nan
 from vlp_ros.core.lamp_map import Lamp
-from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree
 from vlp_ros.core.observation import LampObservation
-from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.core.pose import Pose
+from vlp_ros.detection import detect_lamps
+from vlp_ros.evaluation.metrics import format_table, nees_or_nan
+from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree
+from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import LampTruth
-from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario
+from vlp_ros.sim.scenarios import paper_scenario, robot_scenario, Scenario
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
@@ -107,7 +110,7 @@ def tally_pose(tally: Tally, estimate: Pose, truth: Pose) -> None:
 
 
 def up_measurements(settings: LocatorSettings, gravity_up: np.ndarray | None) -> list[UpMeasurement]:
-    """The up directions the pipeline fits with: the mount prior and gravity, where they have a sigma."""
+    """Return the up directions the pipeline fits with: the mount prior and gravity, where they have a sigma."""
     up = []
     if settings.prior_up is not None and settings.prior_sigma:
         up.append(UpMeasurement(settings.prior_up, settings.prior_sigma))
@@ -118,8 +121,12 @@ def up_measurements(settings: LocatorSettings, gravity_up: np.ndarray | None) ->
 
 def run_setup(scenario: Scenario, settings: LocatorSettings, imu: bool, seed: int, number: int,
               ids_from_truth: bool = False) -> Tally:
-    """One setup's tally; ``ids_from_truth`` solves the lamps matched to the truth (the solver's
-    honesty whatever the beacon reads) instead of the pipeline's own identification."""
+    """
+    One setup's tally.
+
+    ``ids_from_truth`` solves the lamps matched to the truth (the solver's honesty whatever
+    the beacon reads) instead of the pipeline's own identification.
+    """
     pipeline = Pipeline(settings)
     lamps = {sim.lamp.id: sim.lamp for sim in scenario.lamps}
     tally = Tally()
@@ -170,7 +177,7 @@ def tables(results: list[tuple[str, Tally]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.covariance_honesty',
-                                     description=__doc__.splitlines()[0])
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--seed', type=int, default=2017)
     parser.add_argument('--frames', type=int, default=None, help='at most this many frames per setup')
     parser.add_argument('--imu-sigma', type=float, default=None,

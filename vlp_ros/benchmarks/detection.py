@@ -1,4 +1,5 @@
-"""Detection accuracy and speed: python -m vlp_ros.benchmarks.detection [--frames N] [--repeats N].
+"""
+Detection accuracy and speed: python -m vlp_ros.benchmarks.detection [--frames N] [--repeats N].
 
 Renders the paper scenario's photos (one lamp, hand-held postures) at 1080p and
 4K, in colour and saturated, and in the simulator's looks of real lamps and cameras
@@ -16,10 +17,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from vlp_ros.detection import detect_lamps
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
-from vlp_ros.sim.scenarios import paper_scenario
 from vlp_ros.benchmarks.timing import median_seconds
+from vlp_ros.detection import detect_lamps
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
+from vlp_ros.sim.scenarios import paper_scenario
 
 
 LOOKS_SHOWN = ('blur', 'glare', 'falloff', 'saturated', 'jpeg', 'realistic', 'realistic_jpeg')
@@ -76,7 +77,7 @@ def _stats(values: list[np.ndarray]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.detection',
-                                     description=__doc__.splitlines()[0])
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--frames', type=int, default=16, help='photos per case')
     parser.add_argument('--repeats', type=int, default=5, help='timed detections per photo')
     parser.add_argument('--seed', type=int, default=1)

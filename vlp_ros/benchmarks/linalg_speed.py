@@ -1,4 +1,5 @@
-"""Time the shared small linear algebra (``vlp_ros.compiled.linalg``) against numba's own np.linalg.
+"""
+Time the shared small linear algebra (``vlp_ros.compiled.linalg``) against numba's own np.linalg.
 
 Each routine runs in a compiled loop on the sizes the kernels use (2x2 to 6x6), so the
 times are what a kernel pays per call. ``python -m vlp_ros.benchmarks.linalg_speed``.
@@ -65,7 +66,7 @@ def _numpy_pseudo_inverse_loop(matrix, repeats):
 
 
 def _microseconds(loop, *args, repeats: int = 20000, runs: int = 7) -> float:
-    """The median time (us) of one call in ``loop``."""
+    """Return the median time (us) of one call in ``loop``."""
     loop(*args, 10)
     times = []
     for _ in range(runs):

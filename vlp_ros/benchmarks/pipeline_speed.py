@@ -1,4 +1,7 @@
-"""Per-frame pipeline speed on one core: python -m vlp_ros.benchmarks.pipeline_speed [--poses N] [--repeats N] [--clock cpu].
+"""
+Per-frame pipeline speed on one core.
+
+Python -m vlp_ros.benchmarks.pipeline_speed [--poses N] [--repeats N] [--clock cpu].
 
 Times ``Pipeline.process`` (detection to pose, perspective solver, IMU gravity)
 on simulated 1080p and 4K frames, as the median time per frame and as a ratio to
@@ -31,20 +34,20 @@ if __name__ == '__main__':
         os.environ.setdefault(_variable, '1')
 
 import argparse  # noqa: E402
-import itertools  # noqa: E402
-import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
+import itertools  # noqa: E402
+import time  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vlp_ros.beacon.decoding import decode_packet, row_profile  # noqa: E402
+from vlp_ros.core.lamp_map import Lamp, LampMap  # noqa: E402
+from vlp_ros.core.observation import LampObservation  # noqa: E402
 from vlp_ros.detection import detect_lamps  # noqa: E402
 from vlp_ros.evaluation.metrics import format_table  # noqa: E402
-from vlp_ros.core.lamp_map import Lamp, LampMap  # noqa: E402
 from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree  # noqa: E402
-from vlp_ros.core.observation import LampObservation  # noqa: E402
 from vlp_ros.pipeline.frame import Pipeline  # noqa: E402
 from vlp_ros.sim.imu import specific_force  # noqa: E402
 from vlp_ros.sim.render import RenderedFrame, render_frame  # noqa: E402
@@ -84,7 +87,8 @@ def cases(poses: int, seed: int) -> list[Case]:
 
 def interleaved_times(runs: dict[str, Callable[[int], object]], repeats: int,
                       warmup: int = 1, clock: Callable[[], float] = time.perf_counter) -> dict[str, list[float]]:
-    """Seconds (of ``clock``) per call of each run, all runs taking turns within every repetition.
+    """
+    Seconds (of ``clock``) per call of each run, all runs taking turns within every repetition.
 
     Each run gets the repetition's number; the first ``warmup`` repetitions are not timed.
     """
@@ -99,7 +103,7 @@ def interleaved_times(runs: dict[str, Callable[[int], object]], repeats: int,
 
 
 def frame_hints(settings: LocatorSettings, up: np.ndarray) -> DisambiguationHints:
-    """The up hints the pipeline gives the solver: measured gravity and the mount prior, if any."""
+    """Return the up hints the pipeline gives the solver: measured gravity and the mount prior, if any."""
     hints = [UpHint(up, settings.imu_tolerance, settings.imu_sigma)]
     if settings.prior_up is not None:
         hints.append(UpHint(settings.prior_up, settings.prior_tolerance, settings.prior_sigma))
@@ -118,7 +122,8 @@ def true_pairs(frame: RenderedFrame, observations: list[LampObservation],
 
 def time_pose(case: Case, index: int, settings: LocatorSettings, repeats: int, rng: np.random.Generator,
               clock: Callable[[], float] = time.perf_counter) -> tuple[dict[str, list[float]], bool]:
-    """Stage times on a burst of frames from one camera pose of ``case``, and whether the pipeline reached a pose.
+    """
+    Stage times on a burst of frames from one camera pose of ``case``, and whether the pipeline reached a pose.
 
     The burst's frames follow each other at the frame rate, so the beacon shows a new
     packet phase in each, as in a static camera's video; repetition r uses frame r mod BURST.
@@ -155,7 +160,7 @@ def _ms(seconds: float) -> str:
 
 
 def case_row(case: Case, repeats: int, seed: int, clock: Callable[[], float] = time.perf_counter) -> list[str]:
-    """The table row of one case: medians over all its camera poses and repetitions."""
+    """Return the table row of one case: medians over all its camera poses and repetitions."""
     settings = settings_from_tree(case.scenario.locator_parameters(imu=True))
     rng = np.random.default_rng(seed)
     times: dict[str, list[float]] = {stage: [] for stage in STAGES}
@@ -173,7 +178,7 @@ def case_row(case: Case, repeats: int, seed: int, clock: Callable[[], float] = t
 
 
 def _against(seconds: float, target: float | None) -> list[str]:
-    """The target column and whether it is met ('-' for a case without a target)."""
+    """Return the target column and whether it is met ('-' for a case without a target)."""
     if target is None:
         return ['-', '-']
     return [_ms(target), 'yes' if seconds <= target else 'NO']
@@ -181,7 +186,7 @@ def _against(seconds: float, target: float | None) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.pipeline_speed',
-                                     description=__doc__.splitlines()[0])
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--poses', type=int, default=5, help='camera poses per case')
     parser.add_argument('--repeats', type=int, default=20, help='timed repetitions per camera pose')
     parser.add_argument('--seed', type=int, default=3)

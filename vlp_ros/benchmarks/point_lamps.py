@@ -1,5 +1,8 @@
-"""Bare-LED point lamps end to end: detection, tone IDs and poses on simulated photos of the
-published five-LED rig (``vlp_ros.sim.point_lamps``), for each look, with and without an IMU.
+"""
+Bare-LED point lamps end to end.
+
+Detection, tone IDs and poses on simulated photos of the published five-LED rig
+(``vlp_ros.sim.point_lamps``), for each look, with and without an IMU.
 
 python -m vlp_ros.benchmarks.point_lamps [--photos N] [--camera 4k] [--seed S]
 
@@ -11,9 +14,9 @@ unknown, never wrong; with 3 or more identified, a pose within 5 cm.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections import Counter
 from dataclasses import dataclass, field
+import sys
 
 import cv2
 import numpy as np
@@ -22,7 +25,7 @@ from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
-from vlp_ros.sim.point_lamps import PointLampLook, bare_led_scenario
+from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.sensor import encode_jpeg
 
 # An observation this close (px) to an LED's true centre is that LED's detection.
@@ -115,7 +118,7 @@ def table(rows: list[tuple[str, Tally]], photos: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.point_lamps', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.point_lamps', description=__doc__.strip().splitlines()[0])
     parser.add_argument('--photos', type=int, default=24)
     parser.add_argument('--camera', default='4k', choices=('full', '4k', '1080p'))
     parser.add_argument('--seed', type=int, default=1)

@@ -1,4 +1,5 @@
-"""Render speed: python -m vlp_ros.benchmarks.render_speed [--repeats N].
+"""
+Render speed: python -m vlp_ros.benchmarks.render_speed [--repeats N].
 
 Prints the median time per frame of each case and its ratio to one bare OpenCV
 noise pass over a frame of the same size (the floor any full-frame render pays),
@@ -12,10 +13,10 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from vlp_ros.sim.looks import LOOKS, apply_look
+from vlp_ros.benchmarks.timing import median_seconds
+from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.render import lamp_roi, render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
-from vlp_ros.benchmarks.timing import median_seconds
 
 
 def noise_pass(height: int, width: int, bayer: bool) -> Callable[[], object]:
@@ -25,7 +26,7 @@ def noise_pass(height: int, width: int, bayer: bool) -> Callable[[], object]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.render_speed', description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.render_speed', description=__doc__.strip().splitlines()[0])
     parser.add_argument('--repeats', type=int, default=15)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)

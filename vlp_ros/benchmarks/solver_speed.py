@@ -1,4 +1,5 @@
-"""Solver speed: python -m vlp_ros.benchmarks.solver_speed [--repeats N].
+"""
+Solver speed: python -m vlp_ros.benchmarks.solver_speed [--repeats N].
 
 Prints the median time of each case and its ratio to a reference measured in
 the same run: scipy.optimize.least_squares (MINPACK LM, finite differences)
@@ -13,17 +14,17 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from vlp_ros.benchmarks.timing import median_seconds
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.sim.scenarios import paper_camera, robot_scenario
 from vlp_ros.solvers.ambiguity import DisambiguationHints
 from vlp_ros.solvers.covariance import perturbed
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.perspective import closed_form_poses, solve_lamp
-from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.solvers.up_measurement import UpMeasurement
-from vlp_ros.benchmarks.timing import median_seconds
 
 
 def _tilted(position, rotvec) -> Pose:
@@ -73,7 +74,7 @@ def cases(rng: np.random.Generator) -> dict[str, Callable[[], object]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--repeats', type=int, default=30)
     args = parser.parse_args()
     table = cases(np.random.default_rng(0))

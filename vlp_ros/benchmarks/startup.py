@@ -1,4 +1,5 @@
-"""The locator's start-up time: python -m vlp_ros.benchmarks.startup [--prefix DIR ...] [--runs N].
+"""
+The locator's start-up time: python -m vlp_ros.benchmarks.startup [--prefix DIR ...] [--runs N].
 
 Starts the installed ``locator`` executable (of each install prefix given, the package's
 prefix in an install space: ``install/vlp_ros``) and times, from just before the process
@@ -11,7 +12,9 @@ nothing is writable) pays. Prints the median and range of ``--runs`` starts of e
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 import os
+from pathlib import Path
 import shutil
 import signal
 import statistics
@@ -19,8 +22,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
-from pathlib import Path
 
 import rclpy
 
@@ -97,7 +98,7 @@ def startup_times(node, prefix: Path, params: Path, cold: bool, runs: int, timeo
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--prefix', type=Path, action='append',
                         help='install prefix of vlp_ros (repeatable; default: the one sourced)')
     parser.add_argument('--params', type=Path, help='params file (default: the installed locator.example.yaml)')

@@ -1,8 +1,8 @@
 """Timing for the benchmark scripts: medians over repeats, after one warm-up run."""
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
+import time
 
 import numpy as np
 

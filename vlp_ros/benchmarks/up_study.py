@@ -1,5 +1,7 @@
-"""Single-lamp accuracy against the view angle, with gravity as a gate only and as a measurement:
-python -m vlp_ros.benchmarks.up_study [--trials N] [--imu-sigma-deg S] [--imu-error-deg E].
+"""
+Single-lamp accuracy against the view angle, with gravity as a gate only and as a measurement.
+
+Python -m vlp_ros.benchmarks.up_study [--trials N] [--imu-sigma-deg S] [--imu-error-deg E].
 
 The paper's phone (Lumia 1020 field of view at 4K) under its 11 cm lamp, rim and
 marker noise 0.2 px. The view angle is between the line of sight and the lamp's
@@ -21,12 +23,12 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION
 from vlp_ros.sim.scenarios import MARKER_RIM_GAP_FRACTION, paper_camera, paper_scenario
-from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
+from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints, UpHint
 from vlp_ros.solvers.covariance import nees
 from vlp_ros.solvers.perspective import solve_lamp
-from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
 IMU_TOLERANCE = 0.35
@@ -97,7 +99,7 @@ def view_angle_rows(camera: CameraModel, lamp: Lamp, view_deg: float, args: argp
 
 def grid_rows(height: float, args: argparse.Namespace,
               rng: np.random.Generator) -> dict[str, list[tuple[float, float, float] | None]]:
-    """The paper scenario's hand-held postures over its 3 m x 3 m grid (synthetic rims, no rendering)."""
+    """Return the paper scenario's hand-held postures over its 3 m x 3 m grid (synthetic rims, no rendering)."""
     scenario = paper_scenario('4k', height=height, points=7, postures=args.postures)
     lamp = scenario.lamps[0].lamp
     rows: dict[str, list[tuple[float, float, float] | None]] = {'gate': [], 'measured': []}
@@ -121,7 +123,7 @@ def summary(rows: list[tuple[float, float, float] | None]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--trials', type=int, default=100, help='per view angle')
     parser.add_argument('--postures', type=int, default=6, help='per point of the 7 x 7 grid')
     parser.add_argument('--imu-sigma-deg', type=float, default=0.5)

@@ -1,4 +1,7 @@
-"""What vlp/debug_image and vlp/lamps cost per frame: python -m vlp_ros.benchmarks.visualization_cost [--poses N] [--repeats N].
+"""
+What vlp/debug_image and vlp/lamps cost per frame.
+
+Python -m vlp_ros.benchmarks.visualization_cost [--poses N] [--repeats N].
 
 On the frames of the pipeline speed benchmark (``pipeline_speed.cases``), with a
 subscriber present on both topics (a second node in this process: the messages
@@ -23,10 +26,10 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.benchmarks.pipeline_speed import BURST, Case, cases, interleaved_times
-from vlp_ros.pipeline.config import settings_from_tree
-from vlp_ros.pipeline.debug_view import debug_view
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
+from vlp_ros.pipeline.config import settings_from_tree
+from vlp_ros.pipeline.debug_view import debug_view
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
 
@@ -62,7 +65,7 @@ def case_times(case: Case, publishers, repeats: int, rng: np.random.Generator) -
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.visualization_cost',
-                                     description=__doc__.splitlines()[0])
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--poses', type=int, default=3, help='camera poses per case')
     parser.add_argument('--repeats', type=int, default=20, help='timed repetitions per camera pose')
     parser.add_argument('--seed', type=int, default=3)

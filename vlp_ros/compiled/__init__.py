@@ -1,4 +1,5 @@
-"""The project's one way to compile a numeric loop: numba's ``njit`` with fixed settings.
+"""
+The project's one way to compile a numeric loop: numba's ``njit`` with fixed settings.
 
 Per-lamp work is small arrays (a few hundred rim points, a marker box, a row
 profile), where each numpy or OpenCV call costs more in argument handling than in
@@ -24,11 +25,11 @@ one warning line says so.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 import logging
 import os
-import tempfile
-from collections.abc import Callable, Mapping
 from pathlib import Path
+import tempfile
 from typing import TypeVar
 
 import numba

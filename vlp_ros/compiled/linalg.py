@@ -1,4 +1,5 @@
-"""Small dense linear algebra that kernels share: 2x2 to 6x6 solves, inverses and pseudo-inverses.
+"""
+Small dense linear algebra that kernels share: 2x2 to 6x6 solves, inverses and pseudo-inverses.
 
 Anything a kernel calls must be a kernel too, so the small systems of the fits (the
 ellipse fit's 3x3 block, the marker's 4x4 and the pose's 6x6 normal equations, the

@@ -1,4 +1,5 @@
-"""Median and percentile of the few hundred values a lamp yields, without numpy's overhead.
+"""
+Median and percentile of the few hundred values a lamp yields, without numpy's overhead.
 
 np.median and np.percentile spend 10-40 us on argument handling before touching the
 data, several times what sorting a few hundred values costs; the per-frame pipeline
@@ -38,9 +39,12 @@ def percentile(values: np.ndarray, q: float) -> float:
 
 @kernel
 def ranked(values: np.ndarray, count: int, rank: int) -> float:
-    """The ``rank``-th smallest (from 0) of ``values[:count]``, which it overwrites: it keeps the
-    ``rank`` + 1 smallest sorted at the front (insertion: for the few dozen values it is meant for;
-    a median's half of them takes half the moves of sorting all)."""
+    """
+    Return the ``rank``-th smallest (from 0) of ``values[:count]``, which it overwrites.
+
+    It keeps the ``rank`` + 1 smallest sorted at the front (insertion: for the few dozen values it
+    is meant for; a median's half of them takes half the moves of sorting all).
+    """
     kept = rank + 1
     for i in range(1, count):
         value = values[i]

@@ -1,4 +1,5 @@
-"""Make every numba kernel ready before the first frame: python -m vlp_ros.compiled.warm_up.
+"""
+Make every numba kernel ready before the first frame: python -m vlp_ros.compiled.warm_up.
 
 Numba compiles a kernel on its first call for the argument types it gets (about
 half a second per kernel, a minute for all of them), or loads it from the cache
@@ -18,15 +19,15 @@ subscribes, which then only loads the machine code.
 """
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+import time
 from typing import Any
 
 import cv2
 import numpy as np
 
-from vlp_ros.beacon.encoding import Waveform, packet_waveform, tone_waveform
+from vlp_ros.beacon.encoding import packet_waveform, tone_waveform, Waveform
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import LampMap
 from vlp_ros.core.pose import Pose
@@ -64,8 +65,12 @@ class DrawnLamp:
 
 @dataclass(frozen=True)
 class Look:
-    """How a frame looks: the lamps' level (DN; over 255 clips), blur (px), glow (its share of the level, its
-    width in px: the light scattered around a lamp, which carries its beacon too), sensor noise (DN)."""
+    """
+    How a frame looks.
+
+    The lamps' level (DN; over 255 clips), blur (px), glow (its share of the level, its width in px: the
+    light scattered around a lamp, which carries its beacon too), sensor noise (DN).
+    """
 
     peak: float = 200.0
     blur: float = 0.7
@@ -193,8 +198,10 @@ def warm_bare_leds(rng: np.random.Generator) -> None:
 
 
 def refine_from_an_opencv_start(image: np.ndarray, lamps: LampMap) -> None:
-    """Refine the pose of point lamps from a start as OpenCV's P3P gives it (a transposed rotation, in Fortran
-    order), which a tilted view of bare LEDs starts from and the drawn level view does not reach."""
+    """
+    Refine the pose of point lamps from a start as OpenCV's P3P gives it (a transposed rotation, in Fortran
+    order), which a tilted view of bare LEDs starts from and the drawn level view does not reach.
+    """
     points = [PointLampMeasurement.from_observation(observation, lamp, CAMERA)
               for observation, lamp in zip(detect_lamps(image), lamps)]
     refine_pose(pose_from_opencv(np.array([1e-3, 0.0, 0.0]), np.zeros(3)), points, [UpMeasurement(UP, 0.01)])

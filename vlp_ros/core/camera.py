@@ -1,4 +1,5 @@
-"""Camera models of sensor_msgs/CameraInfo: plumb_bob, rational_polynomial, equidistant, rectified.
+"""
+Camera models of sensor_msgs/CameraInfo: plumb_bob, rational_polynomial, equidistant, rectified.
 
 Projection and undistortion are OpenCV's own (``cv2.projectPoints`` / ``cv2.undistortPoints``
 with 5 or 8 coefficients, ``cv2.fisheye`` for equidistant). An image that is already rectified
@@ -32,9 +33,13 @@ WIDE_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100,
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Intrinsics K (3x3) and the distortion D of ``model``: plumb_bob (k1, k2, p1, p2, k3),
-    rational_polynomial (k1, k2, p1, p2, k3, k4, k5, k6), equidistant (k1, k2, k3, k4), or
-    rectified (no D; ``rectification`` is camera_info's R, rectified frame from camera frame)."""
+    """
+    Intrinsics K (3x3) and the distortion D of ``model``.
+
+    Plumb_bob (k1, k2, p1, p2, k3), rational_polynomial (k1, k2, p1, p2, k3, k4, k5, k6),
+    equidistant (k1, k2, k3, k4), or rectified (no D; ``rectification`` is camera_info's R,
+    rectified frame from camera frame).
+    """
 
     width: int
     height: int
@@ -64,13 +69,15 @@ class CameraModel:
     @classmethod
     def from_camera_info(cls, width: int, height: int, k, d, distortion_model: str,
                          p=None, r=None) -> CameraModel:
-        """From sensor_msgs/CameraInfo fields (``p``, ``r``: its P and R, optional).
+        """
+        From sensor_msgs/CameraInfo fields (``p``, ``r``: its P and R, optional).
 
         D all zero: the pixels are undistorted (rectified); with P given (P[0] > 0) the camera
         is K' = P[:3, :3] turned by R, whatever the model's name. Otherwise D is read as
         ``distortion_model`` (plumb_bob, or '' for plumb_bob; rational_polynomial;
         equidistant), and P and R, which describe the rectified image, are not used.
-        ValueError for an uncalibrated K, another model, or too few coefficients."""
+        ValueError for an uncalibrated K, another model, or too few coefficients.
+        """
         K = np.asarray(k, dtype=float).reshape(3, 3)
         if not K[0, 0] > 0.0:
             raise ValueError('camera_info is uncalibrated (K[0] <= 0)')
@@ -103,7 +110,7 @@ class CameraModel:
         return np.linalg.inv(self.K[:2, :2])
 
     def pinhole(self) -> CameraModel:
-        """The ideal pinhole camera with the same K (no distortion): ``undistort_pixels`` maps to its pixels."""
+        """Return the ideal pinhole camera with the same K (no distortion): ``undistort_pixels`` maps to its pixels."""
         return CameraModel(self.width, self.height, self.K)
 
     def project(self, points_camera: np.ndarray) -> np.ndarray:
@@ -139,7 +146,7 @@ class CameraModel:
 
 
 def _undistorted_camera(width: int, height: int, K: np.ndarray, p, r) -> CameraModel:
-    """A camera_info without distortion: K, or K' = P[:3, :3] turned by R where P is given."""
+    """Return a camera_info without distortion: K, or K' = P[:3, :3] turned by R where P is given."""
     P = None if p is None else np.asarray(p, dtype=float).reshape(3, 4)
     if P is None or not P[0, 0] > 0.0:
         return CameraModel(width, height, K)

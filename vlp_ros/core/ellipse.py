@@ -1,4 +1,5 @@
-"""Ellipses as parameters and as conics, and the direct least-squares fit.
+"""
+Ellipses as parameters and as conics, and the direct least-squares fit.
 
 The fit is Fitzgibbon, Pilu and Fisher's direct ellipse-specific least squares
 (PAMI 1999) in the numerically stable form of Halir and Flusser (1998), written
@@ -15,7 +16,7 @@ import math
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve
+from vlp_ros.compiled.linalg import lu_solve, OPENCV_PIVOT_FLOOR
 
 # Status codes of the kernels, and the errors they stand for.
 OK, TOO_FEW, IDENTICAL, COLLINEAR, NO_ELLIPSE, NOT_ELLIPSE, IMAGINARY = range(7)
@@ -28,7 +29,7 @@ _ERRORS = {TOO_FEW: 'an ellipse fit needs at least 5 points, got {count}',
 
 
 def fit_error(status: int, count: int) -> ValueError:
-    """The ValueError a kernel's non-OK ``status`` stands for (``count``: the points given)."""
+    """Return the ValueError a kernel's non-OK ``status`` stands for (``count``: the points given)."""
     return ValueError(_ERRORS[status].format(count=count))
 
 
@@ -46,7 +47,8 @@ def ellipse_from_conic(conic: np.ndarray) -> np.ndarray:
 
 
 def fit_ellipse(points: np.ndarray) -> np.ndarray:
-    """Direct least-squares ellipse (cx, cy, a, b, theta) through >= 5 points (N, 2).
+    """
+    Direct least-squares ellipse (cx, cy, a, b, theta) through >= 5 points (N, 2).
 
     Points are centred and scaled first so the fit is well conditioned for pixel
     coordinates of any magnitude.
@@ -68,7 +70,8 @@ def ellipse_points(ellipse: np.ndarray, count: int) -> np.ndarray:
 
 
 def geometric_distances(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Approximate signed distance (N,) of points to the ellipse (Sampson, first order).
+    """
+    Approximate signed distance (N,) of points to the ellipse (Sampson, first order).
 
     Positive outside. Accurate to first order in distance / curvature radius,
     which is all the fit residuals here need.
@@ -127,7 +130,7 @@ def distances(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 @kernel
 def conic_distance(C: np.ndarray, x: float, y: float) -> float:
-    """The signed Sampson distance of point (x, y) to the ellipse of conic ``C`` (3x3)."""
+    """Return the signed Sampson distance of point (x, y) to the ellipse of conic ``C`` (3x3)."""
     # Half the conic's gradient, (C h)_xy, and its value h^T C h = (C h)_xy . p + (C h)_w.
     gx = C[0, 0] * x + C[0, 1] * y + C[0, 2]
     gy = C[0, 1] * x + C[1, 1] * y + C[1, 2]

@@ -13,7 +13,8 @@ MAX_GRAVITY_DEVIATION = 1.0
 
 
 class GravityBuffer:
-    """Recent accelerometer samples turned into the camera optical frame.
+    """
+    Recent accelerometer samples turned into the camera optical frame.
 
     An accelerometer at rest measures the specific force, +g along map up, so the
     normalised sample is the up direction. ``imu_to_camera`` is the quaternion
@@ -33,7 +34,7 @@ class GravityBuffer:
         return self._samples[-1][0] if self._samples else None
 
     def up_at(self, stamp_ns: int) -> np.ndarray | None:
-        """Unit up vector (camera frame) from the sample nearest ``stamp_ns``; None if none is recent enough."""
+        """Return unit up vector (camera frame) from the sample nearest ``stamp_ns``; None if none is recent enough."""
         samples = list(self._samples)  # a snapshot: another thread may be adding samples
         if not samples:
             return None

@@ -8,7 +8,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Lamp:
-    """A flat luminous disc facing down (-z) with a red marker just inside its rim, or, with
+    """
+    A flat luminous disc facing down (-z) with a red marker just inside its rim, or, with
     ``radius`` 0, a point lamp (a bare LED, or a lamp too small or soft for an ellipse): the
     solvers see only the centre of its light, and it shines down, so it is seen from below.
 

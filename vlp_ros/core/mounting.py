@@ -1,4 +1,5 @@
-"""Where the camera sits on the robot: the camera's pose turned into the robot base's pose.
+"""
+Where the camera sits on the robot: the camera's pose turned into the robot base's pose.
 
 ROS-free. The pipeline solves the camera optical frame (REP 103: z forward, x right,
 y down) in the map; a localization stack such as robot_localization wants the pose
@@ -42,7 +43,8 @@ MIN_ROTATION_VARIANCE = 1e-10
 
 @dataclass(frozen=True)
 class Mounting:
-    """The camera optical frame in the robot's base frame.
+    """
+    The camera optical frame in the robot's base frame.
 
     ``rotation`` maps camera-frame vectors to base-frame vectors (its columns are the
     camera axes in the base); ``translation`` is the camera's optical centre in the base (m).
@@ -56,7 +58,7 @@ class Mounting:
         return cls(Rotation.from_quat(xyzw).as_matrix(), np.asarray(translation, dtype=float).reshape(3))
 
     def base_pose(self, camera: Pose) -> Pose:
-        """The base frame's pose in the map, with the camera's covariance carried over (None stays None)."""
+        """Return the base frame's pose in the map, with the camera's covariance carried over (None stays None)."""
         rotation = camera.rotation @ self.rotation.T
         lever = rotation @ self.translation
         covariance = None
@@ -67,7 +69,9 @@ class Mounting:
         return Pose(rotation, camera.position - lever, covariance)
 
     def camera_pose(self, base: Pose) -> Pose:
-        """The camera optical frame's pose in the map for a base pose (no covariance): the inverse of base_pose."""
+        """
+        The camera optical frame's pose in the map for a base pose (no covariance): the inverse of base_pose.
+        """
         return Pose(base.rotation @ self.rotation, base.position + base.rotation @ self.translation)
 
     def up_in_camera(self) -> np.ndarray:
@@ -95,9 +99,12 @@ def unit_quaternion_problem(xyzw: np.ndarray) -> str | None:
 
 
 def publishable_covariance(covariance: np.ndarray | None) -> np.ndarray | None:
-    """The symmetric 6x6 covariance with every variance at least its floor; None when there is
-    none to publish (no covariance, or one that is not finite or has a variance below minus its
-    floor: more negative than rounding makes it, so broken)."""
+    """
+    Return the symmetric 6x6 covariance with every variance at least its floor.
+
+    None when there is none to publish (no covariance, or one that is not finite or has a
+    variance below minus its floor: more negative than rounding makes it, so broken).
+    """
     if covariance is None:
         return None
     covariance = np.asarray(covariance, dtype=float).reshape(6, 6)

@@ -8,7 +8,8 @@ import numpy as np
 
 @dataclass
 class LampObservation:
-    """One lamp blob, in raw (distorted) pixel coordinates of the full frame.
+    """
+    One lamp blob, in raw (distorted) pixel coordinates of the full frame.
 
     ``ellipse`` is (cx, cy, a, b, theta): centre, semi-axes a >= b, and the angle (rad)
     of the a axis from image +x toward +y, from a direct least-squares fit of

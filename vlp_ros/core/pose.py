@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 
 @dataclass
 class Pose:
-    """The camera optical frame (REP 103: z forward, x right, y down) in the map frame.
+    """
+    The camera optical frame (REP 103: z forward, x right, y down) in the map frame.
 
     ``rotation`` maps camera-frame vectors to map-frame vectors (its columns are
     the camera axes in the map); ``position`` is the camera centre in the map.

@@ -1,4 +1,4 @@
 """Lamps in camera frames: blobs, sub-pixel rim points, ellipse and marker centroid."""
-from vlp_ros.detection.detector import DetectionOptions, detect_lamps
+from vlp_ros.detection.detector import detect_lamps, DetectionOptions
 
 __all__ = ['DetectionOptions', 'detect_lamps']

@@ -1,4 +1,5 @@
-"""Where the lamps are: bright blobs on a coarse grid, the bands of a striped lamp merged.
+"""
+Where the lamps are: bright blobs on a coarse grid, the bands of a striped lamp merged.
 
 One strided pass reads every ``step``-th pixel of every ``step``-th row, so the
 search costs a fraction of one pass over the frame; everything after works on
@@ -23,7 +24,8 @@ _LANES = 8
 
 @dataclass(frozen=True)
 class Blob:
-    """A candidate lamp: ``bbox`` (x0, y0, x1, y1, ends exclusive) in full-frame pixels.
+    """
+    A candidate lamp: ``bbox`` (x0, y0, x1, y1, ends exclusive) in full-frame pixels.
 
     ``noise`` is the robust noise sigma (8-bit levels) of the frame's background.
     """
@@ -33,7 +35,8 @@ class Blob:
 
 
 def search_image(image: np.ndarray, step: int) -> np.ndarray:
-    """Every ``step``-th pixel of every ``step``-th row; green only for colour frames.
+    """
+    Every ``step``-th pixel of every ``step``-th row; green only for colour frames.
 
     The lamps are white, so green sees them as well as any channel and costs a third.
     """
@@ -43,7 +46,7 @@ def search_image(image: np.ndarray, step: int) -> np.ndarray:
 
 @kernel
 def histogram(small: np.ndarray) -> np.ndarray:
-    """The 256 level counts of a uint8 image."""
+    """Return the 256 level counts of a uint8 image."""
     # Eight histograms taking turns: neighbouring pixels mostly share a level, and counting them
     # into one bin makes each count wait for the one before (eight lanes: 0.8x the time of four).
     partial = np.zeros((_LANES, 256), np.int64)
@@ -59,8 +62,12 @@ def histogram(small: np.ndarray) -> np.ndarray:
 
 @kernel
 def _quantiles(small: np.ndarray) -> tuple[float, float, float]:
-    """The median, upper quartile and peak (below the hot pixels) level of a uint8 image: the first
-    levels whose cumulative counts reach half, three quarters and all but ``_HOT_PIXELS`` of it."""
+    """
+    Return the median, upper quartile and peak (below the hot pixels) level of a uint8 image.
+
+    The first levels whose cumulative counts reach half, three quarters and all but
+    ``_HOT_PIXELS`` of it.
+    """
     counts = histogram(small)
     total = small.size
     targets = (0.5 * total, 0.75 * total, float(total - _HOT_PIXELS))
@@ -76,7 +83,8 @@ def _quantiles(small: np.ndarray) -> tuple[float, float, float]:
 
 def search_levels(small: np.ndarray, threshold_fraction: float, min_contrast: float,
                   noise_factor: float) -> tuple[float, float, float] | None:
-    """(background, noise, threshold) of the search image, or None when nothing stands out.
+    """
+    (background, noise, threshold) of the search image, or None when nothing stands out.
 
     Background is the median; the threshold lies ``threshold_fraction`` of the way
     up to the brightest pixels, and at least ``noise_factor`` robust noise sigmas above
@@ -93,7 +101,8 @@ def search_levels(small: np.ndarray, threshold_fraction: float, min_contrast: fl
 def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_contrast: float,
                noise_factor: float, max_stripe_rows: int, min_diameter: float,
                margin: int) -> list[Blob]:
-    """Lamp candidates, each with a box that holds its whole disc plus ``margin`` pixels.
+    """
+    Lamp candidates, each with a box that holds its whole disc plus ``margin`` pixels.
 
     A lamp whose dark stripes are fully dark falls apart into horizontal bands:
     closing the mask with a vertical kernel as tall as the longest dark stripe
@@ -121,7 +130,8 @@ def find_blobs(image: np.ndarray, step: int, threshold_fraction: float, min_cont
 
 
 def _closed_contours(mask: np.ndarray, gap: int) -> tuple[np.ndarray, ...]:
-    """The outer contours of ``mask`` (0/1) closed by a vertical kernel ``gap`` + 1 tall, in its pixels.
+    """
+    Return the outer contours of ``mask`` (0/1) closed by a vertical kernel ``gap`` + 1 tall, in its pixels.
 
     Closing joins pixels of one column only, and never reaches a kernel's height beyond the rows that
     hold mask pixels: it runs on their bounding box grown by that (and by a pixel of background for

@@ -1,26 +1,27 @@
-"""Lamps in one frame: blobs, sub-pixel rim, fitted ellipse and marker centroid per lamp.
+"""
+Lamps in one frame: blobs, sub-pixel rim, fitted ellipse and marker centroid per lamp.
 
 The steps are plain Python; the loops over a lamp box's pixels and rim points are
 compiled kernels (``vlp_ros.compiled``) in the modules they belong to, and here.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
+import math
 from typing import NamedTuple
 
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.detection.blobs import Blob, find_blobs
-from vlp_ros.detection.marker import MarkerFit, MarkerSeed, find_seed, fit_marker, redness_and_peaks, shape_spread
-from vlp_ros.detection.point import fit_point
-from vlp_ros.detection.rim import (RimFit, blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
-                                   edge_model_sigma, fit_rim, outward_normals, row_crossings)
-from vlp_ros.detection.rows import RowLevels, chords, clear_levels, row_levels, row_profile
+from vlp_ros.compiled.small_arrays import median
 from vlp_ros.core.ellipse import conic_distance, conic_from_ellipse, conic_of
 from vlp_ros.core.observation import LampObservation
-from vlp_ros.compiled.small_arrays import median
+from vlp_ros.detection.blobs import Blob, find_blobs
+from vlp_ros.detection.marker import find_seed, fit_marker, MarkerFit, MarkerSeed, redness_and_peaks, shape_spread
+from vlp_ros.detection.point import fit_point
+from vlp_ros.detection.rim import (blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
+                                   edge_model_sigma, fit_rim, outward_normals, RimFit, row_crossings)
+from vlp_ros.detection.rows import chords, clear_levels, row_levels, row_profile, RowLevels
 
 # A lamp's rim must have this many kept points on each side of its centre.
 _MIN_SIDE_FRACTION = 0.2
@@ -58,7 +59,8 @@ _ONE_SIDED_MARKER_SHIFT = 0.5
 
 @dataclass(frozen=True)
 class DetectionOptions:
-    """Settings of ``detect_lamps`` (lengths in pixels, levels in 8-bit units).
+    """
+    Settings of ``detect_lamps`` (lengths in pixels, levels in 8-bit units).
 
     ``min_diameter``: smallest lamp (major axis) reported. ``search_step``: grid of the
     coarse search (default: a quarter of ``min_diameter``). ``threshold_fraction``: search
@@ -121,7 +123,8 @@ class DetectionOptions:
 
 
 def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> list[LampObservation]:
-    """Every whole lamp in a bgr8 (H, W, 3) or mono8 (H, W) uint8 frame.
+    """
+    Every whole lamp in a bgr8 (H, W, 3) or mono8 (H, W) uint8 frame.
 
     Coordinates are full-frame raw pixels with pixel centres at integers (as in
     OpenCV). A lamp cut by the frame border, or whose rim is not an ellipse, is
@@ -139,7 +142,7 @@ def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> 
 
 
 def _observe_point(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
-    """The lamp in ``blob`` as the centre of its light, when its rim gave no ellipse (rim unusable)."""
+    """Return the lamp in ``blob`` as the centre of its light, when its rim gave no ellipse (rim unusable)."""
     x0, y0, x1, y1 = blob.bbox
     roi = image[y0:y1, x0:x1]
     brightness = roi[..., int(np.argmax(roi.reshape(-1, 3).max(axis=0)))] if roi.ndim == 3 else roi
@@ -163,8 +166,10 @@ def _observe_point(image: np.ndarray, blob: Blob, options: DetectionOptions) -> 
 
 
 def _distinct(observations: list[LampObservation]) -> list[LampObservation]:
-    """One observation per lamp: the bands of one lamp split by a long dark stripe both grow to the
-    whole lamp; of observations whose centres lie inside each other, the one with most rim points stays.
+    """
+    One observation per lamp: the bands of one lamp split by a long dark stripe both grow to the whole lamp.
+
+    Of observations whose centres lie inside each other, the one with most rim points stays.
     """
     kept: list[LampObservation] = []
     for candidate in sorted(observations, key=lambda o: -len(o.rim_points)):
@@ -205,7 +210,8 @@ class _LampBox:
 
 
 def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
-    """The observation of the lamp in ``blob``, or None if it is not a whole, elliptic lamp.
+    """
+    Return the observation of the lamp in ``blob``, or None if it is not a whole, elliptic lamp.
 
     A lamp whose lower or upper part is dark (a long dark stripe) may be found as a
     smaller blob: its box grows to hold the fitted ellipse, once, and is measured again.
@@ -297,7 +303,7 @@ def _box_levels(brightness: np.ndarray) -> tuple[float, float]:
 
 @kernel
 def _ranked_level(counts: np.ndarray, rank: int) -> int:
-    """The ``rank``-th smallest (from 0) of the values whose level counts are ``counts``."""
+    """Return the ``rank``-th smallest (from 0) of the values whose level counts are ``counts``."""
     level, below = 0, counts[0]
     while below <= rank:
         level += 1
@@ -307,7 +313,8 @@ def _ranked_level(counts: np.ndarray, rank: int) -> int:
 
 def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions, fraction: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Row crossings (N, 2) at ``fraction`` of each row's rise (``edge_level_fraction``; None: a half),
+    """
+    Row crossings (N, 2) at ``fraction`` of each row's rise (``edge_level_fraction``; None: a half),
     their rows' plateaus, and which rows are clipped.
 
     Clipped rows are left out when enough unclipped ones remain.
@@ -323,8 +330,12 @@ def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions, fra
 @kernel
 def _selected(points: np.ndarray, plateaus: np.ndarray, has_seed: bool, centre: np.ndarray, radius: float,
               saturation_level: float, min_rim_points: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``_rim_points`` of the crossings: those farther than ``radius`` from the marker seed's ``centre``,
-    and the clipped ones only if too few unclipped ones remain."""
+    """
+    ``_rim_points`` of the crossings.
+
+    Those farther than ``radius`` from the marker seed's ``centre``, and the clipped ones only if too
+    few unclipped ones remain.
+    """
     far = np.ones(points.shape[0], np.bool_)
     if has_seed:
         # The marker's colour changes the brightness near it: its rim points are not trusted.
@@ -351,7 +362,8 @@ def _row_span(points: np.ndarray) -> float:
 
 def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np.ndarray, background: float,
             options: DetectionOptions) -> RimFit | None:
-    """Refit with the crossings of clipped rows moved in onto the true edge.
+    """
+    Refit with the crossings of clipped rows moved in onto the true edge.
 
     None if the ramps do not tell, or if the lamp is so overexposed that the edge
     would rest on the far foot of the blur (whose shape no camera guarantees).
@@ -370,10 +382,14 @@ def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np
 
 def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _LampBox,
                options: DetectionOptions) -> RimFit | None:
-    """The rim again, free of the blur: crossings at the half of plateaus measured where blur
-    does not dim the disc (three blurs inside the edge), moved out by the blur's pull on the
-    curved edge, at the level of the disc's edge (``edge_level_fraction``). ``rim`` as it is when the
-    ramps do not tell the blur; None when the light is no disc on a ceiling."""
+    """
+    Return the rim again, free of the blur.
+
+    Crossings at the half of plateaus measured where blur does not dim the disc (three blurs inside
+    the edge), moved out by the blur's pull on the curved edge, at the level of the disc's edge
+    (``edge_level_fraction``). ``rim`` as it is when the ramps do not tell the blur; None when the
+    light is no disc on a ceiling.
+    """
     variance = blur_variance(box.brightness, points, plateaus, box.background, rim.ellipse)
     if variance is None:
         return rim
@@ -393,23 +409,28 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
 
 
 def clipped_row_share(box: _LampBox, options: DetectionOptions) -> float:
-    """The share of the box's lit rows (brighter than half the peak over the background) that clip."""
+    """Return the share of the box's lit rows (brighter than half the peak over the background) that clip."""
     brightest = box.brightness.max(axis=1).astype(float)
     lit = brightest > 0.5 * (box.background + brightest.max())
     return np.count_nonzero(lit & (brightest >= options.saturation_level)) / max(np.count_nonzero(lit), 1)
 
 
 def clipped_edge_model_sigma(clipped_share: float, blur_px: float) -> float:
-    """How far (px, one sigma per mode of ``measurement.rim_error_modes``) the crossings of a
+    """
+    How far (px, one sigma per mode of ``measurement.rim_error_modes``) the crossings of a
     lamp whose lit rows clip on ``clipped_share`` may depart from its edge beyond what its blur
     alone allows (``edge_model_sigma``): the light of the clipped rows, of unknown level, that
-    blur of ``blur_px`` mixes into the rows' ends and glare blooms out of them."""
+    blur of ``blur_px`` mixes into the rows' ends and glare blooms out of them.
+    """
     return _CLIPPED_EDGE_BLURS * clipped_share * blur_px
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
-    """The marker, fitted on lit rows: unclipped rows, and clipped rows at the level that makes
-    them agree with the unclipped ones.
+    """
+    Return the marker, fitted on lit rows.
+
+    Unclipped rows, and clipped rows at the level that makes them agree with the unclipped
+    ones.
 
     A marker at the rim of a saturated lamp often lies mostly in clipped rows, where the
     lamp's level is unknown but the marker's redness is nearly one value (its red
@@ -456,10 +477,12 @@ class _MarkerRows(NamedTuple):
 @kernel
 def _marker_rows(profile: np.ndarray, background: float,
                  saturation_level: float) -> _MarkerRows:
-    """Whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, and each row's
+    """
+    Whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, and each row's
     level gradient, of a row profile (NaN: unknown). The gradient is the level's signed relative
     derivative, on unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
-    clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours)."""
+    clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours).
+    """
     lit, brightest = False, -np.inf
     for level in profile:
         if level > 0.0:
@@ -486,7 +509,8 @@ def _marker_rows(profile: np.ndarray, background: float,
 
 def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, unclipped: np.ndarray,
                    clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(row levels, rows used) for the marker fit.
+    """
+    (row levels, rows used) for the marker fit.
 
     In unclipped rows the marker's redness is one ratio times the row's level. In clipped
     rows it is nearly one value, which the ratio turns into an equivalent level: both are
@@ -506,8 +530,10 @@ def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, uncli
 @kernel
 def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: np.ndarray, unclipped: np.ndarray,
                   clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean redness over the seed's middle half in each unclipped row crossing it (over the row's
-    level) and in each clipped one."""
+    """
+    Mean redness over the seed's middle half in each unclipped row crossing it (over the row's
+    level) and in each clipped one.
+    """
     half = 0.5 * radius
     y0, y1 = max(math.ceil(centre[1] - half), 0), min(math.floor(centre[1] + half), red.shape[0] - 1)
     x0, x1 = max(math.ceil(centre[0] - half), 0), min(math.floor(centre[0] + half), red.shape[1] - 1)
@@ -533,10 +559,12 @@ def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: n
 
 def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],
                    origin: tuple[int, int], frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
-    """The rim is elliptic, big enough, seen on both sides, and its blurred disc (``extent``: its
+    """
+    The rim is elliptic, big enough, seen on both sides, and its blurred disc (``extent``: its
     ellipse's ``_extent``) lies inside the box and frame: three of the blurs its ramps measured (up to
     ``max_blur``'s, which stands where they do not tell) beyond the rim, where the light has reached
-    the ceiling's level."""
+    the ceiling's level.
+    """
     cx, _, a, b, _ = rim.ellipse.tolist()
     count = len(rim.points)
     if (count < options.min_rim_points or rim.sigma > options.max_rim_sigma

@@ -1,4 +1,5 @@
-"""The red marker's centroid, to a fraction of a pixel, through the lamp's stripes.
+"""
+The red marker's centroid, to a fraction of a pixel, through the lamp's stripes.
 
 The marker is lit by the lamp, so it is striped like the lamp and vanishes in fully
 dark rows: a centroid of red pixels would follow the stripes. Instead a blurred
@@ -15,14 +16,14 @@ the same offset for the lamp (hundredths of a pixel).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import NamedTuple
 
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.compiled.linalg import OPENCV_PIVOT_FLOOR, lu_solve, pseudo_inverse, svd_cutoff, symmetric_eigen
+from vlp_ros.compiled.linalg import lu_solve, OPENCV_PIVOT_FLOOR, pseudo_inverse, svd_cutoff, symmetric_eigen
 from vlp_ros.core.ellipse import ellipse_from_conic
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
@@ -65,8 +66,12 @@ class _Seed(NamedTuple):
 
 
 class _MarkerSums(NamedTuple):
-    """``_marker_terms``' sums: the marker term against itself, the disc and the data, and each
-    Jacobian column against the marker and the disc (``columns``, 4x2)."""
+    """
+    ``_marker_terms``' sums.
+
+    The marker term against itself, the disc and the data, and each Jacobian column against
+    the marker and the disc (``columns``, 4x2).
+    """
 
     marker_norm2: float
     marker_disc: float
@@ -75,8 +80,12 @@ class _MarkerSums(NamedTuple):
 
 
 class _Amplitudes(NamedTuple):
-    """``_amplitudes``' result: the marker's and the disc's amplitudes, and the inverse Gram matrix
-    (2x2, symmetric) as its entries (00, 01, 11)."""
+    """
+    ``_amplitudes``' result.
+
+    The marker's and the disc's amplitudes, and the inverse Gram matrix (2x2, symmetric) as its
+    entries (00, 01, 11).
+    """
 
     marker: float
     disc: float
@@ -113,7 +122,8 @@ class MarkerSeed:
 
 @dataclass(frozen=True)
 class MarkerFit:
-    """Marker centre (px, lamp-box pixels), its standard deviation per axis, mean radius and the blur fitted.
+    """
+    Marker centre (px, lamp-box pixels), its standard deviation per axis, mean radius and the blur fitted.
 
     ``shape`` (2x2, det 1): the marker's edge is (p - center)^T shape (p - center) = radius^2.
     """
@@ -125,7 +135,7 @@ class MarkerFit:
     shape: np.ndarray
 
     def ellipse(self, shift: np.ndarray) -> np.ndarray:
-        """The marker's edge as (cx, cy, a, b, theta), moved by ``shift``."""
+        """Return the marker's edge as (cx, cy, a, b, theta), moved by ``shift``."""
         # (p - c)^T shape (p - c) = radius^2 as a conic, converted in closed form.
         centre = self.center + shift
         moved = self.shape @ centre
@@ -142,13 +152,15 @@ def redness(bgr: np.ndarray) -> np.ndarray:
 
 
 def redness_and_peaks(bgr: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels
-    (the detector's first over a lamp box: reading it from the frame costs more than either)."""
+    """
+    ``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels
+    (the detector's first over a lamp box: reading it from the frame costs more than either).
+    """
     return tuple(_redness(bgr))
 
 
 def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> MarkerSeed | None:
-    """The reddest spot and the extent of the red pixels around it, or None if nothing is red enough."""
+    """Return the reddest spot and the extent of the red pixels around it, or None if nothing is red enough."""
     seed = _seed(red, float(search_radius), float(min_redness))
     if not seed.found:
         return None
@@ -156,7 +168,8 @@ def find_seed(red: np.ndarray, search_radius: float, min_redness: float) -> Mark
 
 
 def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
-    """Expected stretch of the marker's image relative to its lamp's shape.
+    """
+    Expect stretch of the marker's image relative to its lamp's shape.
 
     Perspective changes the local image scale across a disc seen at tilt t from
     distance Z by about (radius / Z) sin t; radius / Z is the semi-major axis over
@@ -169,7 +182,8 @@ def shape_spread(lamp_ellipse: np.ndarray, focal_length: float) -> float:
 def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur_guess: float,
                margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
                shape_spread: float) -> MarkerFit | None:
-    """Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
+    """
+    Fit the marker around ``seed`` in ``red`` (lamp-box pixels); None if the fit fails.
 
     ``lamp_ellipse`` is in the same pixels; it gives the marker's shape and the
     lamp's own disc term. ``margin`` (px) widens the window beyond the seed radius.
@@ -214,8 +228,10 @@ def _redness(bgr: np.ndarray) -> _Redness:
 
 @kernel
 def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> _Seed:
-    """The first maximum of ``red`` (as np.argmax), and the box of the
-    pixels above 0.4 of it within ``search_radius`` (a square) around it."""
+    """
+    The first maximum of ``red`` (as np.argmax), and the box of the
+    pixels above 0.4 of it within ``search_radius`` (a square) around it.
+    """
     height, width = red.shape
     flat = red.ravel()
     # The maximum (a reduction the compiler vectorizes), then where it first occurs, by blocks.
@@ -268,8 +284,12 @@ def _ndtr(a: float) -> float:
 
 @kernel
 def _blurred_step(z: float, gaussian: float) -> float:
-    """ndtr(z), given ``gaussian`` = exp(-z^2 / 2). Beyond ``_TAIL`` it is 1 once rounded; before
-    -``_TAIL`` (below 6e-17) the tail's asymptotic series gives it to 1e-6 of itself."""
+    """
+    ndtr(z), given ``gaussian`` = exp(-z^2 / 2).
+
+    Beyond ``_TAIL`` it is 1 once rounded; before -``_TAIL`` (below 6e-17) the tail's
+    asymptotic series gives it to 1e-6 of itself.
+    """
     if z > _TAIL:
         return 1.0
     if z < -_TAIL:
@@ -294,7 +314,8 @@ def _upper_bound(value: float, bound: float) -> float:
 def _marker_terms(cx: float, cy: float, s: float, blur: float, rounded: np.ndarray, root: np.ndarray,
                   level: np.ndarray, data: np.ndarray, disc_term: np.ndarray, marker: np.ndarray,
                   jac: np.ndarray) -> _MarkerSums:
-    """The marker's basis term and its derivatives, before the amplitude is known.
+    """
+    Return the marker's basis term and its derivatives, before the amplitude is known.
 
     Fills ``marker`` (N): level times the blurred disc, and ``jac`` (N, 4): the derivatives
     of the marker term over centre, radius and blur, short of the factor amplitude /
@@ -346,7 +367,7 @@ def _marker_terms(cx: float, cy: float, s: float, blur: float, rounded: np.ndarr
 @kernel
 def _amplitudes(gram_00: float, gram_01: float, disc_norm2: float, project_0: float,
                 project_1: float) -> _Amplitudes:
-    """The two amplitudes and the inverse of the 2x2 Gram matrix (closed form)."""
+    """Return the two amplitudes and the inverse of the 2x2 Gram matrix (closed form)."""
     a = gram_00 + 1e-9
     b = gram_01
     d = disc_norm2 + 1e-9
@@ -361,9 +382,11 @@ def _amplitudes(gram_00: float, gram_01: float, disc_norm2: float, project_0: fl
 def _evaluate(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray, data: np.ndarray,
               disc_term: np.ndarray, disc_norm2: float, project_1: float, marker: np.ndarray, jac: np.ndarray,
               jtj: np.ndarray, jtr: np.ndarray) -> float:
-    """The marker model's cost at ``params`` (centre, radius, blur) with the amplitudes
-    eliminated; fills the normal equations ``jtj`` (4x4) and ``jtr`` (4) of its
-    variable-projection Jacobian (Kaufman's approximation). ``marker``, ``jac``: scratch.
+    """
+    Return the marker model's cost at ``params`` (centre, radius, blur) with the amplitudes eliminated.
+
+    Fills the normal equations ``jtj`` (4x4) and ``jtr`` (4) of its variable-projection
+    Jacobian (Kaufman's approximation). ``marker``, ``jac``: scratch.
 
     A pixel's redness is its row's lamp level times (k1 marker + k2 lamp disc), both
     blurred; k1, k2 are eliminated.
@@ -427,12 +450,15 @@ def _evaluate(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: 
 def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray,
                     data: np.ndarray, disc_term: np.ndarray, disc_norm2: float, project_1: float, width: int,
                     marker: np.ndarray, jac: np.ndarray) -> _ConsiderTerms:
-    """What the centre's covariance needs at ``params``: the Gram matrix of the Jacobian
-    (4x4), its columns against the two shape stretches' (4x2: along the axes and the
-    diagonals, in the frame where the lamp is round), and each row's marker term against
-    the first four columns (rows, 4; the columns are orthogonal to the basis, so a row's
-    term needs no projection), and each row's vertical-centre column against them (rows, 4).
-    Rows are ``width`` pixels each."""
+    """
+    Return what the centre's covariance needs at ``params``.
+
+    The Gram matrix of the Jacobian (4x4), its columns against the two shape stretches'
+    (4x2: along the axes and the diagonals, in the frame where the lamp is round), and each
+    row's marker term against the first four columns (rows, 4; the columns are orthogonal to
+    the basis, so a row's term needs no projection), and each row's vertical-centre column
+    against them (rows, 4). Rows are ``width`` pixels each.
+    """
     cx, cy, s, blur = params[0], params[1], params[2], params[3]
     sums = _marker_terms(cx, cy, s, blur, rounded, root, level, data, disc_term, marker, jac)
     n = data.size
@@ -539,7 +565,8 @@ def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
 @kernel
 def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
                   shape_spread: float) -> float:
-    """Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
+    """
+    Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
 
     The shape is held at the lamp's, and each row's marker brightness at the ratio
     times the row's measured level. Their true deviations (``shape_spread``, and
@@ -571,7 +598,8 @@ def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, no
 @kernel
 def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.ndarray, coef_0: float,
                            coef_1: float, rows: np.ndarray, width: int) -> float:
-    """How much more the residuals' mean square weighs than if it were independent per pixel.
+    """
+    How much more the residuals' mean square weighs than if it were independent per pixel.
 
     JPEG's chroma is sampled on 2x2 blocks, and a model that misses the real marker
     (clipped channels, glare) leaves residuals in patches: either way neighbouring
@@ -605,7 +633,8 @@ def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.n
 @kernel
 def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, rows: np.ndarray,
                       level_gradient: np.ndarray) -> tuple[float, float]:
-    """The shift (x, y) of the fitted centre if blur ``blur`` had mixed the rows after the shutter.
+    """
+    Return the shift (x, y) of the fitted centre if blur ``blur`` had mixed the rows after the shutter.
 
     Blur (sigma s) of a marker lit by a level L(y) that changes linearly over the blur gives
     k (L M + s^2 L' dM/dy), not the model's k L M (M the blurred disc): the model's error

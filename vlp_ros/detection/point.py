@@ -1,4 +1,5 @@
-"""The centre of a lamp's light when its rim is no ellipse: bare LEDs and soft or overexposed lamps.
+"""
+The centre of a lamp's light when its rim is no ellipse: bare LEDs and soft or overexposed lamps.
 
 A bare LED in a real photo is a bright core (tens of pixels at half level) inside a glow
 that still reaches 10 % of it a hundred pixels out, all of it striped row by row, and
@@ -12,8 +13,8 @@ the centre of the light, with a covariance from the crossings' own scatter.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -43,8 +44,10 @@ _MAX_CORRELATION = 0.8
 
 @dataclass(frozen=True)
 class PointFit:
-    """Centre (box pixels) and radius of the core, the centre's standard deviation per axis
-    (px, the larger of the two), the kept crossings and their RMS distance from the circle."""
+    """
+    Centre (box pixels) and radius of the core, the centre's standard deviation per axis
+    (px, the larger of the two), the kept crossings and their RMS distance from the circle.
+    """
 
     center: np.ndarray
     radius: float
@@ -55,7 +58,8 @@ class PointFit:
 
 def fit_point(brightness: np.ndarray, background: float, noise: float, min_radius: float,
               noise_factor: float, saturation_level: float) -> PointFit | None:
-    """The centre of the light in ``brightness`` (one lamp's box, one channel), or None when its core
+    """
+    The centre of the light in ``brightness`` (one lamp's box, one channel), or None when its core
     is not round enough, or too small (``min_radius`` px), to give one.
 
     A clipped row's maximum is not its level, and where it leaves the clip depends on how
@@ -101,9 +105,11 @@ def _core_fit(points: np.ndarray, rows: np.ndarray, core: np.ndarray, min_radius
 
 def _half_maximum_crossings(brightness: np.ndarray, background: float, floor: float,
                             saturation_level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Left and right crossings (interleaved, (2N, 2)) of half of each bright row's maximum (of the
+    """
+    Left and right crossings (interleaved, (2N, 2)) of half of each bright row's maximum (of the
     clip level in clipped rows), around the run of pixels above it that holds the maximum, the N rows
-    and which of them are clipped."""
+    and which of them are clipped.
+    """
     light = brightness.astype(np.float64) - background
     maxima = light.max(axis=1)
     peak = maxima.max()
@@ -134,8 +140,12 @@ def _half_maximum_crossings(brightness: np.ndarray, background: float, floor: fl
 
 
 def _robust_circle(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """(centre, radius, kept): a geometric circle fit, refitted without points beyond
-    ``_OUTLIER_SIGMAS`` robust sigmas; None if it does not converge to a circle."""
+    """
+    (centre, radius, kept).
+
+    A geometric circle fit, refitted without points beyond ``_OUTLIER_SIGMAS``
+    robust sigmas. None if it does not converge to a circle.
+    """
     kept = np.ones(len(points), bool)
     circle = _algebraic_circle(points)
     if circle is None:
@@ -186,9 +196,13 @@ def _geometric_circle(points: np.ndarray, centre: np.ndarray, radius: float) -> 
 
 def _centre_sigma(points: np.ndarray, centre: np.ndarray, radius: float, scatter: float, rows: np.ndarray,
                   residual: np.ndarray) -> float:
-    """The centre's standard deviation per axis (the larger): the fit's covariance at the crossings'
-    scatter, counting a row's two crossings as one (they share the row's level, and so its error)
-    and adjacent rows as alike as their residuals show (stripes clip, blur and bloom rows in runs)."""
+    """
+    Return the centre's standard deviation per axis (the larger).
+
+    The fit's covariance at the crossings' scatter, counting a row's two crossings as one (they
+    share the row's level, and so its error) and adjacent rows as alike as their residuals show
+    (stripes clip, blur and bloom rows in runs).
+    """
     offset = points - centre
     distance = np.maximum(np.hypot(*offset.T), 1e-9)
     jacobian = np.column_stack([-offset / distance[:, None], -np.ones(len(points))])

@@ -1,4 +1,5 @@
-"""Sub-pixel points on a lamp's true disc edge, and the ellipse through them.
+"""
+Sub-pixel points on a lamp's true disc edge, and the ellipse through them.
 
 A rolling shutter gives every row of the lamp one brightness, so the left and
 right ends of each lit row are true disc edges while the tops and bottoms of the
@@ -16,8 +17,8 @@ numpy's per-call cost exceeds the arithmetic.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -25,9 +26,9 @@ from scipy.optimize import least_squares
 from scipy.special import ndtr, ndtri
 
 from vlp_ros.compiled import kernel
-from vlp_ros.detection.rows import RowLevels, chords
-from vlp_ros.core.ellipse import OK, conic_of, distances, fit_error, fit_points, geometric_distances
 from vlp_ros.compiled.small_arrays import median
+from vlp_ros.core.ellipse import conic_of, distances, fit_error, fit_points, geometric_distances, OK
+from vlp_ros.detection.rows import chords, RowLevels
 
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
@@ -56,11 +57,13 @@ _FRACTION_BOUNDS = (0.25, 0.75)
 
 @dataclass(frozen=True)
 class RimFit:
-    """The ellipse through the kept rim points, their RMS distance across the edge (px), how
+    """
+    The ellipse through the kept rim points, their RMS distance across the edge (px), how
     many points were left after grazing rows were dropped (before outlier rejection), and the
     prior sigma (px) of the smooth patterns round the rim by which the edge may depart from the
     model's (``edge_model_sigma``; 0 where the ramps do not tell the blur), and the edge's blur
-    sigma (px) that the ramps measured (None where they do not tell)."""
+    sigma (px) that the ramps measured (None where they do not tell).
+    """
 
     ellipse: np.ndarray
     points: np.ndarray
@@ -72,7 +75,8 @@ class RimFit:
 
 def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
                   reach: int, fraction: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Left and right crossings of every row at ``fraction`` (one per row of ``levels``; None: a
+    """
+    Left and right crossings of every row at ``fraction`` (one per row of ``levels``; None: a
     half) of the way from background to the row's plateau, as points (N, 2) in the array's pixels.
 
     Returns the points and each one's row plateau. ``reach`` bounds how far inside
@@ -115,7 +119,7 @@ def _crossings(brightness: np.ndarray, rows: np.ndarray, first: np.ndarray, last
 
 
 def outward_normals(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Unit normals (N, 2) of the ellipse's level curves at ``points``, pointing outward."""
+    """Return unit normals (N, 2) of the ellipse's level curves at ``points``, pointing outward."""
     return _normals(conic_of(np.asarray(ellipse, dtype=float)), np.ascontiguousarray(points, dtype=float))
 
 
@@ -132,8 +136,11 @@ def _normals(conic: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.ndarray, background: float,
                         saturation_level: float, max_blur: float) -> tuple[float, float] | None:
-    """(edge, overexposure): how far (px) inside ``ellipse``, fitted to half-clip crossings of
-    clipped rows, the true edge lies, and the rows' level over the clip level.
+    """
+    (edge, overexposure).
+
+    How far (px) inside ``ellipse``, fitted to half-clip crossings of clipped rows, the
+    true edge lies, and the rows' level over the clip level.
 
     A clipped row's plateau is not its brightness A, so its half level sits low on
     the blurred edge, outside the true edge. The rows' ramps, pooled in distance t
@@ -186,7 +193,8 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
 
 def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
                   ellipse: np.ndarray) -> float | None:
-    """Variance (px^2) across the edge of the blur it went through (optics and pixel area together),
+    """
+    Variance (px^2) across the edge of the blur it went through (optics and pixel area together),
     from the ramps of unclipped rows at their crossings ``points``; None if too few rows tell.
 
     A Gaussian-blurred edge with unit normal n reads Phi(+-(edge - x) |n_x| / s) along
@@ -208,8 +216,11 @@ def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarr
 @kernel
 def _ramps(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
            conic: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Of the crossings whose two pixels both lie on the ramp: their levels (0 background, 1 plateau)
-    and |n_x| of the edge's normal."""
+    """
+    Of the crossings whose two pixels both lie on the ramp.
+
+    Their levels (0 background, 1 plateau) and |n_x| of the edge's normal.
+    """
     n = points.shape[0]
     left, right, across = np.empty(n), np.empty(n), np.empty(n)
     count = 0
@@ -229,9 +240,13 @@ def _ramps(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, bac
 
 @dataclass(frozen=True)
 class EdgeLevel:
-    """``edge_level_fraction``'s answer: the fraction per row, and ``departure`` (px): how far the
-    rows' crossings may still lie off the disc's edge for the light's departure from a uniform disc
-    on a dark ceiling (``edge_departure``)."""
+    """
+    ``edge_level_fraction``'s answer.
+
+    The fraction per row, and ``departure`` (px): how far the rows' crossings may still lie off the
+    disc's edge for the light's departure from a uniform disc on a dark ceiling
+    (``edge_departure``).
+    """
 
     fraction: np.ndarray
     departure: float = 0.0
@@ -239,9 +254,12 @@ class EdgeLevel:
 
 def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: float, ellipse: np.ndarray,
                         blur: float) -> EdgeLevel | None:
-    """Where between background and each row's plateau the disc's edge lies: the step's midpoint,
-    as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling), per row of ``levels``;
-    None when it leaves ``_FRACTION_BOUNDS`` (the light is no disc on a ceiling: a bare LED's glow).
+    """
+    Where between background and each row's plateau the disc's edge lies.
+
+    The step's midpoint, as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling),
+    per row of ``levels``; None when it leaves ``_FRACTION_BOUNDS`` (the light is no disc on a
+    ceiling: a bare LED's glow).
 
     A diffuser brighter in the middle puts the plateau (read in the chord's middle)
     above the disc's level at its edge, and a glare halo lifts the ceiling next to it:
@@ -283,7 +301,8 @@ UNCORRECTED_LIFT_SHARE = 0.35
 
 
 def edge_departure(blur: float, level: float, lift: float, corrected: bool) -> float:
-    """How far (px, one sigma per smooth pattern round the rim) a lamp's crossings may lie off its edge
+    """
+    How far (px, one sigma per smooth pattern round the rim) a lamp's crossings may lie off its edge
     for what the light shows of its departure from a uniform disc on a dark ceiling, given the edge's
     ``blur`` (px), the median ``level`` of the edge's midpoint over the row's rise (0.5 uniform), the
     median ``lift`` of the ceiling next to the edge over the rise (0 dark), and whether the crossings were
@@ -295,16 +314,20 @@ def edge_departure(blur: float, level: float, lift: float, corrected: bool) -> f
     of offset and up to 0.06 px of second harmonic, with the level indistinguishable from a half (0.51-0.53
     against 0.49-0.51 clean) and so left uncorrected. Uncorrected, half the lift counts whole; a
     level the crossings were corrected to leaves ``CORRECTED_DEPARTURE_SHARE`` of its move. A uniform disc on
-    a dark ceiling (lift 0, the level not told from a half) gives 0."""
+    a dark ceiling (lift 0, the level not told from a half) gives 0.
+    """
     moved = CORRECTED_DEPARTURE_SHARE * abs(level - 0.5) if corrected else 0.0
     return _CROSSING_PER_LEVEL * blur * max(UNCORRECTED_LIFT_SHARE * max(lift, 0.0), moved)
 
 
 @kernel
 def _fraction_line(radius: np.ndarray, fractions: np.ndarray) -> tuple[bool, float, float]:
-    """``edge_level_fraction``'s robust line of the fractions in the radius: (whether it departs from
-    a uniform disc's (0.5, 0), intercept, slope), three rounds of least squares each dropping the values
-    over 3 robust sigmas off; no departure when fewer than ``_MIN_EDGE_ROWS`` values remain.
+    """
+    ``edge_level_fraction``'s robust line of the fractions in the radius.
+
+    (whether it departs from a uniform disc's (0.5, 0), intercept, slope), three rounds of least squares
+    each dropping the values over 3 robust sigmas off; no departure when fewer than ``_MIN_EDGE_ROWS``
+    values remain.
 
     A uniform disc on a dark ceiling has its edge at half of every row's rise; unless the rows tell
     otherwise beyond doubt, that stays exact: the line's own noise would move all rim points alike.
@@ -343,8 +366,10 @@ def _fraction_line(radius: np.ndarray, fractions: np.ndarray) -> tuple[bool, flo
 
 @kernel
 def _least_squares_line(x: np.ndarray, y: np.ndarray, kept: np.ndarray) -> tuple[float, float]:
-    """(intercept, slope) of the least-squares line through the ``kept`` points (x, y) (np.linalg.lstsq's:
-    when all their x are equal, as for a shape that is no disc, the smallest such line)."""
+    """
+    (intercept, slope) of the least-squares line through the ``kept`` points (x, y) (np.linalg.lstsq's:
+    when all their x are equal, as for a shape that is no disc, the smallest such line).
+    """
     count = centre_x = centre_y = 0.0
     for i in range(x.size):
         if kept[i]:
@@ -382,8 +407,10 @@ def _chord_middle_radius(rows: np.ndarray, conic: np.ndarray, ellipse: np.ndarra
 @kernel
 def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.ndarray, background: float,
                     conic: np.ndarray, ellipse: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
-    """``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius`` and the
-    ceiling's level next to the edge (its outer band traced back to it) over the row's rise."""
+    """
+    ``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius`` and the
+    ceiling's level next to the edge (its outer band traced back to it) over the row's rise.
+    """
     middle = _chord_middle_radius(rows, conic, ellipse)
     width = brightness.shape[1]
     left, right, crossed = chords(conic, rows.astype(np.float64))
@@ -423,8 +450,10 @@ def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.nda
 @kernel
 def _band_levels(brightness: np.ndarray, row: int, edge: float, inward: float, lo: float, hi: float,
                  width: int) -> tuple[bool, float, float]:
-    """(in the array, mean inside, mean outside) of the pixels ``lo`` to ``hi`` px along the row from
-    ``edge``, inward and outward (at least one pixel each)."""
+    """
+    (in the array, mean inside, mean outside) of the pixels ``lo`` to ``hi`` px along the row from
+    ``edge``, inward and outward (at least one pixel each).
+    """
     start, end = math.ceil(lo), max(math.floor(hi), math.ceil(lo))
     inside = outside = 0.0
     for k in range(start, end + 1):
@@ -447,7 +476,8 @@ EDGE_MODEL_PER_BLUR_VARIANCE = 0.15
 
 
 def edge_model_sigma(blur_variance_px2: float, departure_px: float = 0.0) -> float:
-    """How far (px, one sigma per mode) the half-level crossings of a blurred edge may depart from
+    """
+    How far (px, one sigma per mode) the half-level crossings of a blurred edge may depart from
     the disc's edge in smooth patterns round the rim (an offset and the first two harmonics:
     ``measurement.rim_error_modes``), given the edge's blur variance and what the light shows of its
     departure from a uniform disc (``edge_departure``): the larger of the two, as a sharp edge's
@@ -459,12 +489,14 @@ def edge_model_sigma(blur_variance_px2: float, departure_px: float = 0.0) -> flo
     that blur mixes into a row's ends differently than into its middle (the edge's slope times
     the stripes' relative slope), a blur that is no Gaussian. The detector's corrections for
     these (``blur_shifts``, ``edge_level_fraction``) hold while the blur stays within a pixel;
-    beyond it what they leave grows with the variance."""
+    beyond it what they leave grows with the variance.
+    """
     return max(EDGE_MODEL_PER_BLUR_VARIANCE * max(blur_variance_px2 - SHARP_BLUR_PX ** 2, 0.0), departure_px)
 
 
 def blur_shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndarray:
-    """Moves (N, 2) that put half-level crossings of a blurred disc back on its edge.
+    """
+    Return moves (N, 2) that put half-level crossings of a blurred disc back on its edge.
 
     Blur of variance s^2 along the edge's tangent bends it by kappa t^2 / 2 over the
     kernel's reach (kappa the curvature), so less than half the kernel lies inside a
@@ -505,7 +537,8 @@ def edge_slopes(conic: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def fit_rim(points: np.ndarray, max_slope: float, outlier_sigmas: float,
             min_sigma: float, near: np.ndarray | None = None) -> RimFit:
-    """Ellipse through row crossings: grazing rows dropped, then outliers beyond ``outlier_sigmas``.
+    """
+    Ellipse through row crossings: grazing rows dropped, then outliers beyond ``outlier_sigmas``.
 
     ``near``: an ellipse already close to the points, to tell the grazing rows by.
     Raises ValueError when too few points remain for a fit.

@@ -1,4 +1,5 @@
-"""Rows of a rolling-shutter lamp: each row has one brightness across the disc.
+"""
+Rows of a rolling-shutter lamp: each row has one brightness across the disc.
 
 A row's level is the median of samples over the middle half of its chord, well
 away from the blurred edge and from a marker at the rim. The per-row loops are
@@ -7,16 +8,16 @@ hundred rows exceeds the arithmetic.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import NamedTuple
 
 import numpy as np
 from scipy.special import ndtr
 
 from vlp_ros.compiled import kernel
-from vlp_ros.core.ellipse import conic_distance, conic_of
 from vlp_ros.compiled.small_arrays import percentile, ranked
+from vlp_ros.core.ellipse import conic_distance, conic_of
 
 # Plateau samples per row, spread over the middle half of the row's chord.
 _FRACTIONS = np.linspace(0.25, 0.75, 9)
@@ -38,7 +39,8 @@ class RowLevels:
 
 def row_levels(brightness: np.ndarray, threshold: float, background: float,
                level_fraction: float) -> RowLevels:
-    """Rows bright enough to carry edges: plateau above ``level_fraction`` of the typical lit row.
+    """
+    Rows bright enough to carry edges: plateau above ``level_fraction`` of the typical lit row.
 
     ``brightness`` holds one lamp (2D); ``threshold`` separates it from the background.
     """
@@ -90,7 +92,8 @@ def _lit_rows(brightness: np.ndarray, threshold: float) -> _LitRows:
 
 def clear_levels(brightness: np.ndarray, levels: RowLevels, ellipse: np.ndarray, clearance: float,
                  marker: tuple[np.ndarray, float] | None) -> RowLevels:
-    """``levels`` with each row's plateau measured again where the disc is at least ``clearance`` (px)
+    """
+    ``levels`` with each row's plateau measured again where the disc is at least ``clearance`` (px)
     inside ``ellipse``, on the middle half of the row's chord, away from the ``marker`` disc
     (centre, radius) if given; rows without enough such samples are dropped.
 
@@ -160,7 +163,8 @@ def chords(conic: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 
 
 def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float, blur: float) -> np.ndarray:
-    """Every row's level above ``background`` inside ``ellipse`` (array pixels).
+    """
+    Every row's level above ``background`` inside ``ellipse`` (array pixels).
 
     Near the disc's top and bottom the blurred edge dims the disc itself: the
     plateau is divided by the blurred disc's value at the middle of the chord
@@ -177,8 +181,10 @@ def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float, 
 @kernel
 def _chord_plateaus(brightness: np.ndarray, ellipse: np.ndarray, background: float,
                     blur: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rows whose chord lies in the array with its middle two blurs inside the edge, their
-    plateaus above ``background`` and the clearance of their chord's middle."""
+    """
+    The rows whose chord lies in the array with its middle two blurs inside the edge, their
+    plateaus above ``background`` and the clearance of their chord's middle.
+    """
     height, width = brightness.shape
     conic = conic_of(ellipse)
     left, right, crossed = chords(conic, np.arange(height).astype(np.float64))

@@ -1,4 +1,5 @@
-"""`make demo`: the seed paper's experiment, simulated, played through the real nodes over DDS.
+"""
+`make demo`: the seed paper's experiment, simulated, played through the real nodes over DDS.
 
 For each posture model and lamp height it renders a rosbag2 recording of a hand-held
 4K phone camera over a 3 m x 3 m grid (several postures per point, beacon in packet
@@ -11,26 +12,26 @@ which the paper's published figures come back; *anywhere*, the lamp anywhere in 
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, replace
+from pathlib import Path
 import resource
 import shutil
 import sys
 import time
-from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vlp_ros.nodes.dds_environment import claim_domain_id, loopback_profile, use_loopback_dds
+from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation import figures
 from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, summarize
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth
-from vlp_ros.evaluation.report import PAPER_PUBLISHED_MEAN_M, Evaluation, write_report
-from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, mirror_summary
-from vlp_ros.pipeline.config import settings_from_params_file
-from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation.progress import progress_bar
+from vlp_ros.evaluation.recording import ground_truth, RecordingTopics
+from vlp_ros.evaluation.report import Evaluation, PAPER_PUBLISHED_MEAN_M, write_report
+from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, mirror_summary
+from vlp_ros.nodes.dds_environment import claim_domain_id, loopback_profile, use_loopback_dds
+from vlp_ros.pipeline.config import settings_from_params_file
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, AIMED_TWIST_DEG, paper_scenario
 
@@ -56,7 +57,7 @@ def outcomes_from_answers(truth: dict[int, Pose], listener: PoseListener, group:
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.demo', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.demo', description=__doc__.strip().splitlines()[0])
     parser.add_argument('--out', type=Path, default=Path('demo_output'), help='where bags and the report go')
     parser.add_argument('--heights', type=float, nargs='+', default=[1.5, 2.0], help='lamp heights above the camera (m)')
     parser.add_argument('--posture-models', dest='models', nargs='+', choices=tuple(POSTURE_TITLES),
@@ -114,7 +115,7 @@ def comparison_notes(evaluation: Evaluation) -> list[str]:
     for group in evaluation.groups():
         ours = summarize([o for o in evaluation.series[PERSPECTIVE] if o.group == group])
         theirs = summarize([o for o in evaluation.series[PAPER] if o.group == group])
-        line = (f'{group}: the paper\'s solver errs {theirs.mean_m / ours.mean_m:.0f}x more than vlp_ros on the same '
+        line = (f"{group}: the paper's solver errs {theirs.mean_m / ours.mean_m:.0f}x more than vlp_ros on the same "
                 f'frames (mean per photo {100 * theirs.mean_m:.2f} vs {100 * ours.mean_m:.2f} cm)')
         if evaluation.published and group in PAPER_PUBLISHED_MEAN_M:
             published = PAPER_PUBLISHED_MEAN_M[group]
@@ -161,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     report = args.out / 'report'
     report.mkdir(parents=True, exist_ok=True)
     figure = figures.error_vs_off_axis(off_axis_series(played), report / 'error_vs_off_axis.png',
-                                       '3D error against the lamp\'s angle off the optical axis (same frames)',
+                                       "3D error against the lamp's angle off the optical axis (same frames)",
                                        reference_distance_m=max(args.heights))
     summary = write_report(evaluations, report, [figure])
     if np.isfinite(listener.latency_ms):
@@ -175,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def posture_evaluation(model: str, runs: list[Played], args: argparse.Namespace) -> Evaluation:
     tiebreak = 'Appendix B' if args.paper_tiebreak == 'appendix-b' else "the locator's hints"
-    evaluation = Evaluation(f'{POSTURE_TITLES[model]}, {args.camera}; paper\'s mirror poses told apart by {tiebreak}',
+    evaluation = Evaluation(f"{POSTURE_TITLES[model]}, {args.camera}; paper's mirror poses told apart by {tiebreak}",
                             {PERSPECTIVE: [o for run in runs for o in run.ours],
                              PAPER: [o for run in runs for o in run.theirs]},
                             published=model == 'aimed', name=model)

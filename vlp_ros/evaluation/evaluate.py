@@ -1,4 +1,5 @@
-"""Evaluate the pose pipeline on a recording with ground truth: the demo's table and figures for any bag.
+"""
+Evaluate the pose pipeline on a recording with ground truth: the demo's table and figures for any bag.
 
     python -m vlp_ros.evaluation.evaluate BAG --params PARAMS.yaml [--out DIR]
 
@@ -9,19 +10,19 @@ Frames run through the same pipeline the locator node runs, in this process.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+import sys
 
-from vlp_ros.evaluation.metrics import FrameOutcome
-from vlp_ros.evaluation.recording import RecordingTopics, ground_truth, recorded_frames
-from vlp_ros.evaluation.report import Evaluation, write_report
-from vlp_ros.evaluation.tiebreak import CandidateRecorder, add_paper_tiebreak_argument, mirror_summary
+from vlp_ros.bags.reader import BagError
 from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.evaluation.metrics import FrameOutcome
+from vlp_ros.evaluation.recording import ground_truth, recorded_frames, RecordingTopics
+from vlp_ros.evaluation.report import Evaluation, write_report
+from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, CandidateRecorder, mirror_summary
 from vlp_ros.pipeline.config import ConfigError, LocatorSettings, settings_from_params_file
 from vlp_ros.pipeline.frame import Pipeline
-from vlp_ros.bags.reader import BagError
 
 
 def grid_point(outcome_truth_xy) -> tuple[float, float]:
@@ -32,7 +33,8 @@ def grid_point(outcome_truth_xy) -> tuple[float, float]:
 def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopics, group: str = '',
                      progress: Callable[[int], None] | None = None, gate_fit: bool = True,
                      paper_tiebreak: str = 'hints') -> list[FrameOutcome]:
-    """Run every frame of ``bag`` through the pipeline and pair each with its true pose.
+    """
+    Run every frame of ``bag`` through the pipeline and pair each with its true pose.
 
     ``gate_fit=False`` measures the paper's solver as published (see ``Pipeline``);
     ``paper_tiebreak`` is how its mirror poses are told apart (``tiebreak.CandidateRecorder``),
@@ -56,7 +58,7 @@ def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopi
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.evaluate', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.evaluate', description=__doc__.strip().splitlines()[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory')
     parser.add_argument('--params', type=Path, required=True, help='locator params file (vlp_locator section)')
     parser.add_argument('--out', type=Path, default=Path('evaluation_report'), help='report folder')

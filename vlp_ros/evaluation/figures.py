@@ -1,5 +1,9 @@
-"""Figures in the style of the seed paper's Figs. 4-6 (per-point error, error CDF, X-Y view),
-and the 3D error against the lamp's angle off the optical axis."""
+"""
+Figures in the style of the seed paper's Figs.
+
+4-6 (per-point error, error CDF, X-Y view), and the 3D error against the lamp's angle off
+the optical axis.
+"""
 from __future__ import annotations
 
 from pathlib import Path
@@ -84,9 +88,11 @@ def xy_view(outcomes: list[FrameOutcome], path: Path, title: str) -> Path:
 
 def error_vs_off_axis(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str,
                       reference_distance_m: float | None = None) -> Path:
-    """3D error against the lamp's angle off the optical axis, one marker set per series
+    """
+    3D error against the lamp's angle off the optical axis, one marker set per series
     (label -> (angles in deg, errors in m)); with ``reference_distance_m``, the weak-perspective
-    rule of thumb error = distance x tan(angle) as a dashed line."""
+    rule of thumb error = distance x tan(angle) as a dashed line.
+    """
     fig, ax = plt.subplots(figsize=(7.2, 4.8))
     largest = 1.0
     for label, (angles, errors) in series.items():

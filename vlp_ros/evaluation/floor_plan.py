@@ -1,4 +1,5 @@
-"""What a lamp deployment gives over the floor: expected pose error and where lamp IDs can be read.
+"""
+What a lamp deployment gives over the floor: expected pose error and where lamp IDs can be read.
 
 At every point of a floor grid the camera is placed (lamps ``ceiling`` m above it,
 one fixed orientation everywhere), and the lamps it sees whole and large enough
@@ -24,18 +25,18 @@ import numpy as np
 
 from vlp_ros.beacon.encoding import packet_length
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.detection.detector import DetectionOptions
 from vlp_ros.core.lamp_map import Lamp
-from vlp_ros.pipeline.config import default_parameters
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
+from vlp_ros.detection.detector import DetectionOptions
+from vlp_ros.pipeline.config import default_parameters
+from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.sim.render import MARKER_RADIUS_FRACTION
 from vlp_ros.sim.scenarios import MARKER_RIM_GAP_FRACTION
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.refinement import refine_pose
-from vlp_ros.sim.exact_observations import synthetic_observation
 
 _LOCATOR_DEFAULTS = default_parameters()
 _DETECTION_DEFAULTS = DetectionOptions()
@@ -76,7 +77,8 @@ class MeasurementNoise:
 
 @dataclass(frozen=True)
 class BeaconPlan:
-    """Beacon settings and the spans decoding needs (docs/beacon.md).
+    """
+    Beacon settings and the spans decoding needs (docs/beacon.md).
 
     Packet mode: one frame reads the ID when a lamp spans ``min_packets`` packets, a few
     frames together (the evidence tracker) when it spans ``partial_packets``; either way
@@ -127,9 +129,11 @@ class BeaconPlan:
 
 @dataclass(frozen=True)
 class Deployment:
-    """A ``room`` (width along x, depth along y, m, from the origin), its lamps (centres
+    """
+    A ``room`` (width along x, depth along y, m, from the origin), its lamps (centres
     ``lamp.position[2]`` m above the camera, which moves in the plane z = 0) and the camera
-    with its orientation (camera to map) at every floor point."""
+    with its orientation (camera to map) at every floor point.
+    """
 
     room: tuple[float, float]
     lamps: tuple[Lamp, ...]
@@ -158,8 +162,12 @@ class Deployment:
 
 @dataclass
 class FloorPlan:
-    """Per floor cell (rows along y, columns along x): expected 3D position error (cm, NaN
-    where there is no fix), lamps in view, and ``Decodability`` codes."""
+    """
+    Per floor cell (rows along y, columns along x).
+
+    Expected 3D position error (cm, NaN where there is no fix), lamps in view, and
+    ``Decodability`` codes.
+    """
 
     xs: np.ndarray
     ys: np.ndarray
@@ -183,7 +191,7 @@ class FloorPlan:
 
 
 def ceiling_lamp(name: str, lamp_id: int, x: float, y: float, ceiling: float, radius: float) -> Lamp:
-    """A lamp as the simulator builds them: marker just inside the rim, toward +x."""
+    """Return a lamp as the simulator builds them: marker just inside the rim, toward +x."""
     if not radius > 0.0:
         raise ValueError(f'lamp radius must be positive, got {radius}')
     marker_distance = radius * (1.0 - MARKER_RADIUS_FRACTION - MARKER_RIM_GAP_FRACTION)
@@ -191,8 +199,10 @@ def ceiling_lamp(name: str, lamp_id: int, x: float, y: float, ceiling: float, ra
 
 
 def grid_positions(room: tuple[float, float], spacing: float) -> np.ndarray:
-    """Lamp (x, y) (N, 2) on a square grid of ``spacing``, as many per side as fit the room
-    at that spacing (at least one), centred in it."""
+    """
+    Lamp (x, y) (N, 2) on a square grid of ``spacing``, as many per side as fit the room
+    at that spacing (at least one), centred in it.
+    """
     if not spacing > 0.0:
         raise ValueError(f'lamp spacing must be positive, got {spacing}')
     axes = []
@@ -204,8 +214,10 @@ def grid_positions(room: tuple[float, float], spacing: float) -> np.ndarray:
 
 
 def looking_up(tilt: float = 0.0, tilt_azimuth: float = 0.0, yaw: float = 0.0) -> np.ndarray:
-    """Camera-to-map rotation of a camera looking straight up (image x along map direction
-    ``yaw``), then tilted by ``tilt`` toward map direction ``tilt_azimuth`` (all rad)."""
+    """
+    Camera-to-map rotation of a camera looking straight up (image x along map direction
+    ``yaw``), then tilted by ``tilt`` toward map direction ``tilt_azimuth`` (all rad).
+    """
     c, s = np.cos(yaw), np.sin(yaw)
     turned = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     axis = np.array([-np.sin(tilt_azimuth), np.cos(tilt_azimuth), 0.0])
@@ -235,8 +247,10 @@ def visible_spans(deployment: Deployment, pose: Pose, noise: MeasurementNoise) -
 
 def lamp_observations(deployment: Deployment, pose: Pose, spans: dict[int, float],
                       noise: MeasurementNoise) -> list[tuple[LampObservation, Lamp]]:
-    """Exact observations of the lamps in ``spans`` (from ``visible_spans``) with the noise's sigmas,
-    two rim points per row each lamp spans."""
+    """
+    Exact observations of the lamps in ``spans`` (from ``visible_spans``) with the noise's sigmas,
+    two rim points per row each lamp spans.
+    """
     pairs = []
     for index, span in spans.items():
         lamp = deployment.lamps[index]
@@ -249,8 +263,10 @@ def lamp_observations(deployment: Deployment, pose: Pose, spans: dict[int, float
 
 def expected_position_error(deployment: Deployment, pose: Pose, spans: dict[int, float],
                             noise: MeasurementNoise) -> float:
-    """sqrt(trace) of the position covariance (m) the solver reports for exact observations of
-    the lamps in ``spans`` from ``pose``; NaN when it gives no pose."""
+    """
+    sqrt(trace) of the position covariance (m) the solver reports for exact observations of
+    the lamps in ``spans`` from ``pose``; NaN when it gives no pose.
+    """
     pairs = lamp_observations(deployment, pose, spans, noise)
     up = [] if noise.imu_sigma is None else [UpHint(pose.up_in_camera(), noise.imu_tolerance, noise.imu_sigma)]
     hints = DisambiguationHints(up_in_camera=up)
@@ -268,7 +284,7 @@ def expected_position_error(deployment: Deployment, pose: Pose, spans: dict[int,
 
 
 def plan_floor(deployment: Deployment, beacon: BeaconPlan, noise: MeasurementNoise, points: int = 40) -> FloorPlan:
-    """Expected error and decodability at the centres of a ``points`` x ``points`` floor grid."""
+    """Expect error and decodability at the centres of a ``points`` x ``points`` floor grid."""
     if points < 1:
         raise ValueError(f'points must be at least 1, got {points}')
     if beacon.mode == 'packet' and len(deployment.lamps) > 2 ** beacon.id_bits:

@@ -13,8 +13,11 @@ WRONG_FIX_M = 0.5  # a published pose further than this from the truth is a wron
 
 @dataclass
 class FrameOutcome:
-    """One frame: the true pose, the estimate (None = no pose published) and where it was taken;
-    ``candidates``: the solver's distinct poses, when the evaluation recorded them."""
+    """
+    One frame: the true pose, the estimate (None = no pose published) and where it was taken.
+
+    ``candidates``: the solver's distinct poses, when the evaluation recorded them.
+    """
 
     truth: Pose
     estimate: Pose | None
@@ -26,8 +29,12 @@ class FrameOutcome:
 
 @dataclass
 class ErrorSummary:
-    """Per-photo statistics, and (``point_*``) the paper's: at each grid point the error of
-    the average of that point's estimates, over the ``points`` points with any."""
+    """
+    Per-photo statistics, and (``point_*``) the paper's.
+
+    At each grid point the error of the average of that point's estimates, over the
+    ``points`` points with any.
+    """
 
     frames: int
     poses: int
@@ -56,8 +63,12 @@ def position_errors(outcomes: list[FrameOutcome]) -> np.ndarray:
 
 
 def point_average_errors(outcomes: list[FrameOutcome]) -> np.ndarray:
-    """The paper's metric: per grid point, the distance from the true position to the mean
-    of the estimated positions taken there (points without an estimate are left out)."""
+    """
+    Return the paper's metric.
+
+    Per grid point, the distance from the true position to the mean of the estimated
+    positions taken there (points without an estimate are left out).
+    """
     by_point: dict[tuple[float, float] | None, list[FrameOutcome]] = {}
     for o in outcomes:
         if o.estimate is not None:

@@ -1,4 +1,5 @@
-"""Plan a lamp deployment: expected pose error and ID decodability over a room's floor, as a PNG.
+"""
+Plan a lamp deployment: expected pose error and ID decodability over a room's floor, as a PNG.
 
     python -m vlp_ros.evaluation.plan --room 6 4 --spacing 2 --ceiling 2.5 --camera 1080p-wide --out plan.png
 
@@ -8,19 +9,19 @@ see ``floor_plan`` for the model and its assumptions.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import sys
 import time
-from pathlib import Path
 from typing import NoReturn
 
 import matplotlib
 
 matplotlib.use('Agg')  # files only; no display on robots or CI
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap, LogNorm  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
+import numpy as np  # noqa: E402
 
 from vlp_ros.core.camera import CameraModel  # noqa: E402
 from vlp_ros.evaluation.floor_plan import (BeaconPlan, Decodability, Deployment, FloorPlan,  # noqa: E402
@@ -38,7 +39,7 @@ _LEGEND_BELOW = {'loc': 'upper center', 'bbox_to_anchor': (0.5, -0.12), 'fontsiz
 
 
 def preset_camera(name: str) -> CameraModel:
-    """The Lumia 1020 of the seed paper at 4K or 1080p, or a 1080p camera with a 100 deg HFOV."""
+    """Return the Lumia 1020 of the seed paper at 4K or 1080p, or a 1080p camera with a 100 deg HFOV."""
     if name == '1080p-wide':
         return CameraModel.from_horizontal_fov(1920, 1080, np.radians(WIDE_HFOV_DEG))
     if name in ('4k-lumia', '1080p-lumia'):
@@ -47,7 +48,7 @@ def preset_camera(name: str) -> CameraModel:
 
 
 def error_map_figure(plan: FloorPlan, deployment: Deployment, beacon: BeaconPlan, path: Path, title: str) -> Path:
-    """Expected 3D error and decodability over the floor, side by side, lamps marked."""
+    """Return expected 3D error and decodability over the floor, side by side, lamps marked."""
     width, depth = deployment.room
     x_edges = np.linspace(0.0, width, len(plan.xs) + 1)
     y_edges = np.linspace(0.0, depth, len(plan.ys) + 1)
@@ -114,7 +115,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = _Parser(prog='python -m vlp_ros.evaluation.plan', description=__doc__.split('\n')[0])
+    parser = _Parser(prog='python -m vlp_ros.evaluation.plan', description=__doc__.strip().splitlines()[0])
     parser.add_argument('--out', type=Path, required=True, help='PNG to write')
     parser.add_argument('--room', type=float, nargs=2, default=(6.0, 4.0), metavar=('WIDTH', 'DEPTH'),
                         help='floor size (m), x by y')

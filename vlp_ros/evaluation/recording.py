@@ -6,14 +6,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import get_typestore, Stores
 
+from vlp_ros.bags.reader import Bag, BagError
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import GravityBuffer
+from vlp_ros.core.pose import Pose
 from vlp_ros.images.conversion import decode_compressed, pixels_of
 from vlp_ros.images.message import parse_compressed_image, parse_image
-from vlp_ros.core.pose import Pose
-from vlp_ros.bags.reader import Bag, BagError
 
 TYPESTORE = get_typestore(Stores.LATEST)
 
@@ -44,7 +44,7 @@ def _require(bag: Bag, topic: str) -> None:
 
 
 def ground_truth(bag_path: Path | str, topic: str) -> dict[int, Pose]:
-    """True camera poses by header stamp (ns), from geometry_msgs/PoseStamped messages."""
+    """Return true camera poses by header stamp (ns), from geometry_msgs/PoseStamped messages."""
     with Bag(bag_path) as bag:
         _require(bag, topic)
         truth = {}
@@ -56,7 +56,8 @@ def ground_truth(bag_path: Path | str, topic: str) -> dict[int, Pose]:
 
 
 def recorded_frames(bag_path: Path | str, topics: RecordingTopics, gravity: GravityBuffer | None) -> Iterator[RecordedFrame]:
-    """Every image of the recording in order, with its camera_info and (if wanted) IMU up.
+    """
+    Every image of the recording in order, with its camera_info and (if wanted) IMU up.
 
     An image is handed out once everything logged at its time has been read, since
     drivers publish the camera_info and IMU sample of a frame in either order.

@@ -1,13 +1,13 @@
 """The evaluation's outputs: a terminal table, and a folder with a Markdown summary and figures."""
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+import re
 
 from vlp_ros.evaluation import figures
-from vlp_ros.evaluation.metrics import POINT_TABLE_HEADER, FrameOutcome, format_table, point_summary_row, summarize
+from vlp_ros.evaluation.metrics import format_table, FrameOutcome, point_summary_row, POINT_TABLE_HEADER, summarize
 
 # The seed paper's published mean 3D errors (Zhang et al. 2017), by lamp height above the camera,
 # and the spread it gives with each.
@@ -17,7 +17,8 @@ PAPER_PUBLISHED_SPREAD = {'1.5 m': '5.05-27.25 cm', '2 m': '8.94-25.12 cm, sd 3.
 
 @dataclass
 class Evaluation:
-    """Outcomes per solver, each a list of frames tagged with its group (e.g. lamp height).
+    """
+    Outcomes per solver, each a list of frames tagged with its group (e.g. lamp height).
 
     ``published``: the paper's published figures go in a last column, beside the rows of
     their lamp height (for experiments that reproduce the paper's). ``name`` prefixes the
@@ -54,7 +55,7 @@ class Evaluation:
 
 
 def published_figures(group: str) -> str:
-    """The paper's mean 3D error and spread at this lamp height, '-' for heights it did not publish."""
+    """Return the paper's mean 3D error and spread at this lamp height, '-' for heights it did not publish."""
     if group not in PAPER_PUBLISHED_MEAN_M:
         return '-'
     return f'{100 * PAPER_PUBLISHED_MEAN_M[group]:.2f} ({PAPER_PUBLISHED_SPREAD[group]})'
@@ -78,8 +79,11 @@ def _evaluation_figures(evaluation: Evaluation, folder: Path) -> list[Path]:
 
 def write_report(evaluations: Evaluation | Sequence[Evaluation], folder: Path,
                  extra_figures: Sequence[Path] = ()) -> Path:
-    """summary.md and PNG figures in ``folder`` (one section per evaluation, then
-    ``extra_figures``, already drawn there); returns the summary's path."""
+    """
+    summary.md and PNG figures in ``folder`` (one section per evaluation, then ``extra_figures``, already drawn there).
+
+    Returns the summary's path.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     lines = []
     for evaluation in [evaluations] if isinstance(evaluations, Evaluation) else evaluations:

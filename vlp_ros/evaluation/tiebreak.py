@@ -1,4 +1,5 @@
-"""The seed paper's own tie-break between its two mirror poses (its Appendix B), for evaluation only.
+"""
+The seed paper's own tie-break between its two mirror poses (its Appendix B), for evaluation only.
 
 With R the map-to-camera rotation, R . [0, 0, 1] is where map up points in the
 camera frame. The paper keeps the solution whose third row is positive (the
@@ -11,10 +12,10 @@ from __future__ import annotations
 
 import argparse
 
-from vlp_ros.evaluation.metrics import FrameOutcome
 from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
-from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
+from vlp_ros.evaluation.metrics import FrameOutcome
+from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints
+from vlp_ros.solvers.candidates import Choice, distinct, PoseCandidate, Reason
 
 PAPER_TIEBREAKS = ('hints', 'appendix-b')
 
@@ -33,7 +34,7 @@ def faces_up_toward_user(pose: Pose) -> bool:
 
 
 def appendix_b_choice(candidates: list[PoseCandidate]) -> Choice:
-    """The one candidate that meets Appendix B's condition, or no pose when none or several do."""
+    """Return the one candidate that meets Appendix B's condition, or no pose when none or several do."""
     kept = distinct(candidates)
     if len(kept) == 1:
         return Choice(kept[0].pose, Reason.UNIQUE)
@@ -46,8 +47,11 @@ def appendix_b_choice(candidates: list[PoseCandidate]) -> Choice:
 
 
 class CandidateRecorder:
-    """A ``Pipeline`` paper_choice that remembers the frame's candidates, then decides by
-    ``tiebreak``: 'hints' (gravity, prior, continuity, as the locator) or 'appendix-b'."""
+    """
+    A ``Pipeline`` paper_choice that remembers the frame's candidates, then decides by ``tiebreak``.
+
+    'hints' (gravity, prior, continuity, as the locator) or 'appendix-b'.
+    """
 
     def __init__(self, tiebreak: str = 'hints') -> None:
         if tiebreak not in PAPER_TIEBREAKS:
@@ -62,14 +66,17 @@ class CandidateRecorder:
         return choose_candidate(candidates, hints)
 
     def take(self) -> list[Pose]:
-        """The distinct candidates of the frame just processed (none when the solver was not reached)."""
+        """Return the distinct candidates of the frame just processed (none when the solver was not reached)."""
         taken, self.candidates = self.candidates, []
         return taken
 
 
 def picks_mirror(candidates: list[Pose], truth: Pose) -> bool | None:
-    """Whether Appendix B picks the mirror pose: not the candidate whose orientation is
-    nearer the truth. None when there are not two distinct candidates or it picks neither."""
+    """
+    Whether Appendix B picks the mirror pose: not the candidate whose orientation is nearer the truth.
+
+    None when there are not two distinct candidates or it picks neither.
+    """
     if len(candidates) != 2:
         return None
     agreeing = [faces_up_toward_user(pose) for pose in candidates]

@@ -31,7 +31,7 @@ class ImageConversionError(ValueError):
 
 
 def pixels_of(msg: ImageMessage) -> np.ndarray:
-    """The message's pixels as bgr8 or mono8; a view where no conversion is needed."""
+    """Return the message's pixels as bgr8 or mono8; a view where no conversion is needed."""
     encoding = msg.encoding.lower()
     channels = _CHANNELS.get(encoding)
     if channels is None:
@@ -71,7 +71,7 @@ def _to_bgr_or_mono(image: np.ndarray, encoding: str) -> np.ndarray:
 
 
 def decode_compressed(msg: CompressedImageMessage) -> np.ndarray:
-    """A jpeg or png CompressedImage as bgr8 (or mono8 for grey images)."""
+    """Return a jpeg or png CompressedImage as bgr8 (or mono8 for grey images)."""
     if msg.data.size == 0:
         raise ImageConversionError('compressed image has no data')
     image = cv2.imdecode(msg.data, cv2.IMREAD_UNCHANGED)

@@ -1,4 +1,5 @@
-"""Zero-copy reading of serialized sensor_msgs/Image and CompressedImage (CDR).
+"""
+Zero-copy reading of serialized sensor_msgs/Image and CompressedImage (CDR).
 
 Written by hand because cv_bridge is not on PyPI, rclpy's own conversion of a
 1080p Image costs ~15-20 ms and rosbags' deserializer copies the pixel buffer;
@@ -6,8 +7,8 @@ here the pixels stay a read-only numpy view into the received bytes.
 """
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
+import struct
 
 import numpy as np
 

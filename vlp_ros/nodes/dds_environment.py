@@ -9,7 +9,8 @@ _held_locks: list = []
 
 
 def claim_domain_id(first: int = 1, last: int = 100) -> int:
-    """Lowest ROS domain in [first, last] that no other process on this machine has claimed.
+    """
+    Lowest ROS domain in [first, last] that no other process on this machine has claimed.
 
     The claim is a lock file held until this process exits, so concurrent test runs
     and demos never see each other's nodes.
@@ -27,7 +28,8 @@ def claim_domain_id(first: int = 1, last: int = 100) -> int:
 
 
 def use_loopback_dds(profile: Path, domain_id: int) -> None:
-    """Configure this process and its children: ``profile`` is config/fastdds_loopback.xml.
+    """
+    Configure this process and its children: ``profile`` is config/fastdds_loopback.xml.
 
     Not ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST: it swaps in transports that drop
     camera-sized best-effort messages (see the profile's comment).
@@ -40,12 +42,12 @@ def use_loopback_dds(profile: Path, domain_id: int) -> None:
 
 
 def installed_executable(name: str) -> Path:
-    """The file `ros2 run vlp_ros <name>` would execute."""
+    """Return the file `ros2 run vlp_ros <name>` would execute."""
     from ament_index_python.packages import get_package_prefix
     return Path(get_package_prefix('vlp_ros')) / 'lib' / 'vlp_ros' / name
 
 
 def loopback_profile() -> Path:
-    """The installed config/fastdds_loopback.xml."""
+    """Return the installed config/fastdds_loopback.xml."""
     from ament_index_python.packages import get_package_share_directory
     return Path(get_package_share_directory('vlp_ros')) / 'config' / 'fastdds_loopback.xml'

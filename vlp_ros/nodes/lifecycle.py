@@ -1,4 +1,5 @@
-"""The start and stop code every vlp_ros executable shares, as in ros2/examples.
+"""
+The start and stop code every vlp_ros executable shares, as in ros2/examples.
 
 A process initializes rclpy, builds its node, runs it, and on the way out destroys
 the node and shuts rclpy down. Ctrl-C at any moment (while starting, running or
@@ -6,8 +7,8 @@ stopping) and an external shutdown are clean stops with exit status 0.
 """
 from __future__ import annotations
 
-import signal
 from collections.abc import Callable, Sequence
+import signal
 from typing import TypeVar
 
 import rclpy
@@ -27,7 +28,8 @@ def run_node(create: Callable[[], NodeT], run: Callable[[NodeT], int] = spin, *,
              args: Sequence[str] | None = None,
              start_errors: tuple[type[Exception], ...] = (),
              on_start_error: Callable[[Exception], int] | None = None) -> int:
-    """Build the node with ``create()``, ``run`` it, and stop cleanly; the process's exit status.
+    """
+    Build the node with ``create()``, ``run`` it, and stop cleanly; the process's exit status.
 
     ``start_errors`` raised by ``create()`` (bad parameters or options) are handed to
     ``on_start_error``, whose return value is the exit status.

@@ -1,4 +1,5 @@
-"""The `locator` node: camera images in, camera poses out.
+"""
+The `locator` node: camera images in, camera poses out.
 
 Callbacks only keep the newest frame; one worker thread decodes it, hands it to
 the ROS-free pipeline (vlp_ros.pipeline.frame) and publishes. Frames that arrive while
@@ -13,38 +14,39 @@ import sys
 import threading
 import time
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+import numpy as np
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
-from vlp_ros.core.camera import CameraModel
 from vlp_ros.compiled.warm_up import warm_up
-from vlp_ros.pipeline.debug_view import debug_view
-from vlp_ros.pipeline.frame_stats import FrameStats
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import GravityBuffer
-from vlp_ros.images.conversion import ImageConversionError, decode_compressed, pixels_of
-from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
-from vlp_ros.pipeline.config import ConfigError, settings_from_parameters
 from vlp_ros.core.mounting import publishable_covariance
+from vlp_ros.core.pose import Pose
+from vlp_ros.images.conversion import decode_compressed, ImageConversionError, pixels_of
+from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
 from vlp_ros.nodes.diagnostics import diagnostic_array
 from vlp_ros.nodes.lifecycle import run_node
 from vlp_ros.nodes.parameters import declare_locator_parameters
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
+from vlp_ros.pipeline.config import ConfigError, settings_from_parameters
+from vlp_ros.pipeline.debug_view import debug_view
 from vlp_ros.pipeline.frame import FrameResult, Pipeline
-from vlp_ros.core.pose import Pose
+from vlp_ros.pipeline.frame_stats import FrameStats
 
 THROTTLE_S = 5.0
 
 
 class Locator(Node):
+
     def __init__(self) -> None:
         # Overrides declared on arrival, so that misspelt parameters can be named (nodes.parameters).
         super().__init__('vlp_locator', automatically_declare_parameters_from_overrides=True)

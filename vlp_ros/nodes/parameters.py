@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import array
 import copy
-
 from typing import Any
 
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
@@ -11,7 +10,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from vlp_ros.pipeline.config import LAMP_PARAMETERS, PARAMETERS, ConfigError, ParameterSpec
+from vlp_ros.pipeline.config import ConfigError, LAMP_PARAMETERS, PARAMETERS, ParameterSpec
 
 _STATIC_TYPES = {
     'string': Parameter.Type.STRING,
@@ -59,7 +58,8 @@ def _redeclare(node: Node, name: str, spec: ParameterSpec) -> Any:
 
 
 def declare_locator_parameters(node: Node) -> dict[str, Any]:
-    """Declare every locator parameter (lamps as listed in leds.names) and return their values.
+    """
+    Declare every locator parameter (lamps as listed in leds.names) and return their values.
 
     The node must be built with ``automatically_declare_parameters_from_overrides=True``:
     rclpy lists the overrides it was given only as declared parameters. Each of ours is

@@ -1,4 +1,5 @@
-"""Playing a recording through the installed nodes and collecting what the locator answers.
+"""
+Playing a recording through the installed nodes and collecting what the locator answers.
 
 The ROS part of `make demo` and of the node tests: ``replay --deterministic`` feeds a
 fresh ``locator`` (two processes over DDS) while a PoseListener in this process records
@@ -6,17 +7,17 @@ the poses and per-frame outcomes by image stamp.
 """
 from __future__ import annotations
 
-import signal
-import subprocess
-import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+import signal
+import subprocess
+import time
 
-import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+import numpy as np
+import rclpy
 from rclpy.node import Node
 from std_msgs.msg import Header
 
@@ -92,7 +93,8 @@ def _stop(process: subprocess.Popen) -> None:
 
 def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListener, logs: Path,
                        topics: Sequence[str], progress: Callable[[int, int], None] | None = None) -> float:
-    """Replay ``topics`` of ``bag`` into a fresh locator, wait for every frame's answer; return the wall time (s).
+    """
+    Replay ``topics`` of ``bag`` into a fresh locator, wait for every frame's answer; return the wall time (s).
 
     ``topics`` starts with the image and camera_info topics. The listener's answers
     are reset first: recordings may share stamps. ``progress(answered, frames)`` is

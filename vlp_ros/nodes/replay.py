@@ -1,4 +1,5 @@
-"""The `replay` node: plays rosbag2 recordings into the ROS graph, like `ros2 bag play`.
+"""
+The `replay` node: plays rosbag2 recordings into the ROS graph, like `ros2 bag play`.
 
     replay PATH [--topics T [T ...]] [--remap FROM:=TO] [--rate R] [--loop]
                 [--start-offset S] [--delay S] [--clock [HZ]]
@@ -13,10 +14,10 @@ waits for the locator's answer (same stamp on vlp/pose or vlp/processed) or
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable, Sequence
 import importlib
 import sys
 import time
-from collections.abc import Callable, Sequence
 
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
@@ -31,9 +32,9 @@ from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
-from vlp_ros.bags.playback_plan import (DEFAULT_CLOCK_HZ, PlaybackOptions, PlaybackTally, Timeline,
-                                   playback_origin, progress_line, select_topics)
-from vlp_ros.bags.reader import FRAME_TYPES, Bag, BagMessage, BagTopic, header_stamp
+from vlp_ros.bags.playback_plan import (DEFAULT_CLOCK_HZ, playback_origin, PlaybackOptions, PlaybackTally,
+                                        progress_line, select_topics, Timeline)
+from vlp_ros.bags.reader import Bag, BagMessage, BagTopic, FRAME_TYPES, header_stamp
 from vlp_ros.nodes.lifecycle import run_node
 
 DISCOVERY_WAIT_S = 5.0  # at most, for subscribers to match first (a lost announcement costs 3 s)
@@ -72,7 +73,8 @@ def command_line_parser() -> argparse.ArgumentParser:
 
 
 def split_ros_arguments(argv: Sequence[str]) -> tuple[list[str], list[str]]:
-    """(the program's own arguments, the `--ros-args ... [--]` sections for rclpy).
+    """
+    (the program's own arguments, the `--ros-args ... [--]` sections for rclpy).
 
     rclpy.utilities.remove_ros_args would also swallow bare FROM:=TO words (the
     pre-Foxy remapping syntax), which are the values of --remap here.
@@ -92,7 +94,7 @@ def split_ros_arguments(argv: Sequence[str]) -> tuple[list[str], list[str]]:
 
 
 def message_class(msgtype: str) -> type | None:
-    """The installed Python class of a ROS message type name such as 'sensor_msgs/msg/Image'."""
+    """Return the installed Python class of a ROS message type name such as 'sensor_msgs/msg/Image'."""
     parts = msgtype.split('/')
     if len(parts) == 2:  # pre-Dashing spelling 'pkg/Type'
         parts.insert(1, 'msg')
@@ -114,6 +116,7 @@ def offered_qos_profile(topic: BagTopic) -> QoSProfile:
 
 
 class Replay(Node):
+
     def __init__(self, command_line: argparse.Namespace) -> None:
         super().__init__('vlp_replay')
         self.options = self._options(command_line)
@@ -157,7 +160,11 @@ class Replay(Node):
         return float(value)
 
     def play(self) -> int:
-        """Play the bag as the options say; the exit status. Raises ValueError (BagError) for unplayable bags."""
+        """
+        Play the bag as the options say; the exit status.
+
+        Raises ValueError (BagError) for unplayable bags.
+        """
         with Bag(self.options.bag) as bag:
             selected, missing = select_topics(bag.topics, self.options.topics)
             for name in missing:
@@ -238,7 +245,8 @@ class Replay(Node):
             self._pending_stamp = None
 
     def _wait_for_subscribers(self) -> None:
-        """Until every topic has a subscriber, or discovery has settled on some, or DISCOVERY_WAIT_S.
+        """
+        Until every topic has a subscriber, or discovery has settled on some, or DISCOVERY_WAIT_S.
 
         A publisher counts a subscriber before that subscriber has matched the
         publisher, and what is sent in between is lost to volatile subscribers:
@@ -292,9 +300,11 @@ class Replay(Node):
             self._pending_stamp = None
 
     def _spin_while(self, condition: Callable[[], bool], timeout: float) -> bool:
-        """Serve callbacks (timers, answers) while ``condition()`` holds, at most ``timeout`` s.
+        """
+        Serve callbacks (timers, answers) while ``condition()`` holds, at most ``timeout`` s.
 
-        Returns whether it still holds."""
+        Returns whether it still holds.
+        """
         deadline = time.monotonic() + timeout
         while True:
             remaining = deadline - time.monotonic()

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import array
 
-import numpy as np
 from geometry_msgs.msg import Point
+import numpy as np
 from sensor_msgs.msg import Image
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
@@ -19,8 +19,12 @@ LABEL = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
 
 
 def lamp_markers(lamps: LampMap, map_frame: str, used_ids: set[int]) -> MarkerArray:
-    """Per lamp: a disc (green when used in the latest pose), an arrow from its centre to its
-    rim marker, and a label with its name and ID. Namespaces lamps, marker_direction, labels."""
+    """
+    Per lamp.
+
+    A disc (green when used in the latest pose), an arrow from its centre to its rim marker,
+    and a label with its name and ID. Namespaces lamps, marker_direction, labels.
+    """
     array = MarkerArray()
     for index, lamp in enumerate(lamps):
         header = Header(frame_id=map_frame)

@@ -1,4 +1,5 @@
-"""The locator's settings, validated from flat ROS-style parameter values.
+"""
+The locator's settings, validated from flat ROS-style parameter values.
 
 ROS-free: the node reads its parameters into a ``dict`` and this module turns it
 into typed settings, raising ``ConfigError`` whose message names the parameter.
@@ -11,11 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from vlp_ros.beacon.tone import MAX_ROW_TIME_TOLERANCE, ROW_TIME_TOLERANCE
 from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.mounting import Mounting, unit_quaternion_problem
+
+import yaml
 
 BEACON_MODES = ('packet', 'tone')
 SOLVERS = ('perspective', 'paper')
@@ -25,7 +27,8 @@ IMAGE_TRANSPORTS = ('raw', 'compressed')
 
 @dataclass(frozen=True)
 class ParameterSpec:
-    """One parameter: ``kind`` is string, string_array, number, number_array, integer or bool.
+    """
+    One parameter: ``kind`` is string, string_array, number, number_array, integer or bool.
 
     Numbers accept integers too (a params file may say ``radius: 1``).
     """
@@ -47,7 +50,7 @@ PARAMETERS = (
                   "camera's exposure time (s); 0 = unknown. Tone mode needs it for short exposures"),
     ParameterSpec('beacon.frequency_tolerance', 'number', 60.0, 'tone mode: largest accepted frequency error (Hz)'),
     ParameterSpec('beacon.row_time_tolerance', 'number', ROW_TIME_TOLERANCE,
-                  'tone mode: how far (relative) beacon.row_time may be off; each lamp\'s band widens by that share '
+                  "tone mode: how far (relative) beacon.row_time may be off; each lamp's band widens by that share "
                   'of its frequency'),
     ParameterSpec('solver', 'string', 'perspective', 'pose solver: perspective (exact) or paper (weak perspective)'),
     ParameterSpec('prior.up_in_camera', 'number_array', [],
@@ -83,7 +86,7 @@ LAMP_PARAMETERS = (
     ParameterSpec('radius', 'number', None, 'radius of the luminous disc (m); 0 = a point lamp (bare LED)'),
     ParameterSpec('marker_angle', 'number', 0.0, 'map direction of the red marker from the centre (rad, +x toward +y)'),
     ParameterSpec('marker_distance', 'number', None, "marker centroid's distance from the centre (m); default the radius"),
-    ParameterSpec('frequency', 'number', None, 'tone mode: the lamp\'s square-wave frequency (Hz)'),
+    ParameterSpec('frequency', 'number', None, "tone mode: the lamp's square-wave frequency (Hz)"),
 )
 LAMP_FIELDS = tuple(spec.name for spec in LAMP_PARAMETERS)
 
@@ -331,7 +334,7 @@ def flatten_parameters(tree: Mapping[str, Any], prefix: str = '') -> dict[str, A
 
 
 def settings_from_params_file(path: Path | str, node: str = 'vlp_locator') -> LocatorSettings:
-    """Settings from a ``--params-file`` YAML, reading the section of ``node`` (or ``/**``)."""
+    """Return settings from a ``--params-file`` YAML, reading the section of ``node`` (or ``/**``)."""
     document = yaml.safe_load(Path(path).read_text()) or {}
     section = next((document[key] for key in (node, f'/{node}', '/**') if key in document), None)
     if not isinstance(section, Mapping) or 'ros__parameters' not in section:

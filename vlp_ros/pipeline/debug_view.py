@@ -1,4 +1,5 @@
-"""What the locator saw in a frame, drawn for people setting it up (ROS-free).
+"""
+What the locator saw in a frame, drawn for people setting it up (ROS-free).
 
 The frame is reduced to a display width; on it go each detected lamp's fitted rim
 ellipse, the rim points the fit used, the marker, the lamp's ID or why it has none,
@@ -24,7 +25,7 @@ MAX_RIM_POINTS_DRAWN = 240
 
 
 def debug_view(image: np.ndarray, result: FrameResult, width: int = DISPLAY_WIDTH) -> np.ndarray:
-    """A bgr8 image ``width`` px wide (never enlarged) showing ``result`` on ``image`` (bgr8 or mono8)."""
+    """Return a bgr8 image ``width`` px wide (never enlarged) showing ``result`` on ``image`` (bgr8 or mono8)."""
     scale = min(1.0, width / image.shape[1])
     size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
     # Linear, not area: area averaging costs ~20 ms on a 4K frame, linear ~2.5 ms; at display size

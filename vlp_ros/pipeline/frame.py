@@ -1,4 +1,5 @@
-"""One frame to one pose: detection, beacon decoding, solving and disambiguation (ROS-free).
+"""
+One frame to one pose: detection, beacon decoding, solving and disambiguation (ROS-free).
 
 This is everything the locator node does between converting an image and
 publishing; the evaluation tools call it the same way.
@@ -10,23 +11,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlp_ros.beacon.decoding import (BeaconReading, RowProfile, decode_clipped_packet, decode_glow, decode_packet,
-                                     decode_tone, read_lamp)
+from vlp_ros.beacon.decoding import (BeaconReading, decode_clipped_packet, decode_glow, decode_packet, decode_tone,
+                                     read_lamp, RowProfile)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.tone import agreeing, point_light_profile
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.detection import detect_lamps
 from vlp_ros.core.lamp_map import Lamp, LampMap
-from vlp_ros.pipeline.config import LocatorSettings
 from vlp_ros.core.observation import LampObservation
-from vlp_ros.solvers.pinhole_view import solver_view
 from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint, choose_candidate
-from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, explains_the_image
+from vlp_ros.detection import detect_lamps
+from vlp_ros.pipeline.config import LocatorSettings
+from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints, UpHint
+from vlp_ros.solvers.candidates import Choice, explains_the_image, PoseCandidate, Reason
 from vlp_ros.solvers.continuity_ids import settled_by_continuity
 from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.joint_ids import claimed_once, odd_one_out, open_lamps, settle
 from vlp_ros.solvers.paper import solve_lamp_paper
+from vlp_ros.solvers.pinhole_view import solver_view
 
 NO_LAMP = 'no_lamp'
 NO_ID = 'no_id'
@@ -44,8 +45,11 @@ class SeenLamp:
 
 @dataclass
 class FrameResult:
-    """``outcome`` is 'pose' when ``pose`` is set, else why there is none. ``seen``: the lamps
-    detected; a pose is solved from those with an ID."""
+    """
+    ``outcome`` is 'pose' when ``pose`` is set, else why there is none.
+
+    ``seen``: the lamps detected; a pose is solved from those with an ID.
+    """
 
     pose: Pose | None
     outcome: str
@@ -57,8 +61,12 @@ class FrameResult:
 
 
 def solvable(observation: LampObservation, lamp: Lamp) -> bool:
-    """Whether the solvers can use ``observation`` of ``lamp``: an observation without a usable
-    rim (a bare LED's light) serves only a point lamp, whose centre is all the solver needs."""
+    """
+    Whether the solvers can use ``observation`` of ``lamp``.
+
+    An observation without a usable rim (a bare LED's light) serves only a point lamp, whose
+    centre is all the solver needs.
+    """
     return observation.rim_usable or lamp.is_point
 
 
@@ -67,9 +75,11 @@ class Pipeline:
 
     def __init__(self, settings: LocatorSettings, gate_fit: bool = True,
                  paper_choice: Callable[[list[PoseCandidate], DisambiguationHints], Choice] = choose_candidate) -> None:
-        """``gate_fit=False`` lets the paper's solver publish poses that do not explain the
+        """
+        ``gate_fit=False`` lets the paper's solver publish poses that do not explain the
         image, and ``paper_choice`` replaces how its mirror poses are told apart: both only
-        for measuring that solver as published, never in the locator."""
+        for measuring that solver as published, never in the locator.
+        """
         self.settings = settings
         self.gate_fit = gate_fit
         self.paper_choice = paper_choice
@@ -108,8 +118,11 @@ class Pipeline:
 
     def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None = None) -> Choice:
-        """The pose from identified lamps of the frame at ``stamp``, which then continues (or
-        restarts) the track; ``process`` after detection and identification."""
+        """
+        Return the pose from identified lamps of the frame at ``stamp``, which then continues (or restarts) the track.
+
+        ``process`` after detection and identification.
+        """
         choice = self._solve(pairs, camera, stamp, gravity_up)
         self._continue_track(choice, stamp)
         return choice
@@ -124,9 +137,13 @@ class Pipeline:
                                   gravity_up: np.ndarray | None) -> tuple[list[int | None],
                                                                           list[tuple[LampObservation, Lamp]],
                                                                           dict[tuple, Choice]]:
-        """Each lamp's ID and the (observation, lamp) pairs to solve from: the beacon's certain IDs, held
-        to one pose explaining every lamp, and lamps its readings leave open that such a pose identifies
-        (``solvers.joint_ids``); and the choices solved on the way, by ``_key`` of their pairs."""
+        """
+        Each lamp's ID and the (observation, lamp) pairs to solve from.
+
+        The beacon's certain IDs, held to one pose explaining every lamp, and lamps its readings leave
+        open that such a pose identifies (``solvers.joint_ids``); and the choices solved on the way, by
+        ``_key`` of their pairs.
+        """
         lamps = self.settings.lamps
 
         def pairs_of(lamp_ids: list[int | None]) -> list[tuple[LampObservation, Lamp]]:
@@ -158,8 +175,12 @@ class Pipeline:
                                   camera: CameraModel, stamp: float, gravity_up: np.ndarray | None,
                                   solved: dict[tuple, Choice]) -> tuple[list[int | None],
                                                                          list[tuple[LampObservation, Lamp]]]:
-        """When no lamp is identified otherwise: the lamps that only one lamp of the map can be, this close
-        to the recent pose (``solvers.continuity_ids``), as IDs and pairs to solve from."""
+        """
+        When no lamp is identified otherwise.
+
+        The lamps that only one lamp of the map can be, this close to the recent pose
+        (``solvers.continuity_ids``), as IDs and pairs to solve from.
+        """
         hints = self._hints(stamp, gravity_up)
         if self.settings.solver != 'perspective' or not hints.continuity_counts:
             return ids, []

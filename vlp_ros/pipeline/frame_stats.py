@@ -1,9 +1,9 @@
 """Running counts and rates of what the locator did with its frames, for diagnostics."""
 from __future__ import annotations
 
-import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
+import time
 
 import numpy as np
 

@@ -1,4 +1,5 @@
-"""Command line: python -m vlp_ros.sim --scenario paper|robot|drive|tone|bare_leds --out DIR [--look NAME] [options].
+"""
+Command line: python -m vlp_ros.sim --scenario paper|robot|drive|tone|bare_leds --out DIR [--look NAME] [options].
 
 Writes DIR/<scenario> (a rosbag2 recording) and DIR/params.yaml (the locator's
 parameters for it), shows a progress bar on stderr and prints a one-line summary.
@@ -6,20 +7,20 @@ parameters for it), shows a progress bar on stderr and prints a one-line summary
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 from dataclasses import replace
 from pathlib import Path
+import sys
+import time
 
 import numpy as np
 
-from vlp_ros.sim.bag_writer import STORAGES
 from vlp_ros.evaluation.progress import progress_bar
-from vlp_ros.sim.point_lamps import BARE_LED_CAMERAS, PointLampLook, bare_led_scenario
+from vlp_ros.sim.bag_writer import STORAGES
+from vlp_ros.sim.looks import apply_look, Look, LOOKS
+from vlp_ros.sim.point_lamps import BARE_LED_CAMERAS, bare_led_scenario, PointLampLook
 from vlp_ros.sim.recording import record, write_params
-from vlp_ros.sim.looks import LOOKS, Look, apply_look
-from vlp_ros.sim.scenarios import (PAPER_CAMERAS, Scenario, as_stills, paper_scenario, robot_drive_scenario,
-                                   robot_scenario, robot_tone_scenario, with_rim_markers)
+from vlp_ros.sim.scenarios import (as_stills, PAPER_CAMERAS, paper_scenario, robot_drive_scenario, robot_scenario,
+                                   robot_tone_scenario, Scenario, with_rim_markers)
 from vlp_ros.sim.sensor import BAYER_PATTERNS, encoding
 
 PAPER_ONLY = ('points', 'postures', 'still_interval')
@@ -32,7 +33,7 @@ LOOK_OPTIONS = (
     ('--glare', 'glare', float, "lens-glare halo peak as a fraction of the disc's level (realistic 0.2)"),
     ('--glare-width', 'glare_width', float, "halo sigma as a fraction of the lamp's image diameter (0.35)"),
     ('--falloff', 'falloff', float, 'diffuser emission 1 - a (r/R)^2: a (realistic 0.3)'),
-    ('--brightness', 'brightness', float, 'scale of the lamps\' light; above 1 saturates them'),
+    ('--brightness', 'brightness', float, "scale of the lamps' light; above 1 saturates them"),
     ('--bloom', 'bloom', float, 'fraction of the charge beyond the full well that spills to neighbours'),
     ('--clutter', 'clutter', int, 'unmodulated lamps, not in the map, among the mapped ones (realistic 2)'),
     ('--jpeg', 'jpeg_quality', int, 'send the images as JPEG of this quality on /image_raw/compressed'),
@@ -63,10 +64,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              'binned (full, 4k = 3856x2176, 1080p = 1928x1088; default 4k)')
     parser.add_argument('--photos', type=int, help='bare_leds: hand-held photos of the five-LED rig (default 12)')
     parser.add_argument('--led-core-radius', type=float,
-                        help='bare_leds: radius (m) of each LED\'s bright core (default 0.01: 46 px wide at 2.46 m)')
+                        help="bare_leds: radius (m) of each LED's bright core (default 0.01: 46 px wide at 2.46 m)")
     parser.add_argument('--led-glow', type=float, help="bare_leds: the glow's level next to the core (default 0.4)")
     parser.add_argument('--height', type=float, help='lamp height above the camera in m (paper 2.0, robot 2.15)')
-    parser.add_argument('--depth', type=float, help='beacon modulation depth (0..1], default 0.75 or the look\'s '
+    parser.add_argument('--depth', type=float, help="beacon modulation depth (0..1], default 0.75 or the look's "
                                                     '(realistic 0.6)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--bayer', choices=BAYER_PATTERNS, help='record a raw Bayer mosaic instead of bgr8')
@@ -74,7 +75,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--still-interval', type=float,
                         help='paper: stamp the photos this many s apart with continuity on (e.g. 0.1 or 2)')
     parser.add_argument('--marker-distance', type=float,
-                        help="marker centre as a fraction of the lamp radius, 0.5-1 (given alone or with "
+                        help='marker centre as a fraction of the lamp radius, 0.5-1 (given alone or with '
                              "--marker-radius: the paper's marginal point, 0.9 and 0.1, for the other)")
     parser.add_argument('--marker-radius', type=float, help='marker radius as a fraction of the lamp radius')
     looks = parser.add_argument_group('looks', 'how real lamps and cameras look (docs/simulator.md)')
@@ -124,8 +125,12 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
 
 
 def bare_leds_scenario(args: argparse.Namespace, common: dict) -> Scenario:
-    """The five-LED rig's photos; of the looks only the camera's JPEG and row-time error apply to its bare
-    LEDs (their optics are the bare-LED look's)."""
+    """
+    Return the five-LED rig's photos.
+
+    Of the looks only the camera's JPEG and row-time error apply to its bare LEDs (their optics are the
+    bare-LED look's).
+    """
     if args.photos is not None and args.photos < 1:
         raise UsageError(f'--photos must be at least 1, got {args.photos}')
     if args.led_core_radius is not None and not args.led_core_radius > 0.0:
@@ -147,7 +152,7 @@ def _reject_options(args: argparse.Namespace, names: tuple[str, ...], scenario: 
 
 
 def chosen_look(args: argparse.Namespace) -> Look:
-    """The --look with every effect option given on the command line put in (--depth too)."""
+    """Return the --look with every effect option given on the command line put in (--depth too)."""
     changes = {field: getattr(args, option[2:].replace('-', '_')) for option, field, _, _ in LOOK_OPTIONS
                if getattr(args, option[2:].replace('-', '_')) is not None}
     if args.depth is not None:

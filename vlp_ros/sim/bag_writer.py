@@ -1,4 +1,5 @@
-"""rosbag2 recordings of simulated frames: image, camera info, IMU and ground-truth pose.
+"""
+rosbag2 recordings of simulated frames: image, camera info, IMU and ground-truth pose.
 
 Every message of a frame carries the frame's stamp (when its row 0 started
 exposing) in its header and as its log time.
@@ -10,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import get_typestore, Stores
 
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.pose import Pose
@@ -47,7 +48,10 @@ TOPICS = {
 
 
 class SimBagWriter:
-    """Writes frames to a new rosbag2 directory (``storage``: sqlite3 or mcap). Use as a context manager.
+    """
+    Writes frames to a new rosbag2 directory (``storage``: sqlite3 or mcap).
+
+    Use as a context manager.
 
     With ``jpeg_quality`` the images go as JPEG on /image_raw/compressed (for
     ``image_transport: compressed``) instead of raw on /image_raw.

@@ -1,4 +1,5 @@
-"""Exact, anti-aliased pixel coverage of horizontal discs, through the camera's distortion.
+"""
+Exact, anti-aliased pixel coverage of horizontal discs, through the camera's distortion.
 
 Each pixel position is mapped to its viewing ray (``CameraModel.normalize``) and the
 ray is intersected with the lamp plane, so perspective and distortion are exact.
@@ -43,7 +44,8 @@ def plane_points(camera: CameraModel, pose: Pose, pixels: np.ndarray, height: fl
 
 def disc_coverage(camera: CameraModel, pose: Pose, height: float, circles: list[Circle],
                   bbox: tuple[int, int, int, int]) -> list[np.ndarray]:
-    """Fraction (h, w) of each pixel of ``bbox`` = (x0, y0, x1, y1) (exclusive ends) inside each circle.
+    """
+    Fraction (h, w) of each pixel of ``bbox`` = (x0, y0, x1, y1) (exclusive ends) inside each circle.
 
     An edge pixel is cut by the edge's tangent line: its arc bulges from that line by
     less than 0.24 / R of the pixel's area for an image radius of R px, and not to one
@@ -76,8 +78,10 @@ def disc_coverage(camera: CameraModel, pose: Pose, height: float, circles: list[
 
 def _tangent_cut(centres: np.ndarray, step_x: np.ndarray, step_y: np.ndarray,
                  circle: Circle) -> tuple[np.ndarray, np.ndarray]:
-    """Coverage of pixels (plane points of their centres and of one step along x and y)
-    cut by the circle's tangent line, and the plane distance per pixel step across the edge."""
+    """
+    Coverage of pixels (plane points of their centres and of one step along x and y)
+    cut by the circle's tangent line, and the plane distance per pixel step across the edge.
+    """
     offset = centres - circle.center_xy
     distance = np.maximum(np.hypot(offset[:, 0], offset[:, 1]), 1e-12 * circle.radius)
     unit = offset / distance[:, None]

@@ -13,8 +13,10 @@ from vlp_ros.core.pose import Pose
 def synthetic_observation(lamp: Lamp, pose: Pose, camera: CameraModel, rim_count: int = 120,
                           rim_sigma: float = 0.3, marker_sigma: float = 0.2,
                           rng: np.random.Generator | None = None, with_marker: bool = True) -> LampObservation:
-    """``rim_count`` projected rim points and the projected marker (lens distortion included),
-    plus Gaussian noise of the stated sigmas per axis when ``rng`` is given."""
+    """
+    ``rim_count`` projected rim points and the projected marker (lens distortion included),
+    plus Gaussian noise of the stated sigmas per axis when ``rng`` is given.
+    """
     if not np.all(pose.map_to_camera(lamp.rim_points(8))[:, 2] > 0.0):
         raise ValueError(f'lamp {lamp.name!r} is not in front of the camera')
     rim = camera.project(pose.map_to_camera(lamp.rim_points(rim_count)))

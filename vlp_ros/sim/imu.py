@@ -9,7 +9,8 @@ from vlp_ros.core.pose import Pose
 
 def specific_force(pose: Pose, acceleration: np.ndarray | None = None, noise_std: float = 0.0,
                    rng: np.random.Generator | None = None) -> np.ndarray:
-    """What an accelerometer in the camera optical frame reads (m/s^2).
+    """
+    Return what an accelerometer in the camera optical frame reads (m/s^2).
 
     Specific force is acceleration minus gravity, so at rest it is +g along map up.
     ``acceleration`` (map frame) is the camera's own; ``noise_std`` adds white

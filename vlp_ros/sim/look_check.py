@@ -1,4 +1,5 @@
-"""Our looks against frames of another renderer: python -m vlp_ros.sim.look_check FOLDER [--look NAME] [--peak DN].
+"""
+Our looks against frames of another renderer: python -m vlp_ros.sim.look_check FOLDER [--look NAME] [--peak DN].
 
 FOLDER holds ``bag/`` (``/image_raw/compressed``, ``/camera_info``, ``/ground_truth/pose``)
 and ``params.yaml`` (the lamp map), as /work/shared/data/foreign_frames/* do. Each
@@ -13,27 +14,28 @@ and decoded IDs are printed side by side.
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import replace
 from pathlib import Path
+import sys
 
 import cv2
 import numpy as np
-import yaml
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
 
 from vlp_ros.beacon.encoding import packet_waveform, tone_waveform
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
+from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.pipeline.config import settings_from_params_file
 from vlp_ros.pipeline.frame import Pipeline
-from vlp_ros.sim.looks import LOOKS, apply_look, transported
+from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import SimLamp
 from vlp_ros.sim.scenarios import BeaconDesign, Scenario
 from vlp_ros.sim.sensor import SensorModel
+
+import yaml
 
 DISTANCES_D = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)
 # Neither the bag nor params.yaml says these: the simulator's own defaults (a look may set the depth).
@@ -42,7 +44,7 @@ EXPOSURE = 10e-6
 
 
 def read_frames(bag: Path) -> tuple[CameraModel, list[tuple[np.ndarray, Pose, float]]]:
-    """The camera and every (image, true pose, stamp in s) of a bag."""
+    """Return the camera and every (image, true pose, stamp in s) of a bag."""
     images, poses, stamps, camera = [], [], [], None
     with AnyReader([bag]) as reader:
         for connection, _, raw in reader.messages():
@@ -59,7 +61,9 @@ def read_frames(bag: Path) -> tuple[CameraModel, list[tuple[np.ndarray, Pose, fl
 
 
 def map_lamps(params: Path, peak_dn: float, rng: np.random.Generator) -> tuple[list[SimLamp], dict]:
-    """The lamps of a params file with their beacons (random clock offsets) in the clean look, and its beacon settings."""
+    """
+    The lamps of a params file with their beacons (random clock offsets) in the clean look, and its beacon settings.
+    """
     values = next(iter(yaml.safe_load(params.read_text()).values()))['ros__parameters']
     leds, beacon = values['leds'], values['beacon']
     lamps = []
@@ -91,10 +95,10 @@ def halo_profile(image: np.ndarray, centre: np.ndarray, semi_axes: np.ndarray, d
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.look_check', description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.look_check', description=__doc__.strip().splitlines()[0])
     parser.add_argument('folder', type=Path)
     parser.add_argument('--look', default='realistic', choices=tuple(LOOKS))
-    parser.add_argument('--peak', type=float, default=210.0, help='clean-look lamp level in DN (the paper scenario\'s)')
+    parser.add_argument('--peak', type=float, default=210.0, help="clean-look lamp level in DN (the paper scenario's)")
     parser.add_argument('--glare-width', type=float, help="the look's halo width, changed")
     parser.add_argument('--frames', type=int, default=4)
     parser.add_argument('--jpeg', type=int, default=92, help='JPEG quality of ours for the pipeline (theirs: 92)')

@@ -1,4 +1,5 @@
-"""What real lamps and cameras look like: optics, diffusers, saturation, clutter, JPEG, row-time error.
+"""
+What real lamps and cameras look like: optics, diffusers, saturation, clutter, JPEG, row-time error.
 
 A ``Look`` is a set of effects applied to a scenario (``apply_look``); ``LOOKS`` names
 the ones the benchmarks and ``python -m vlp_ros.sim --look`` use. docs/simulator.md
@@ -26,7 +27,8 @@ STEADY = Waveform(np.array([1], dtype=np.uint8), 1.0, 0.0)
 
 @dataclass(frozen=True)
 class Look:
-    """Effects on top of a scenario's own rendering (all off: the scenario's clean look).
+    """
+    Effects on top of a scenario's own rendering (all off: the scenario's clean look).
 
     ``blur_sigma`` (px; None keeps the scenario's) blurs the recorded frame, stripes
     included (lens, demosaicing, pixel crosstalk), instead of the scenario's optics
@@ -125,7 +127,7 @@ def clutter_lamps(lamps: list[SimLamp], count: int, rng: np.random.Generator) ->
 
 
 def transported(scenario: Scenario, image: np.ndarray) -> np.ndarray:
-    """The image as the locator receives it: through JPEG when the scenario sends it compressed."""
+    """Return the image as the locator receives it: through JPEG when the scenario sends it compressed."""
     if scenario.jpeg_quality is None:
         return image
     return cv2.imdecode(encode_jpeg(image, scenario.jpeg_quality), cv2.IMREAD_COLOR)

@@ -1,4 +1,5 @@
-"""The bare-LED look: point lamps as a bright core with a glow, striped row by row by their tone.
+"""
+The bare-LED look: point lamps as a bright core with a glow, striped row by row by their tone.
 
 Set from the photographs of the published five-LED rig (issue 14): Lumia 1020, 7712x4352,
 focal length 5620 px, row time 21.03 us, exposure 60 us, LEDs from 2000 to 4000 Hz 500 Hz
@@ -22,16 +23,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.special import erfc
 from scipy.spatial.transform import Rotation
+from scipy.special import erfc
 
-from vlp_ros.beacon.encoding import Waveform, tone_waveform
+from vlp_ros.beacon.encoding import tone_waveform, Waveform
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.render import LampTruth, RenderedFrame
 from vlp_ros.sim.scenarios import BeaconDesign, Scenario
-from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern
+from vlp_ros.sim.sensor import encoding, flat_field, mosaic, read_out, SensorModel, shifted_pattern
 
 RIG_WIDTH, RIG_HEIGHT, RIG_FOCAL_PX = 7712, 4352, 5620.0
 RIG_ROW_TIME = 21.03e-6
@@ -48,8 +49,11 @@ _GLOW_CUTOFF = 2e-3
 
 @dataclass(frozen=True)
 class PointLampLook:
-    """How a bare LED's light spreads in the image (see the module docstring); pixel lengths
-    are at the rig's full 7712 px width and scale with the output."""
+    """
+    How a bare LED's light spreads in the image (see the module docstring).
+
+    Pixel lengths are at the rig's full 7712 px width and scale with the output.
+    """
 
     core_radius: float = 0.01
     edge_sigma: float = 2.0
@@ -63,8 +67,10 @@ class PointLampLook:
             raise ValueError(f'glow_level must be in [0, 1), got {self.glow_level}')
 
     def profile(self, r: np.ndarray, core_px: float, scale: float) -> np.ndarray:
-        """Light at ``r`` px from the centre (1 = the core's level) for a core of ``core_px``
-        px radius, pixel lengths of the look multiplied by ``scale``."""
+        """
+        Light at ``r`` px from the centre (1 = the core's level) for a core of ``core_px``
+        px radius, pixel lengths of the look multiplied by ``scale``.
+        """
         core = 0.5 * erfc((r - core_px) / (np.sqrt(2.0) * self.edge_sigma * scale))
         glow = self.glow_level * np.exp(-r / (self.glow_scale * scale))
         return np.maximum(core, glow)
@@ -88,8 +94,11 @@ class PointSimLamp:
 def render_point_lamps(camera: CameraModel, pose: Pose, lamps: list[PointSimLamp], sensor: SensorModel,
                        start_time: float, rng: np.random.Generator | None, look: PointLampLook,
                        scale: float) -> RenderedFrame:
-    """What ``camera`` at ``pose`` records of bare LEDs when its row 0 starts exposing at
-    ``start_time``; ``scale`` = output width over the rig's."""
+    """
+    Return what ``camera`` at ``pose`` records of bare LEDs when its row 0 starts exposing at ``start_time``.
+
+    ``scale`` = output width over the rig's.
+    """
     image = flat_field(camera.height, camera.width, sensor, rng)
     pattern = None if sensor.bayer is None else sensor.bayer
     truths = []
@@ -164,7 +173,7 @@ class BareLedScenario(Scenario):
 
 
 def bare_led_camera(kind: str) -> tuple[CameraModel, int]:
-    """The rig's camera at output ``kind`` (``BARE_LED_CAMERAS``) and its binning factor."""
+    """Return the rig's camera at output ``kind`` (``BARE_LED_CAMERAS``) and its binning factor."""
     if kind not in BARE_LED_CAMERAS:
         raise ValueError(f'camera must be one of {", ".join(BARE_LED_CAMERAS)}, got {kind!r}')
     binning = BARE_LED_CAMERAS[kind]
@@ -176,11 +185,14 @@ def bare_led_scenario(camera_kind: str = '4k', height: float = RIG_HEIGHT_M, pho
                       depth: float = 0.75, max_tilt_deg: float = 8.0, area: float = 0.6,
                       bayer: str | None = None, look: PointLampLook = PointLampLook(),
                       row_time_error: float = 0.0, jpeg_quality: int | None = None) -> Scenario:
-    """Hand-held photos of the five-LED rig ``height`` m above: the camera anywhere in an
-    ``area`` x ``area`` m square below its centre, its axis within ``max_tilt_deg`` of straight
-    up, any roll; kept only when every LED's core is inside the frame. The locator is told a row
-    time ``row_time_error`` off the sensor's (the photos' tones read 0.3-2 % off nominal);
-    ``jpeg_quality`` sends the photos as JPEG (they were JPEG)."""
+    """
+    Hand-held photos of the five-LED rig ``height`` m above.
+
+    The camera anywhere in an ``area`` x ``area`` m square below its centre, its axis within
+    ``max_tilt_deg`` of straight up, any roll; kept only when every LED's core is inside the
+    frame. The locator is told a row time ``row_time_error`` off the sensor's (the photos' tones
+    read 0.3-2 % off nominal); ``jpeg_quality`` sends the photos as JPEG (they were JPEG).
+    """
     if not height > 0.0:
         raise ValueError(f'height must be positive, got {height}')
     if photos < 1:

@@ -5,12 +5,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.render import RenderedFrame
 from vlp_ros.sim.scenarios import Scenario
+
+import yaml
 
 # Recording start: a plausible wall-clock stamp, since a zero stamp often means "unset" in ROS.
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
@@ -26,8 +27,11 @@ def write_params(path: Path | str, scenario: Scenario, imu: bool) -> None:
 def record(scenario: Scenario, bag_path: Path | str, storage: str, imu: bool, rng: np.random.Generator,
            progress: Callable[[int, int], None] | None = None,
            on_frame: Callable[[RenderedFrame], None] | None = None) -> int:
-    """Render every frame of ``scenario`` into a new bag; returns how many frames were written.
-    ``on_frame`` sees each rendered frame with its ground truth (which lamps it shows)."""
+    """
+    Render every frame of ``scenario`` into a new bag; returns how many frames were written.
+
+    ``on_frame`` sees each rendered frame with its ground truth (which lamps it shows).
+    """
     times = scenario.frame_times()
     with SimBagWriter(bag_path, storage, imu, scenario.jpeg_quality) as writer:
         for index, (pose, t) in enumerate(zip(scenario.poses, times)):

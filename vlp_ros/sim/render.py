@@ -1,4 +1,5 @@
-"""Rolling-shutter frames of modulated lamps, with the exact ground truth of what they show.
+"""
+Rolling-shutter frames of modulated lamps, with the exact ground truth of what they show.
 
 Cost: one OpenCV noise pass over the frame, plus float work only inside each
 lamp's projected bounding box (plus the blur margin).
@@ -11,12 +12,12 @@ import cv2
 import numpy as np
 
 from vlp_ros.beacon.encoding import Waveform
-from vlp_ros.core.camera import PLUMB_BOB, CameraModel
+from vlp_ros.core.camera import CameraModel, PLUMB_BOB
 from vlp_ros.core.ellipse import ellipse_from_conic
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.coverage import Circle, disc_coverage, plane_points
-from vlp_ros.sim.sensor import SensorModel, encoding, flat_field, mosaic, read_out, shifted_pattern, spill_charge
+from vlp_ros.sim.sensor import encoding, flat_field, mosaic, read_out, SensorModel, shifted_pattern, spill_charge
 
 RIM_SAMPLES = 180
 MARKER_RADIUS_FRACTION = 0.09
@@ -26,7 +27,8 @@ GLARE_REACH_SIGMAS = 3.5
 
 @dataclass(frozen=True)
 class SimLamp:
-    """A lamp with the light it emits.
+    """
+    A lamp with the light it emits.
 
     ``peak_dn`` is the expected DN of a pixel fully on the lamp at full level
     (level 1 of the waveform) through a colour channel of weight 1. The marker is
@@ -73,7 +75,8 @@ class SimLamp:
 
 @dataclass
 class LampTruth:
-    """What a lamp truly looks like in one frame (pixel coordinates of that frame's image).
+    """
+    What a lamp truly looks like in one frame (pixel coordinates of that frame's image).
 
     ``ellipse`` (cx, cy, a, b, theta) is the exact image of the rim in undistorted
     pixels (``CameraModel.undistort_pixels``), which are the raw pixels when D = 0.
@@ -96,7 +99,8 @@ class LampTruth:
 
 @dataclass
 class RenderedFrame:
-    """An image with its ground truth.
+    """
+    An image with its ground truth.
 
     ``camera`` models this image (for an ROI: same lens, principal point moved);
     ``start_time`` is when its first row started exposing; ``roi`` = (x0, y0,
@@ -119,7 +123,7 @@ class RenderedFrame:
 
 
 def crop_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraModel:
-    """The camera model of the ``roi`` = (x0, y0, width, height) part of the sensor."""
+    """Return the camera model of the ``roi`` = (x0, y0, width, height) part of the sensor."""
     x0, y0, width, height = roi
     if width < 1 or height < 1 or x0 < 0 or y0 < 0 or x0 + width > camera.width or y0 + height > camera.height:
         raise ValueError(f'roi {roi} does not lie on the {camera.width}x{camera.height} sensor')
@@ -130,7 +134,7 @@ def crop_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraMo
 
 
 def lamp_roi(camera: CameraModel, pose: Pose, lamp: Lamp, size: int) -> tuple[int, int, int, int]:
-    """A ``size`` x ``size`` roi centred on the lamp's image, kept on the sensor."""
+    """Return a ``size`` x ``size`` roi centred on the lamp's image, kept on the sensor."""
     if size > min(camera.width, camera.height):
         raise ValueError(f'roi size {size} exceeds the {camera.width}x{camera.height} sensor')
     centre = camera.project(pose.map_to_camera(lamp.position))[0]
@@ -142,7 +146,8 @@ def lamp_roi(camera: CameraModel, pose: Pose, lamp: Lamp, size: int) -> tuple[in
 def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: SensorModel,
                  start_time: float, rng: np.random.Generator | None,
                  roi: tuple[int, int, int, int] | None = None) -> RenderedFrame:
-    """Render what ``camera`` at ``pose`` records when its row 0 starts exposing at ``start_time``.
+    """
+    Render what ``camera`` at ``pose`` records when its row 0 starts exposing at ``start_time``.
 
     ``rng=None`` renders without noise. ``roi`` = (x0, y0, width, height) renders only
     that part of the sensor (rows keep their full-sensor exposure times).
@@ -197,7 +202,8 @@ def render_frame(camera: CameraModel, pose: Pose, lamps: list[SimLamp], sensor: 
 
 
 def _field_limit(camera: CameraModel) -> float:
-    """Normalised radius beyond which the image is not modelled (distortion would fold back).
+    """
+    Normalised radius beyond which the image is not modelled (distortion would fold back).
 
     Rays farther out than this never reach the sensor; raises if the distortion
     folds inside the image itself, where the model would be meaningless.
@@ -217,8 +223,10 @@ def _field_limit(camera: CameraModel) -> float:
 
 
 def _fold(camera: CameraModel, reach: float) -> tuple[float, float]:
-    """Normalised radius where the radial distortion stops growing (inf if not within ``reach``),
-    and the distorted radius there."""
+    """
+    Normalised radius where the radial distortion stops growing (inf if not within ``reach``),
+    and the distorted radius there.
+    """
     if camera.model == PLUMB_BOB:
         k1, k2, _, _, k3 = camera.D
         # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6) = 0, as a polynomial in r^2.
@@ -285,12 +293,12 @@ def _marker_outline(sim: SimLamp) -> np.ndarray:
 
 
 def _image_diameter(truth: LampTruth) -> float:
-    """The lamp's image diameter (px): the longest, the major axis of its rim ellipse."""
+    """Return the lamp's image diameter (px): the longest, the major axis of its rim ellipse."""
     return float(2.0 * truth.ellipse[2])
 
 
 def _glare_box(truth: LampTruth, sensor: SensorModel) -> tuple[int, int, int, int] | None:
-    """The pixel box (x0, y0, x1, y1; not clipped) the lamp's glare halo reaches (None without glare)."""
+    """Return the pixel box (x0, y0, x1, y1; not clipped) the lamp's glare halo reaches (None without glare)."""
     if sensor.glare <= 0.0 or truth.ellipse is None or not np.all(np.isfinite(truth.center_pixel)):
         return None
     diameter = _image_diameter(truth)
@@ -302,7 +310,7 @@ def _glare_box(truth: LampTruth, sensor: SensorModel) -> tuple[int, int, int, in
 
 def _light_box(bbox: tuple[int, int, int, int], truth: LampTruth, sensor: SensorModel,
                camera: CameraModel) -> tuple[int, int, int, int]:
-    """The pixel box that a lamp's light reaches before blur: its disc, and its glare halo if any."""
+    """Return the pixel box that a lamp's light reaches before blur: its disc, and its glare halo if any."""
     glare = _glare_box(truth, sensor)
     if glare is None:
         return bbox
@@ -311,7 +319,8 @@ def _light_box(bbox: tuple[int, int, int, int], truth: LampTruth, sensor: Sensor
 
 
 def _add_glare(layer: np.ndarray, region: tuple[int, int, int, int], truth: LampTruth, sensor: SensorModel) -> None:
-    """Add the lens-glare halo to a lamp's full-level ``layer`` (its light alone) over ``region``.
+    """
+    Add the lens-glare halo to a lamp's full-level ``layer`` (its light alone) over ``region``.
 
     The halo is the lamp's light spread by a wide Gaussian (sigma ``glare_width`` x the
     image diameter), scaled so that over a uniform disc it peaks at ``glare`` x the disc's
@@ -383,7 +392,8 @@ def _blurred(canvas: np.ndarray, sensor: SensorModel) -> np.ndarray:
 
 def _lamp_layer(background: np.ndarray, layers: list, region: tuple[int, int, int, int], camera: CameraModel,
                 pose: Pose, sim: SimLamp, bbox: tuple[int, int, int, int]) -> np.ndarray | None:
-    """One lamp's light at full level over ``region`` (None if no pixel of it shows).
+    """
+    One lamp's light at full level over ``region`` (None if no pixel of it shows).
 
     The lamp hides the background and the lamps drawn before it (which are farther) where it covers them.
     """

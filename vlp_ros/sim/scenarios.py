@@ -1,4 +1,5 @@
-"""Simulated recordings: lamps, camera, sensor, the camera's path, and the matching locator parameters.
+"""
+Simulated recordings: lamps, camera, sensor, the camera's path, and the matching locator parameters.
 
 ``paper_scenario`` is the seed paper's experiment (one lamp above a 3 m x 3 m
 grid, hand-held phone postures); ``robot_scenario`` a robot with an upward
@@ -17,7 +18,7 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import STANDARD_GRAVITY
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
-from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, RenderedFrame, SimLamp, render_frame
+from vlp_ros.sim.render import MARKER_RADIUS_FRACTION, render_frame, RenderedFrame, SimLamp
 from vlp_ros.sim.sensor import SensorModel
 
 # Nokia Lumia 1020: f = 7.25 mm, 1.12 um pixels, 7712 px wide; scaled to the output width.
@@ -49,7 +50,8 @@ class BeaconDesign:
 
 @dataclass
 class Scenario:
-    """Everything needed to render a recording and to configure the locator for it.
+    """
+    Everything needed to render a recording and to configure the locator for it.
 
     ``accelerations`` (map frame, m/s^2) are the camera's own, per frame, for the
     IMU. ``prior_up`` is where map up points in the camera when the mount makes
@@ -99,12 +101,12 @@ class Scenario:
                             float(self.frame_times()[index]), rng)
 
     def mapped_truths(self, frame: RenderedFrame) -> list:
-        """The ground truth of the map's lamps in ``frame`` (without the clutter lamps)."""
+        """Return the ground truth of the map's lamps in ``frame`` (without the clutter lamps)."""
         ids = {sim.lamp.id for sim in self.lamps}
         return [t for t in frame.lamps if t.lamp_id in ids]
 
     def locator_parameters(self, imu: bool) -> dict[str, Any]:
-        """The locator's ``ros__parameters`` (nested as in a params file) for this scenario."""
+        """Return the locator's ``ros__parameters`` (nested as in a params file) for this scenario."""
         leds: dict[str, Any] = {'names': [s.lamp.name for s in self.lamps]}
         for sim in self.lamps:
             lamp = sim.lamp
@@ -138,7 +140,8 @@ class Scenario:
 
 def design_beacon(span_rows: float, row_time: float, max_id: int, depth: float,
                   min_packets: float = 1.3, min_rows_per_chip: float = 4.0, max_bits: int = 8) -> BeaconDesign:
-    """Most ID bits (<= ``max_bits``) and the chip rate at which a lamp spanning
+    """
+    Most ID bits (<= ``max_bits``) and the chip rate at which a lamp spanning
     ``span_rows`` rows holds ``min_packets`` packets, each chip at least ``min_rows_per_chip`` rows.
     """
     for bits in range(max_bits, max(int(max_id).bit_length(), 1) - 1, -1):
@@ -150,7 +153,7 @@ def design_beacon(span_rows: float, row_time: float, max_id: int, depth: float,
 
 
 def paper_camera(kind: str) -> CameraModel:
-    """The Lumia 1020's field of view at 4K or 1080p output, principal point at the centre."""
+    """Return the Lumia 1020's field of view at 4K or 1080p output, principal point at the centre."""
     if kind not in PAPER_CAMERAS:
         raise ValueError(f'camera must be one of {", ".join(PAPER_CAMERAS)}, got {kind!r}')
     width, height = PAPER_CAMERAS[kind]
@@ -160,7 +163,7 @@ def paper_camera(kind: str) -> CameraModel:
 
 def make_lamp(name: str, lamp_id: int, position: np.ndarray, radius: float, marker_angle: float,
               beacon: BeaconDesign, rng: np.random.Generator, peak_dn: float) -> SimLamp:
-    """A lamp with its marker just inside the rim and an unsynchronised beacon clock."""
+    """Return a lamp with its marker just inside the rim and an unsynchronised beacon clock."""
     marker_distance = radius * (1.0 - MARKER_RADIUS_FRACTION - MARKER_RIM_GAP_FRACTION)
     lamp = Lamp(name, lamp_id, position, radius, marker_angle=marker_angle, marker_distance=marker_distance)
     period = packet_length(beacon.id_bits) / beacon.chip_rate
@@ -172,7 +175,8 @@ def make_lamp(name: str, lamp_id: int, position: np.ndarray, radius: float, mark
 def paper_scenario(camera_kind: str = '4k', height: float = 2.0, points: int = 7, postures: int = 3,
                    seed: int = 0, depth: float = 0.75, max_tilt_deg: float = 30.0,
                    area: float = 3.0, bayer: str | None = None, posture: str = 'anywhere') -> Scenario:
-    """One 11 cm lamp ``height`` m above a ``points`` x ``points`` grid over ``area`` x ``area`` m.
+    """
+    One 11 cm lamp ``height`` m above a ``points`` x ``points`` grid over ``area`` x ``area`` m.
 
     At each grid point the phone takes ``postures`` photos. ``posture='anywhere'``:
     optical axis uniformly random within ``max_tilt_deg`` of straight up (widened to
@@ -226,12 +230,15 @@ def _hand_held_pose(camera: CameraModel, position: np.ndarray, lamp: Lamp, max_t
 
 def _aimed_pose(position: np.ndarray, lamp: Lamp, rng: np.random.Generator,
                 off_axis_deg: float = AIMED_OFF_AXIS_DEG, twist_deg: float = AIMED_TWIST_DEG) -> Pose:
-    """The phone pointed at the lamp by hand: its optical axis uniformly within
-    ``off_axis_deg`` of the lamp's centre, the phone held upright (portrait: the
-    sensor's long side, image x, along the phone) with its top, the image's left
-    edge, toward the lamp (any way round below it), twisted about the axis by up to
-    ``twist_deg``. The lamp stays near the image centre, so the whole of it is in
-    view with any camera of the paper's field of view.
+    """
+    Return the phone pointed at the lamp by hand.
+
+    Its optical axis uniformly within ``off_axis_deg`` of the lamp's centre, the
+    phone held upright (portrait: the sensor's long side, image x, along the phone)
+    with its top, the image's left edge, toward the lamp (any way round below it),
+    twisted about the axis by up to ``twist_deg``. The lamp stays near the image
+    centre, so the whole of it is in view with any camera of the paper's field of
+    view.
     """
     to_lamp = lamp.position - position
     axis = to_lamp / np.linalg.norm(to_lamp)
@@ -250,7 +257,8 @@ def _aimed_pose(position: np.ndarray, lamp: Lamp, rng: np.random.Generator,
 
 def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.15, camera_height: float = 0.45,
                    speed: float = 0.4, seed: int = 0, depth: float = 0.75, bayer: str | None = None) -> Scenario:
-    """A robot with a 100 deg HFOV 1080p camera ``camera_height`` m up, looking up, driving
+    """
+    A robot with a 100 deg HFOV 1080p camera ``camera_height`` m up, looking up, driving
     under a row of ``lamp_count`` 15 cm lamps ``spacing`` m apart and ``height`` m above the camera.
 
     The robot sways sideways along the row and its chassis rocks by < 1 deg, so the
@@ -306,7 +314,8 @@ def robot_drive_scenario(seed: int = 0, duration: float = 12.0, speed: float = D
                          turn_rate: float = DRIVE_TURN_RATE,
                          spacing: float = 2.4, height: float = 2.15, depth: float = 0.75,
                          bayer: str | None = None) -> Scenario:
-    """A robot driving ``speed`` m/s and weaving (heading rate up to ``turn_rate`` rad/s) under
+    """
+    A robot driving ``speed`` m/s and weaving (heading rate up to ``turn_rate`` rad/s) under
     two rows of four packet lamps ``spacing`` m apart, 10 frames/s.
 
     Packet IDs at 16 kchip/s, 8 bits: with 15 us rows a chip is 4 rows and a 15 cm lamp
@@ -353,7 +362,8 @@ TONE_FREQUENCIES = tuple(2000.0 + 300.0 * k for k in range(12))
 
 def robot_tone_scenario(seed: int = 0, frames: int = 24, interval: float = 2.0, spacing: float = 1.2,
                         height: float = 2.15, depth: float = 0.75, bayer: str | None = None) -> Scenario:
-    """Robot stills ``interval`` s apart under a 4 x 3 grid of tone lamps 2000-5300 Hz (300 Hz apart).
+    """
+    Robot stills ``interval`` s apart under a 4 x 3 grid of tone lamps 2000-5300 Hz (300 Hz apart).
 
     15 cm lamps 2.15 m above the 1080p camera span ~77 rows: 2.3 periods of the 2000 Hz
     lamp and 6 of the 5300 Hz one at 15 us a row. The camera is anywhere under the grid,
@@ -386,7 +396,8 @@ def robot_tone_scenario(seed: int = 0, frames: int = 24, interval: float = 2.0, 
 
 
 def with_rim_markers(scenario: Scenario, distance: float = 0.9, radius: float = 0.1) -> Scenario:
-    """The scenario with every marker moved: centred at ``distance`` x r from the lamp centre, radius ``radius`` x r.
+    """
+    The scenario with every marker moved: centred at ``distance`` x r from the lamp centre, radius ``radius`` x r.
 
     The defaults are the paper's "marginal point" (a dot of 0.1 r at 0.9 r, touching the
     rim); ``distance`` from 0.5 out to 1.0 puts it inside, touching or straddling the rim.
@@ -400,7 +411,8 @@ def with_rim_markers(scenario: Scenario, distance: float = 0.9, radius: float = 
 
 
 def as_stills(scenario: Scenario, interval: float) -> Scenario:
-    """The scenario's photos taken ``interval`` s apart, stamped so, with the locator's continuity on.
+    """
+    Return the scenario's photos taken ``interval`` s apart, stamped so, with the locator's continuity on.
 
     Hand-held stills 0.1 s apart let the last pose meet the next photo (which may be
     from anywhere on the grid); 2 s apart, the default ``continuity.max_age`` expires.

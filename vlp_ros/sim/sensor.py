@@ -1,4 +1,5 @@
-"""How light becomes 8-bit pixel values: rolling-shutter timing, noise, saturation, Bayer mosaic.
+"""
+How light becomes 8-bit pixel values: rolling-shutter timing, noise, saturation, Bayer mosaic.
 
 Pixel values before noise are "expected DN": the mean 8-bit value the pixel would
 read without noise. Electrons = DN / gain; shot noise is Poisson in electrons
@@ -20,7 +21,8 @@ POISSON_BELOW = 100.0
 
 @dataclass(frozen=True)
 class SensorModel:
-    """A rolling-shutter colour sensor.
+    """
+    A rolling-shutter colour sensor.
 
     Row ``r`` starts exposing ``r * row_time`` after row 0 and integrates for
     ``exposure`` seconds. ``ambient_bgr`` is the expected DN of the unlit ceiling.
@@ -82,11 +84,11 @@ class SensorModel:
         return int(np.ceil(4.0 * (self.blur_sigma + self.image_blur) + spill)) + 2
 
     def glare_sigma(self, image_diameter: float) -> float:
-        """The halo's Gaussian sigma (px) around a lamp whose image is ``image_diameter`` px across."""
+        """Return the halo's Gaussian sigma (px) around a lamp whose image is ``image_diameter`` px across."""
         return self.glare_width * image_diameter
 
     def saturation_dn(self) -> float:
-        """The expected DN at which a pixel's well is full."""
+        """Return the expected DN at which a pixel's well is full."""
         return self.full_well * self.dn_per_electron
 
 
@@ -96,7 +98,7 @@ def encoding(bayer: str | None) -> str:
 
 
 def shifted_pattern(pattern: str, x0: int, y0: int) -> str:
-    """The Bayer pattern seen by a crop whose top-left pixel is (x0, y0) of the full mosaic."""
+    """Return the Bayer pattern seen by a crop whose top-left pixel is (x0, y0) of the full mosaic."""
     rows = [pattern[:2], pattern[2:]]
     if y0 % 2:
         rows.reverse()
@@ -114,7 +116,8 @@ def mosaic(bgr: np.ndarray, pattern: str) -> np.ndarray:
 
 
 def read_out(expected: np.ndarray, sensor: SensorModel, rng: np.random.Generator | None) -> np.ndarray:
-    """Noisy, saturated, quantised uint8 pixels from expected DN (any shape).
+    """
+    Noisy, saturated, quantised uint8 pixels from expected DN (any shape).
 
     ``rng=None`` gives the noise-free readout (still clipped and rounded).
     """
@@ -133,7 +136,8 @@ def read_out(expected: np.ndarray, sensor: SensorModel, rng: np.random.Generator
 
 
 def spill_charge(expected: np.ndarray, sensor: SensorModel) -> np.ndarray:
-    """Blooming: ``sensor.bloom`` of each pixel's charge beyond the full well spreads to its neighbours.
+    """
+    Blooming: ``sensor.bloom`` of each pixel's charge beyond the full well spreads to its neighbours.
 
     The full pixel itself still reads its full-well level (``read_out`` clips it);
     the spill brightens the pixels around a saturated area, as on a real CMOS sensor.
@@ -149,7 +153,8 @@ def spill_charge(expected: np.ndarray, sensor: SensorModel) -> np.ndarray:
 
 def flat_field(height: int, width: int, sensor: SensorModel, rng: np.random.Generator | None,
                x0: int = 0, y0: int = 0) -> np.ndarray:
-    """The read-out of the uniformly lit ceiling: (H, W, 3) bgr8, or (H, W) raw if Bayer.
+    """
+    Return the read-out of the uniformly lit ceiling: (H, W, 3) bgr8, or (H, W) raw if Bayer.
 
     Its shot noise uses the Gaussian limit of the Poisson law (hundreds of
     electrons), drawn by OpenCV because a 4K frame of numpy Poisson draws takes seconds.
@@ -179,7 +184,7 @@ def _fill(image: np.ndarray, mean: np.ndarray, sigma: np.ndarray, rng: np.random
 
 
 def encode_jpeg(image: np.ndarray, quality: int) -> np.ndarray:
-    """The JPEG bytes (uint8 array) of a bgr8 image, as a camera driver's compressed transport sends it."""
+    """Return the JPEG bytes (uint8 array) of a bgr8 image, as a camera driver's compressed transport sends it."""
     ok, data = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise ValueError('JPEG encoding failed')

@@ -1,4 +1,5 @@
-"""Camera pose from observed lamps: closed forms, refinement, disambiguation, fusion.
+"""
+Camera pose from observed lamps: closed forms, refinement, disambiguation, fusion.
 
 Entry points: ``perspective.solve_lamp`` (one lamp: refined candidates),
 ``ambiguity.choose_candidate`` (a pose only on real information) and

@@ -1,4 +1,5 @@
-"""Choosing among candidate poses with real information only, or declining to choose.
+"""
+Choosing among candidate poses with real information only, or declining to choose.
 
 One circle and its marker are explained equally well by two poses. What may
 separate them: a known up direction in the camera frame (a static mounting
@@ -29,26 +30,28 @@ larger than its stated sigma does not fake a gap.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
+import math
 
 import numpy as np
 
 from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct
-from vlp_ros.solvers.up_measurement import UpMeasurement, unit_direction
+from vlp_ros.solvers.candidates import Choice, distinct, PoseCandidate, Reason
+from vlp_ros.solvers.up_measurement import unit_direction, UpMeasurement
 
 COST_GAP = 40.0
 
 
 @dataclass(frozen=True, eq=False)
 class UpHint:
-    """Where map +z points in the camera optical frame, from one source (a static mounting
+    """
+    Where map +z points in the camera optical frame, from one source (a static mounting
     prior, or the IMU's gravity: an accelerometer at rest measures +g along up; any
     non-zero length). ``tolerance`` (rad) gates: no pose whose up is farther from
     ``vector`` is ever chosen. ``sigma`` (rad), when known, is the standard deviation of
     ``vector``'s error about each of the two axes perpendicular to it; the direction is
-    then also a measurement in the pose fit (``UpMeasurement``), not only a gate."""
+    then also a measurement in the pose fit (``UpMeasurement``), not only a gate.
+    """
 
     vector: np.ndarray
     tolerance: float
@@ -65,7 +68,8 @@ class UpHint:
 
 @dataclass
 class DisambiguationHints:
-    """What is known about the pose besides the lamps.
+    """
+    What is known about the pose besides the lamps.
 
     ``up_in_camera``: one ``UpHint`` per source, or its fields as a tuple
     ``(vector, tolerance[, sigma])``. ``recent_pose``: a recent pose of this camera, taken
@@ -100,15 +104,17 @@ class DisambiguationHints:
         return self.recent_gate_m + self.recent_max_speed * self.recent_age
 
     def up_measurements(self) -> list[UpMeasurement]:
-        """The up hints that have a sigma, as measurements for the pose fit."""
+        """Return the up hints that have a sigma, as measurements for the pose fit."""
         return [hint.measurement for hint in self.up_in_camera if hint.measurement is not None]
 
 
 def choose_candidate(candidates: list[PoseCandidate], hints: DisambiguationHints,
                      cost_reason: Reason = Reason.COST) -> Choice:
-    """The candidate the hints (or an overwhelming cost gap, reported as ``cost_reason``)
+    """
+    The candidate the hints (or an overwhelming cost gap, reported as ``cost_reason``)
     single out, or no pose and why. A candidate singled out against continuity restarts
-    the track (``Choice.restarts_track``)."""
+    the track (``Choice.restarts_track``).
+    """
     candidates = distinct(candidates)
     if not candidates:
         return Choice(None, Reason.NO_CANDIDATES, 'the solver found no pose')
@@ -147,8 +153,7 @@ def _continued_or_restarted(pose: Pose, reason: Reason, hints: DisambiguationHin
 
 
 def _decided_by_continuity(poses: list[Pose], hints: DisambiguationHints) -> Choice:
-    """The one of ``poses`` (which nothing else separates) within the recent pose's gate, or
-    no pose and why."""
+    """Return the one of ``poses`` (which nothing else separates) within the recent pose's gate, or no pose and why."""
     if not hints.continuity_counts:
         return Choice(None, Reason.AMBIGUOUS, f'{len(poses)} candidates fit and no hint separates them')
     gate = hints.recent_gate()

@@ -13,7 +13,8 @@ from vlp_ros.solvers.fit_kernels import inverse_form
 
 @dataclass
 class PoseCandidate:
-    """One pose that explains an observation.
+    """
+    One pose that explains an observation.
 
     ``cost`` is the chi-square of the fit: the sum of squared residuals, each
     divided by its measurement sigma (so ~ ``residual_count`` - 6 for the right
@@ -34,7 +35,11 @@ class PoseCandidate:
 
 
 class Reason(str, Enum):
-    """Why a pose was, or was not, chosen. ``str`` so it logs and serialises as its value."""
+    """
+    Why a pose was, or was not, chosen.
+
+    ``str`` so it logs and serialises as its value.
+    """
 
     UNIQUE = 'unique'                          # a single candidate (or both coincide)
     UP_DIRECTION = 'up_direction'              # decided by a known up direction (prior or IMU)
@@ -51,9 +56,12 @@ class Reason(str, Enum):
 
 @dataclass
 class Choice:
-    """The outcome of disambiguation: ``pose`` is None exactly when no pose may be published.
+    """
+    The outcome of disambiguation: ``pose`` is None exactly when no pose may be published.
+
     ``restarts_track``: the pose was singled out by evidence that outweighs continuity while
-    lying outside the recent pose's gate, so it starts a new track."""
+    lying outside the recent pose's gate, so it starts a new track.
+    """
 
     pose: Pose | None
     reason: Reason
@@ -72,8 +80,10 @@ COINCIDENT_MAHALANOBIS2 = 1.0
 
 
 def coincide(better: PoseCandidate, other: PoseCandidate) -> bool:
-    """Whether two candidates are the same pose within ``better``'s uncertainty
-    (exactly equal when either has no covariance)."""
+    """
+    Whether two candidates are the same pose within ``better``'s uncertainty
+    (exactly equal when either has no covariance).
+    """
     error = other.pose.error_vector(better.pose)
     if better.pose.covariance is None or other.pose.covariance is None:
         return bool(np.all(np.abs(error) < 1e-12))

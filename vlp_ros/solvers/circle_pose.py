@@ -1,4 +1,5 @@
-"""A circle of known radius from its perspective image: the cone method.
+"""
+A circle of known radius from its perspective image: the cone method.
 
 Safaee-Rad, Tchoukanov, Smith and Benhabib, "Three-dimensional location
 estimation of circular features for machine vision", IEEE T-RA 8(5), 1992.
@@ -11,7 +12,6 @@ for the known radius.
 from __future__ import annotations
 
 from dataclasses import dataclass
-
 import math
 
 import numpy as np
@@ -26,8 +26,12 @@ _COINCIDENT_TILT = 1e-6
 
 @dataclass(frozen=True)
 class CirclePose:
-    """A circle in the camera frame: ``normal`` is the unit normal of its plane
-    pointing away from the camera (``normal @ center`` is the plane's distance)."""
+    """
+    A circle in the camera frame.
+
+    ``normal`` is the unit normal of its plane pointing away from the camera
+    (``normal @ center`` is the plane's distance).
+    """
 
     normal: np.ndarray
     center: np.ndarray
@@ -54,8 +58,12 @@ def circle_poses(conic: np.ndarray, radius: float) -> list[CirclePose]:
 
 @kernel
 def _circles(evals, evecs, radius, coincident_tilt, normals, centers):
-    """``circle_poses`` from C's ascending eigenvalues and eigenvectors (columns): the number
-    of circles (0 if C is not the image of a circle), their normals and centres into the rows."""
+    """
+    ``circle_poses`` from C's ascending eigenvalues and eigenvectors (columns).
+
+    The number of circles (0 if C is not the image of a circle), their normals and centres
+    into the rows.
+    """
     flip = 1.0
     if (evals[0] > 0.0) + (evals[1] > 0.0) + (evals[2] > 0.0) < 2:
         # -C: its eigenvalues are -evals reversed, the vectors reversed with them.

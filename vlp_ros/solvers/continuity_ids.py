@@ -1,5 +1,5 @@
-"""IDs settled by continuity: a lamp whose beacon is not yet certain, seen where only one lamp of the map
-can be.
+"""
+IDs settled by continuity: a lamp whose beacon is not yet certain, seen where only one lamp of the map can be.
 
 A lamp that comes into view after a gap (or as the last one leaves) holds less than a packet in
 its first frames, so the beacon alone needs several of them. The recent pose of the camera and the
@@ -42,9 +42,11 @@ Solver = Callable[[list[Pair]], Choice]
 
 def settled_by_continuity(observation: LampObservation, evidence: BeaconReading, lamps: LampMap,
                           recent: Pose, gate: float, solve: Solver) -> Lamp | None:
-    """The one lamp of ``lamps`` that ``observation`` can be within ``gate`` (m) of the ``recent``
+    """
+    The one lamp of ``lamps`` that ``observation`` can be within ``gate`` (m) of the ``recent``
     pose, if the beacon's ``evidence`` leans to it; None otherwise. ``solve`` should remember its
-    answers: the most probable lamp's pose is asked for twice."""
+    answers: the most probable lamp's pose is asked for twice.
+    """
     if evidence.unknown or not observation.rim_usable or not has_evidence(evidence):
         return None
     log_likelihoods = np.asarray(evidence.log_likelihoods, float)
@@ -75,7 +77,7 @@ def settled_by_continuity(observation: LampObservation, evidence: BeaconReading,
 
 
 def _beacon_choice(evidence: BeaconReading, posterior: np.ndarray, lamps: LampMap) -> Lamp | None:
-    """The disc lamp of the map that is the beacon's most probable ID (None if that ID is off the map)."""
+    """Return the disc lamp of the map that is the beacon's most probable ID (None if that ID is off the map)."""
     best = int(np.argmax(posterior))
     if not evidence.mapped[best]:
         return None
@@ -85,8 +87,12 @@ def _beacon_choice(evidence: BeaconReading, posterior: np.ndarray, lamps: LampMa
 
 def _fits(observation: LampObservation, lamp: Lamp, distance: float, recent: Pose, gate: float,
           solve: Solver) -> bool:
-    """Whether ``lamp`` seen as ``observation`` can put the camera within ``gate`` of ``recent``. Ruled
-    out at once when the camera's ``distance`` from the lamp cannot reach (the triangle inequality)."""
+    """
+    Whether ``lamp`` seen as ``observation`` can put the camera within ``gate`` of ``recent``.
+
+    Ruled out at once when the camera's ``distance`` from the lamp cannot reach (the triangle
+    inequality).
+    """
     if abs(float(np.linalg.norm(lamp.position - recent.position)) - distance) > gate + _DISTANCE_SLACK * distance:
         return False
     choice = solve([(observation, lamp)])

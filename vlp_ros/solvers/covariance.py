@@ -1,4 +1,5 @@
-"""Pose covariance by first-order propagation of the measurement noise.
+"""
+Pose covariance by first-order propagation of the measurement noise.
 
 The pose is perturbed as in ``Pose``'s covariance convention: ``delta`` =
 (position offset in the map, rotation vector about the map axes applied on the
@@ -7,8 +8,8 @@ left). With residuals already divided by their sigmas, the covariance of
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -41,8 +42,10 @@ def covariance_from_jacobian(jacobian: np.ndarray) -> np.ndarray:
 
 @kernel
 def _covariance(jacobian, max_condition):
-    """Symmetrised (J^T J)^-1, or None if J^T J is not finite, has an unobserved direction or a
-    condition number (scaled to unit diagonal) over ``max_condition``."""
+    """
+    Symmetrised (J^T J)^-1, or None if J^T J is not finite, has an unobserved direction or a
+    condition number (scaled to unit diagonal) over ``max_condition``.
+    """
     information = np.empty((6, 6))
     information_matrix(jacobian, information)
     if not np.all(np.isfinite(information)):
@@ -69,7 +72,8 @@ def nees(estimate: Pose, truth: Pose) -> float:
 
 
 def with_rotation_curvature(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:
-    """``covariance`` widened by the second-order position error of a pose that turns about a
+    """
+    ``covariance`` widened by the second-order position error of a pose that turns about a
     point whose bearing it sees sharply: the lamp centre, at map offset ``lever`` from the camera.
 
     With the bearing pinned, a rotation error d moves the camera by
@@ -157,13 +161,17 @@ _MODE_SIGMA_GRID_PX = np.concatenate([[1e-4], 0.005 * 2.0 ** (np.arange(21) / 2.
 
 @dataclass(frozen=True)
 class ModelErrorFit:
-    """The pose fit allowing for model error: the pose ``step`` (as ``perturbed``'s delta),
-    its ``covariance``, the chi-square ``cost`` of the fit with only the common rim offset
-    (its prior included; the measure candidates are compared and gated by), the common rim
-    offset ``rim_offset`` (px, outward positive; 0 where not determined), the rim modes'
-    estimated prior sigma ``mode_sigma`` (px), and ``fit_covariance``: the covariance before
-    the modes were marginalised with their given prior, or before the lamps' priors widened the
-    several-lamp fit's (None where neither was done)."""
+    """
+    The pose fit allowing for model error.
+
+    The pose ``step`` (as ``perturbed``'s delta), its ``covariance``, the chi-square ``cost``
+    of the fit with only the common rim offset (its prior included; the measure candidates are
+    compared and gated by), the common rim offset ``rim_offset`` (px, outward positive; 0 where
+    not determined), the rim modes' estimated prior sigma ``mode_sigma`` (px), and
+    ``fit_covariance``: the covariance before the modes were marginalised with their given
+    prior, or before the lamps' priors widened the several-lamp fit's (None where neither was
+    done).
+    """
 
     step: np.ndarray
     covariance: np.ndarray
@@ -176,7 +184,8 @@ class ModelErrorFit:
 def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma: np.ndarray,
                           modes: np.ndarray, lamp_of_point: np.ndarray, lamp_count: int,
                           marker_count: int, mode_prior_sigma: np.ndarray | None = None) -> ModelErrorFit:
-    """The linear update of a converged fit (whitened ``residuals`` and ``jacobian`` laid out as
+    """
+    The linear update of a converged fit (whitened ``residuals`` and ``jacobian`` laid out as
     ``fit_kernels.Terms``: rim points, then 2 per marker, then 2 per up direction) by a common
     rim offset, each lamp's rim ``modes`` (``measurement.rim_error_modes``, rows as the rim points,
     ``lamp_of_point`` their lamp) and the residuals' own scatter; ValueError if the pose is not
@@ -184,7 +193,8 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     of its modes (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate
     the modes' sigma (one lamp), the modes are marginalised with it, widening the covariance
     along what they trade with and leaving the pose where the fit put it; with several lamps, a
-    lamp's prior over the estimated sigma widens the covariance alike, the pose left in place."""
+    lamp's prior over the estimated sigma widens the covariance alike, the pose left in place.
+    """
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
     offset_sigma = _rim_offset_sigma(residuals[:rim_count], rim_sigma)
@@ -204,8 +214,12 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
 
 
 def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float:
-    """The rim offset's prior sigma (px) from the rims' scatter; point lamps alone have no rim,
-    and then the offset, which moves nothing, keeps the floor's prior."""
+    """
+    Return the rim offset's prior sigma (px) from the rims' scatter.
+
+    Point lamps alone have no rim, and then the offset, which moves nothing, keeps the
+    floor's prior.
+    """
     if not len(rim_sigma):
         return RIM_OFFSET_FLOOR_PX
     scatter_px = float(np.sqrt(np.mean(np.square(rim_residuals * rim_sigma))))
@@ -213,9 +227,12 @@ def _rim_offset_sigma(rim_residuals: np.ndarray, rim_sigma: np.ndarray) -> float
 
 
 class _ModelErrorScalars(NamedTuple):
-    """``_model_error_fit``'s result beside its arrays: the cost, the rim offset, the mode sigma, and
-    whether ``fit_covariance`` was set (the modes marginalised with their given prior, or a lamp's
-    prior over the estimated sigma)."""
+    """
+    ``_model_error_fit``'s result beside its arrays.
+
+    The cost, the rim offset, the mode sigma, and whether ``fit_covariance`` was set (the modes
+    marginalised with their given prior, or a lamp's prior over the estimated sigma).
+    """
 
     cost: float
     rim_offset: float
@@ -226,9 +243,11 @@ class _ModelErrorScalars(NamedTuple):
 @kernel
 def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_count, marker_count, offset_sigma,
                      estimated, rim_dof, mode_sigma_grid, mode_prior_sigma, step, covariance, fit_covariance):
-    """``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning the rest
+    """
+    ``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning the rest
     (``_ModelErrorScalars``). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
-    or one with a prior sigma of its modes)."""
+    or one with a prior sigma of its modes).
+    """
     count, rims = residuals.shape[0], rim_sigma.shape[0]
     per_lamp = modes.shape[1]
     marginalised = not estimated and rims > 0 and mode_prior_sigma.max() > 0.0
@@ -297,10 +316,12 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
 
 @kernel
 def _add_mode_prior_excess(inverse, mode_sigma, spread, per_lamp):
-    """``inverse`` (of the fit with every lamp's modes under the prior sigma ``mode_sigma``) turned into
+    """
+    ``inverse`` (of the fit with every lamp's modes under the prior sigma ``mode_sigma``) turned into
     the covariance of that fit's estimate where a lamp's modes spread by more, ``spread`` (px, per
     lamp): the sandwich H^-1 (H - P + P S P) H^-1, which adds (spread^2 - sigma^2) g g^T per mode, g =
-    H^-1 e_k / sigma^2 the estimate's pull by the mode. The pose stays where the fit put it."""
+    H^-1 e_k / sigma^2 the estimate's pull by the mode. The pose stays where the fit put it.
+    """
     variance = mode_sigma * mode_sigma
     pulls = inverse[:, 7:] / variance
     for lamp in range(spread.shape[0]):
@@ -317,8 +338,10 @@ def _add_mode_prior_excess(inverse, mode_sigma, spread, per_lamp):
 @kernel
 def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
                         offset_precision):
-    """The inverse information of the pose, the offset and each lamp's modes under their prior sigmas
-    (a lamp without one: its modes fixed at 0), the rim points weighted as the fit left them."""
+    """
+    The inverse information of the pose, the offset and each lamp's modes under their prior sigmas
+    (a lamp without one: its modes fixed at 0), the rim points weighted as the fit left them.
+    """
     upper, gradient = np.zeros((width, width)), np.zeros(width)
     _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
     information = _symmetric(upper)
@@ -335,9 +358,11 @@ def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point,
 @kernel
 def _weighted_normal_equations(design, columns, start, stop, residuals, weights, lamp_of_point, per_lamp, gram,
                                gradient):
-    """(D^T W D, D^T W r) of the whitened ``design``'s first ``columns`` and ``residuals`` over rows
+    """
+    (D^T W D, D^T W r) of the whitened ``design``'s first ``columns`` and ``residuals`` over rows
     ``start`` to ``stop``, under ``weights``, added to ``gram`` (upper triangle) and ``gradient``. A
-    rim point moves only the pose, the offset and its own lamp's modes; other rows only the pose."""
+    rim point moves only the pose, the offset and its own lamp's modes; other rows only the pose.
+    """
     per_lamp = (design.shape[1] - 7) // max(lamp_of_point.shape[0] and (lamp_of_point.max() + 1), 1)
     used = np.empty(7 + per_lamp, dtype=np.int64)
     for n in range(start, stop):
@@ -369,7 +394,7 @@ def _normal_equations_of(design, columns, rows, residuals, weights, lamp_of_poin
 
 @kernel
 def _symmetric(upper):
-    """The symmetric matrix whose upper triangle is ``upper``'s."""
+    """Return the symmetric matrix whose upper triangle is ``upper``'s."""
     full = upper.copy()
     for i in range(full.shape[0]):
         for j in range(i):
@@ -389,9 +414,11 @@ def _predict(design, residuals, solution, predicted):
 
 @kernel
 def _offset_rule_solution(information, gradient, offset_precision, offset_sigma, estimated):
-    """The Gauss-Newton step of all parameters of ``information`` (their priors in, except the
+    """
+    The Gauss-Newton step of all parameters of ``information`` (their priors in, except the
     common offset's) and the inverse information with the offset's prior. The offset is left at
-    0 in the step unless ``estimated`` and the data determine it."""
+    0 in the step unless ``estimated`` and the data determine it.
+    """
     information = information.copy()
     information[6, 6] += offset_precision
     inverse = np.linalg.inv(information)
@@ -412,10 +439,12 @@ def _offset_rule_solution(information, gradient, offset_precision, offset_sigma,
 
 @kernel
 def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
-    """The modes' prior sigma on ``grid`` that maximises the restricted likelihood of the weighted
+    """
+    The modes' prior sigma on ``grid`` that maximises the restricted likelihood of the weighted
     residuals, the pose flat and the offset at its prior: with the pose and offset profiled out
     (information M and gradient h of the modes), it minimises
-    log det(I + sigma^2 M) - h^T (M + I / sigma^2)^-1 h."""
+    log det(I + sigma^2 M) - h^T (M + I / sigma^2)^-1 h.
+    """
     width = gram.shape[0]
     information = gram.copy()
     information[6, 6] += offset_precision
@@ -440,8 +469,10 @@ def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
 
 @kernel
 def _reweight(predicted, weights, rims, marker_count, rim_dof):
-    """Rim points count for less by their scatter beyond their sigma, a marker the pose cannot place
-    within ``MARKER_CONSISTENT`` sigmas by its chi-square."""
+    """
+    Rim points count for less by their scatter beyond their sigma, a marker the pose cannot place
+    within ``MARKER_CONSISTENT`` sigmas by its chi-square.
+    """
     chi_square = 0.0
     for i in range(rims):
         chi_square += predicted[i] * predicted[i]
@@ -457,11 +488,13 @@ def _reweight(predicted, weights, rims, marker_count, rim_dof):
 
 
 def widened_toward_up(pose: Pose, up_in_camera: np.ndarray, pivot: np.ndarray, share: float = 1.0) -> np.ndarray:
-    """``pose``'s covariance plus ``share`` of the outer product of the pose change that would make it agree
+    """
+    ``pose``'s covariance plus ``share`` of the outer product of the pose change that would make it agree
     with a measured up direction (unit, camera frame): the rotation turning its up onto it, the
     camera turning about the map point ``pivot`` whose bearing the image pins. Whether the up
     measurement (an accelerating IMU) or the lamps (a shape off the model) are wrong, the frame
-    cannot tell: the covariance then spans both."""
+    cannot tell: the covariance then spans both.
+    """
     measured_in_map = pose.rotation @ up_in_camera
     axis = np.cross(measured_in_map, np.array([0.0, 0.0, 1.0]))
     rotation = math.atan2(float(np.linalg.norm(axis)), float(measured_in_map[2])) * axis / max(

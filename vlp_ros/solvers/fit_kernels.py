@@ -1,5 +1,8 @@
-"""The pose fit's compiled numerics: every measurement's residuals and Jacobian, and the
-Levenberg-Marquardt loop over them.
+"""
+The pose fit's compiled numerics.
+
+Every measurement's residuals and Jacobian, and the Levenberg-Marquardt loop over
+them.
 
 A fit is a few iterations on a few hundred residuals, where each numpy or OpenCV call
 costs more in argument handling than in arithmetic: the loop runs whole in one kernel.
@@ -15,8 +18,8 @@ over sigma with u = R^T e_z.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -38,7 +41,8 @@ SINGULAR = 2
 
 
 class Terms(NamedTuple):
-    """Measurements as flat arrays (C-contiguous float64, writable: numba compiles once per
+    """
+    Measurements as flat arrays (C-contiguous float64, writable: numba compiles once per
     array type), passed to the kernels as separate arguments; a kind left out has none.
 
     Rim points: ``rays`` (N, 3) homogeneous normalised, ``lens`` (N, 4) d(normalised)/d(pixel)
@@ -69,7 +73,7 @@ class Terms(NamedTuple):
 
 
 def _fields(first: str, last: str) -> slice:
-    """The positions of the fields of ``Terms`` from ``first`` to ``last``."""
+    """Return the positions of the fields of ``Terms`` from ``first`` to ``last``."""
     return slice(Terms._fields.index(first), Terms._fields.index(last) + 1)
 
 
@@ -82,8 +86,12 @@ _NONE = Terms()
 
 
 def joined(parts: Sequence[Terms]) -> Terms:
-    """All ``parts`` as one: each kind's entries in the order of the parts (lamps renumbered),
-    seen through the first camera that has lamps or projected points."""
+    """
+    All ``parts`` as one.
+
+    Each kind's entries in the order of the parts (lamps renumbered), seen through the
+    first camera that has lamps or projected points.
+    """
     if len(parts) == 1:
         return parts[0]
     # By field position rather than name: this runs several times per solve, where getattr and
@@ -105,8 +113,10 @@ def joined(parts: Sequence[Terms]) -> Terms:
 
 
 def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened residuals (M,) of ``terms`` at the pose (``rotation`` camera to map, ``position``)
-    and their Jacobian (M, 6) in the pose perturbation of ``covariance.perturbed``."""
+    """
+    Whitened residuals (M,) of ``terms`` at the pose (``rotation`` camera to map, ``position``)
+    and their Jacobian (M, 6) in the pose perturbation of ``covariance.perturbed``.
+    """
     count = terms.residual_count
     residuals, jacobian = np.empty(count), np.empty((count, 6))
     linearize_into(np.ascontiguousarray(rotation, dtype=float), np.ascontiguousarray(position, dtype=float),
@@ -116,8 +126,10 @@ def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple
 
 @kernel
 def project_point(point, intrinsics, distortion, jacobian):
-    """Pixel (u, v) of a camera-frame point as ``cv2.projectPoints`` (K's skew ignored, as
-    there), and d pixel / d point into ``jacobian`` (2, 3)."""
+    """
+    Pixel (u, v) of a camera-frame point as ``cv2.projectPoints`` (K's skew ignored, as
+    there), and d pixel / d point into ``jacobian`` (2, 3).
+    """
     z = 1.0 / point[2] if point[2] != 0.0 else 1.0
     x, y = point[0] * z, point[1] * z
     k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
@@ -145,10 +157,13 @@ def project_point(point, intrinsics, distortion, jacobian):
 
 @kernel
 def rim_terms(normalized, intrinsics, distortion, distorted, pinhole_inverse):
-    """Rim rays (N, 3): undistorted normalised points (N, 2) made homogeneous; and
-    d(normalised)/d(pixel) (N, 2, 2) at each: ``pinhole_inverse`` (K's upper-left block
+    """
+    Rim rays (N, 3): undistorted normalised points (N, 2) made homogeneous.
+
+    And d(normalised)/d(pixel) (N, 2, 2) at each: ``pinhole_inverse`` (K's upper-left block
     inverted) unless ``distorted``, else the inverse of ``project_point``'s Jacobian, whose x
-    and y columns at z = 1 are d pixel / d normalised."""
+    and y columns at z = 1 are d pixel / d normalised.
+    """
     count = normalized.shape[0]
     rays = np.empty((count, 3))
     inverses = np.empty((count, 2, 2))
@@ -171,8 +186,10 @@ def rim_terms(normalized, intrinsics, distortion, distorted, pinhole_inverse):
 
 @kernel
 def perturb(rotation, position, delta, rotation_out, position_out):
-    """The pose moved by ``delta`` = (dx, dy, dz, rotation vector on the left), the rotation
-    vector's matrix formed as ``cv2.Rodrigues`` forms it."""
+    """
+    The pose moved by ``delta`` = (dx, dy, dz, rotation vector on the left), the rotation
+    vector's matrix formed as ``cv2.Rodrigues`` forms it.
+    """
     rx, ry, rz = delta[3], delta[4], delta[5]
     theta = math.sqrt(rx * rx + ry * ry + rz * rz)
     left = np.eye(3)
@@ -197,8 +214,11 @@ def perturb(rotation, position, delta, rotation_out, position_out):
 
 @kernel
 def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_conic):
-    """The lamp's rim conic C (3, 3) and its derivatives dC_k (6, 3, 3) along the six pose
-    perturbations: dH_k of H, then dC = -(M + M^T) with M = C dH H^-1."""
+    """
+    The lamp's rim conic C (3, 3) and its derivatives dC_k (6, 3, 3) along the six pose perturbations.
+
+    dH_k of H, then dC = -(M + M^T) with M = C dH H^-1.
+    """
     plane = np.empty((3, 3))
     offset = np.empty(3)
     for m in range(3):
@@ -257,8 +277,10 @@ def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_coni
 def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, centres, radii_squared,
                    marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,
                    up_directions, up_tangents, up_sigma, residuals, jacobian):
-    """Whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose, written
-    into ``residuals`` and ``jacobian``; returns the chi-square."""
+    """
+    Whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose, written
+    into ``residuals`` and ``jacobian``; returns the chi-square.
+    """
     lamps = centres.shape[0]
     conics = np.empty((lamps, 3, 3))
     d_conics = np.empty((lamps, 6, 3, 3))
@@ -356,8 +378,10 @@ def inverse_form(matrix: np.ndarray, vector: np.ndarray) -> float:
 
 @kernel
 def forecast(residuals, jacobian):
-    """The chi-square that the Gauss-Newton model of (residuals, jacobian) forecasts at its
-    minimum, r^T r - g^T (J^T J)^-1 g with g = J^T r; 0 if J^T J is singular."""
+    """
+    The chi-square that the Gauss-Newton model of (residuals, jacobian) forecasts at its
+    minimum, r^T r - g^T (J^T J)^-1 g with g = J^T r; 0 if J^T J is singular.
+    """
     information, gradient = np.empty((6, 6)), np.empty(6)
     _normal_equations(residuals, jacobian, information, gradient)
     solved = lu_solve(information, gradient, 0.0)
@@ -398,12 +422,14 @@ def _normal_equations(residuals, jacobian, information, gradient):
 def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
             rays, lens, rim_sigma, lamp_of_point, centres, radii_squared, marker_maps, marker_pixels,
             marker_sigma, intrinsics, distortion, up_directions, up_tangents, up_sigma):
-    """Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose, updating
+    """
+    Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose, updating
     ``rotation``, ``position``, ``residuals`` and ``jacobian`` in place; returns (outcome, cost,
     damping). CONVERGED when even the undamped Gauss-Newton step promises no real decrease:
     that last step is still taken, its residuals (lower by under the floor) not evaluated,
     since near the minimum it lands quadratically close to it. PAUSED at ``stop``; SINGULAR
-    when the normal equations are."""
+    when the normal equations are.
+    """
     information = np.empty((6, 6))
     damped = np.empty((6, 6))
     gradient = np.empty(6)

@@ -1,5 +1,8 @@
-"""One pose from every identified lamp of a frame: a joint least squares (the paper's eq. 15,
-generalised to exact perspective, any number of lamps and lamps without markers).
+"""
+One pose from every identified lamp of a frame.
+
+A joint least squares (the paper's eq. 15, generalised to exact perspective, any number of
+lamps and lamps without markers).
 
 Starts: each lamp's two circle poses, their yaw from the lamp's marker or, without
 one, from the image of another lamp's centre (exact for any number of lamps); and
@@ -29,13 +32,13 @@ from vlp_ros.core.ellipse import ellipse_from_conic
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.ambiguity import DisambiguationHints, choose_candidate
-from vlp_ros.solvers.candidates import Choice, PoseCandidate, Reason, distinct, explains_the_image
+from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints
+from vlp_ros.solvers.candidates import Choice, distinct, explains_the_image, PoseCandidate, Reason
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp, widened_where_up_disagrees
-from vlp_ros.solvers.point_lamps import PointLampMeasurement, point_starts, pose_from_opencv, seen_from_below
-from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, descend, forecast_from, linearize, refine_pose
+from vlp_ros.solvers.point_lamps import point_starts, PointLampMeasurement, pose_from_opencv, seen_from_below
+from vlp_ros.solvers.refinement import descend, forecast_from, FORECAST_MARGIN, linearize, Measurement, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
 # Poses closer than this (m, rad) lead to the same minimum: follow only the cheapest.
@@ -57,7 +60,7 @@ _PNP_MIN_LAMPS = 4
 
 def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
                 hints: DisambiguationHints) -> Choice:
-    """The camera pose from all identified lamps of one frame, or no pose and why."""
+    """Return the camera pose from all identified lamps of one frame, or no pose and why."""
     if not pairs:
         return Choice(None, Reason.NO_CANDIDATES, 'no identified lamp')
     ids = [lamp.id for _, lamp in pairs]
@@ -94,9 +97,11 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
 
 def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
                      up: Sequence[UpMeasurement] = (), up_directions: Sequence[np.ndarray] = ()) -> list[PoseCandidate]:
-    """Distinct refined joint poses (cheapest first, covariance set) for two or more lamps
-    and any measured up directions; ``up_directions`` (camera frame, measured or not) start
-    poses from two point lamps."""
+    """
+    Distinct refined joint poses (cheapest first, covariance set) for two or more lamps and any measured up directions.
+
+    ``up_directions`` (camera frame, measured or not) start poses from two point lamps.
+    """
     discs = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if not lamp.is_point]
     points = [PointLampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if lamp.is_point]
     measurements = [*discs, *points]
@@ -124,8 +129,10 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
 
 
 def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement] = ()) -> list[Pose]:
-    """Each disc lamp's circle poses, headed by its marker or the farthest other lamp, and
-    SQPnP on all lamp centres when there are enough of them."""
+    """
+    Each disc lamp's circle poses, headed by its marker or the farthest other lamp, and
+    SQPnP on all lamp centres when there are enough of them.
+    """
     conics = [normalized_conic(m.rim_rays[:, :2]) for m in discs]
     centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics] + [m.ray[:2] for m in points])
     rays = np.column_stack([centres, np.ones(len(centres))])
@@ -149,8 +156,10 @@ def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement]
 
 
 def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Pose]:
-    """SQPnP's solutions for the lamp centres seen at the ellipse centres (close enough to
-    the projected circle centres for a start)."""
+    """
+    SQPnP's solutions for the lamp centres seen at the ellipse centres (close enough to
+    the projected circle centres for a start).
+    """
     try:
         _, rvecs, tvecs, _ = cv2.solvePnPGeneric(lamp_positions, image_centres.reshape(-1, 1, 2), np.eye(3), None,
                                                  flags=cv2.SOLVEPNP_SQPNP)
@@ -160,8 +169,10 @@ def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Po
 
 
 def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[tuple[Pose, float]]:
-    """Poses with a finite joint cost, cheapest first, one per neighbourhood, each with the
-    chi-square its Gauss-Newton model forecasts (from the same linearisation)."""
+    """
+    Poses with a finite joint cost, cheapest first, one per neighbourhood, each with the
+    chi-square its Gauss-Newton model forecasts (from the same linearisation).
+    """
     scored = []
     for start in starts:
         try:

@@ -1,6 +1,8 @@
-"""IDs settled jointly with the geometry: a lamp whose beacon reading is uncertain on its own (a tone
-between two bands, a frequency a row time off by 2 % leaves open) gets an ID only when one pose
-explains every lamp with it.
+"""
+IDs settled jointly with the geometry.
+
+A lamp whose beacon reading is uncertain on its own (a tone between two bands, a frequency a row
+time off by 2 % leaves open) gets an ID only when one pose explains every lamp with it.
 
 The lamps identified with certainty give a pose first. Each open lamp is then tried as every
 candidate its reading leaves plausible: a candidate counts only if the joint pose with it still
@@ -26,10 +28,10 @@ of them, if any, is that lamp.
 """
 from __future__ import annotations
 
-import itertools
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+import itertools
 from typing import TypeVar
 
 import numpy as np
@@ -61,8 +63,10 @@ Option = TypeVar('Option')
 
 @dataclass(frozen=True)
 class OpenLamp:
-    """A detected lamp without a certain ID, the lamps of the map its reading leaves plausible and their
-    posterior probabilities (the reading alone)."""
+    """
+    A detected lamp without a certain ID, the lamps of the map its reading leaves plausible and their
+    posterior probabilities (the reading alone).
+    """
 
     observation: LampObservation
     candidates: tuple[Lamp, ...]
@@ -82,8 +86,10 @@ def claimed_once(ids: list[int | None]) -> list[int | None]:
 
 def open_lamps(observations: list[LampObservation], ids: list[int | None], readings: list[BeaconReading],
                lamps: LampMap, usable: Callable[[LampObservation, Lamp], bool]) -> list[OpenLamp]:
-    """The lamps without an ID whose reading weighs mapped candidates (a surely unmapped one has
-    none), each with its plausible candidates not taken by a certain lamp, most probable first."""
+    """
+    The lamps without an ID whose reading weighs mapped candidates (a surely unmapped one has
+    none), each with its plausible candidates not taken by a certain lamp, most probable first.
+    """
     taken = {i for i in ids if i is not None}
     found = []
     for observation, lamp_id, reading in zip(observations, ids, readings):
@@ -105,9 +111,11 @@ def open_lamps(observations: list[LampObservation], ids: list[int | None], readi
 
 
 def _plausible(order: list[int], posterior: np.ndarray) -> list[int]:
-    """The candidates (most probable first) at ``PLAUSIBLE`` or above, and below it as many as the
+    """
+    The candidates (most probable first) at ``PLAUSIBLE`` or above, and below it as many as the
     assignments need to cover ``_COVERED`` of the posterior (at most ``_MAX_CANDIDATES`` in all): a lamp
-    read at 0.9989 with its two neighbours at 6e-4 and 5e-4 is otherwise never covered."""
+    read at 0.9989 with its two neighbours at 6e-4 and 5e-4 is otherwise never covered.
+    """
     kept, covered = [], 0.0
     for k in order[:_MAX_CANDIDATES]:
         if posterior[k] < PLAUSIBLE and covered >= _COVERED:
@@ -118,9 +126,11 @@ def _plausible(order: list[int], posterior: np.ndarray) -> list[int]:
 
 
 def odd_one_out(certain: list[Pair], solve: Solver) -> int | None:
-    """The one certain lamp (index) without which a pose explains the others with residuals to spare,
+    """
+    The one certain lamp (index) without which a pose explains the others with residuals to spare,
     when no pose explains them all; None when they are explained, or when no single lamp (or more than
-    one) is the odd one."""
+    one) is the odd one.
+    """
     if len(certain) < 2 or _residuals(certain) < 6 + _SPARE_RESIDUALS + 2 or solve(certain).reason \
             is not Reason.INCONSISTENT_LAMPS:
         return None
@@ -129,7 +139,7 @@ def odd_one_out(certain: list[Pair], solve: Solver) -> int | None:
 
 
 def settle(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pair]:
-    """The open lamps that one pose explains with exactly one of their candidates, as pairs."""
+    """Return the open lamps that one pose explains with exactly one of their candidates, as pairs."""
     if not lamps:
         return []
     anchor = solve(certain) if certain else None
@@ -148,8 +158,10 @@ def _anchors(choice: Choice | None) -> bool:
 
 
 def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp]]:
-    """The most certain open lamps whose assignments number at most ``_MAX_ASSIGNMENTS``, and the others
-    (settled against the first ones' pose): five open tone lamps of three candidates each are 243."""
+    """
+    The most certain open lamps whose assignments number at most ``_MAX_ASSIGNMENTS``, and the others
+    (settled against the first ones' pose): five open tone lamps of three candidates each are 243.
+    """
     ranked = sorted(lamps, key=lambda o: -max(o.posterior))
     count = 1
     for k, open_lamp in enumerate(ranked):
@@ -194,7 +206,7 @@ def _settled_by_assignment(certain: list[Pair], lamps: list[OpenLamp], solve: So
 
 
 def _decisive(fitting: list[tuple[Option, float]]) -> Option | None:
-    """The option (with its posterior) that holds all but 1e-4 of the posterior of ``fitting``, or None."""
+    """Return the option (with its posterior) that holds all but 1e-4 of the posterior of ``fitting``, or None."""
     total = sum(p for _, p in fitting)
     best = max(fitting, key=lambda option: option[1], default=None)
     return best[0] if best is not None and best[1] >= _COVERED * total else None

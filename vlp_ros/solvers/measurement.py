@@ -1,4 +1,5 @@
-"""How well a camera pose explains one lamp's observation: residuals in pixels over their noise.
+"""
+How well a camera pose explains one lamp's observation: residuals in pixels over their noise.
 
 Rim residual: the signed pixel distance of each observed rim point from the
 image of the disc edge, to first order (Sampson). The predicted edge is the
@@ -19,10 +20,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vlp_ros.core.camera import PLUMB_BOB, CameraModel
+from vlp_ros.core.camera import CameraModel, PLUMB_BOB
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
-from vlp_ros.solvers.fit_kernels import Terms, joined, linearize, rim_terms
+from vlp_ros.solvers.fit_kernels import joined, linearize, rim_terms, Terms
 
 if TYPE_CHECKING:
     from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -30,7 +31,8 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class LampMeasurement:
-    """One lamp's observation, prepared for repeated residual evaluation.
+    """
+    One lamp's observation, prepared for repeated residual evaluation.
 
     ``rim_rays`` (N, 3) are the rim points as homogeneous normalised coordinates;
     ``rim_pixel_jacobian`` (N, 2, 2) is d(normalised)/d(pixel) at each of them;
@@ -78,7 +80,7 @@ class LampMeasurement:
                    rim_model_sigma=float(observation.rim_model_sigma))
 
     def thinned(self, max_rim_points: int) -> LampMeasurement:
-        """The same measurement on every k-th rim point, at most ``max_rim_points`` of them."""
+        """Return the same measurement on every k-th rim point, at most ``max_rim_points`` of them."""
         step = -(-len(self.rim_rays) // max_rim_points)
         return replace(self, rim_rays=self.rim_rays[::step], rim_pixel_jacobian=self.rim_pixel_jacobian[::step])
 
@@ -102,9 +104,11 @@ class LampMeasurement:
         object.__setattr__(self, 'terms', terms)
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals over their sigmas (M,) for the camera pose (``rotation`` camera to map,
+        """
+        Residuals over their sigmas (M,) for the camera pose (``rotation`` camera to map,
         ``position``) and their Jacobian (M, 6) with respect to the pose perturbation of
-        ``covariance.perturbed``: the rim points' in order, then the marker's."""
+        ``covariance.perturbed``: the rim points' in order, then the marker's.
+        """
         return linearize(self.terms, rotation, position)
 
     def lamp_center_in_camera(self, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -113,10 +117,12 @@ class LampMeasurement:
 
 @dataclass(frozen=True)
 class LampMeasurements:
-    """Several lamps' measurements, and any up measurements (``UpMeasurement``), evaluated as
+    """
+    Several lamps' measurements, and any up measurements (``UpMeasurement``), evaluated as
     one (all rims, then all markers, then all up directions, each kind in the order of the
     parts), with their ``Terms`` joined once: a multi-lamp fit evaluates them for every start
-    it probes."""
+    it probes.
+    """
 
     parts: tuple[LampMeasurement | UpMeasurement, ...]
 
@@ -137,7 +143,8 @@ RIM_MODES = 5
 
 
 def rim_error_modes(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
-    """How model error can move each rim point of ``terms`` across the edge, for the camera pose
+    """
+    How model error can move each rim point of ``terms`` across the edge, for the camera pose
     (``rotation`` camera to map, ``position``): (N, ``RIM_MODES``) px per unit of each mode, the
     shape times 1, cos t, sin t, cos 2t, sin 2t of the point's angle t round its disc.
 
@@ -148,7 +155,8 @@ def rim_error_modes(terms: Terms, rotation: np.ndarray, position: np.ndarray) ->
     lamp's ellipse absorbs (its centre, axes and orientation), so its residuals cannot show them:
     measured on an independent renderer's blurred frames at the true pose, 0.3-0.4 px inward and
     0.6 px in the second harmonic (rows and columns of a rolling-shutter lamp read differently),
-    where clean frames are within 0.05 px."""
+    where clean frames are within 0.05 px.
+    """
     rays_in_map = np.ascontiguousarray(terms.rays, dtype=float) @ rotation.T
     centres = terms.centres[terms.lamp_of_point]
     along = (centres[:, 2] - position[2]) / rays_in_map[:, 2]
@@ -164,4 +172,3 @@ def rim_error_modes(terms: Terms, rotation: np.ndarray, position: np.ndarray) ->
         shape[mine] /= shape[mine].mean()
     cos, sin = radial[:, 0], radial[:, 1]
     return shape[:, None] * np.column_stack([np.ones_like(cos), cos, sin, cos * cos - sin * sin, 2.0 * cos * sin])
-

@@ -1,4 +1,5 @@
-"""The seed paper's single-lamp pose solver: weak perspective of one circle and its marker.
+"""
+The seed paper's single-lamp pose solver: weak perspective of one circle and its marker.
 
 Zhang, Zhong, Kemao and Zhang, "A Single LED Positioning System Based on Circle
 Projection", IEEE Photonics Journal 9(4), 2017. Only the paper's abstract could
@@ -64,7 +65,8 @@ MIN_AXIS_RATIO = 0.05
 
 def solve_lamp_paper(observation: LampObservation, lamp: Lamp,
                      camera: CameraModel) -> list[PoseCandidate]:
-    """The paper's two weak-perspective poses of the camera, the better-fitting one first.
+    """
+    Return the paper's two weak-perspective poses of the camera, the better-fitting one first.
 
     ``cost`` is the chi-square of ``LampMeasurement`` (full perspective, pixels),
     as for every solver; ``covariance`` is None: the paper gives none.

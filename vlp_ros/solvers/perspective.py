@@ -1,4 +1,5 @@
-"""Exact perspective single-lamp solver: circle pose, marker yaw, then least-squares refinement.
+"""
+Exact perspective single-lamp solver: circle pose, marker yaw, then least-squares refinement.
 
 Each of the two circle poses of the rim fixes where map up points in the camera
 (the disc is horizontal) and where the lamp centre is; the marker, intersected
@@ -31,24 +32,24 @@ sigma). A measurement no candidate agrees with (an accelerating IMU) is left out
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from functools import cache
+import math
 
 import numpy as np
 
-from vlp_ros.core.camera import CameraModel
 from vlp_ros.compiled import kernel
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import COST_GAP
-from vlp_ros.solvers.candidates import PoseCandidate, distinct, explains_the_image
-from vlp_ros.solvers.circle_pose import CirclePose, circle_poses, normalized_conic
+from vlp_ros.solvers.candidates import distinct, explains_the_image, PoseCandidate
+from vlp_ros.solvers.circle_pose import circle_poses, CirclePose, normalized_conic
 from vlp_ros.solvers.covariance import perturbed, widened_toward_up, with_rotation_curvature
 from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.measurement import LampMeasurement
-from vlp_ros.solvers.refinement import FORECAST_MARGIN, Measurement, forecast_minimum, linearize, refine_pose
+from vlp_ros.solvers.refinement import FORECAST_MARGIN, forecast_minimum, linearize, Measurement, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
 # Squared Mahalanobis separation (under the cheaper candidate's covariance) below
@@ -74,9 +75,11 @@ UP_DOUBT = 5.99
 
 
 def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np.ndarray) -> Pose | None:
-    """Camera pose from the lamp's circle in the camera frame and the ray (normalised,
+    """
+    Camera pose from the lamp's circle in the camera frame and the ray (normalised,
     homogeneous) towards a map point ``target`` off the lamp's vertical axis: its marker,
-    or another lamp's centre. None if the ray cannot reach the target's height."""
+    or another lamp's centre. None if the ray cannot reach the target's height.
+    """
     rotation, position = np.empty((3, 3)), np.empty(3)
     if not _pose_from_circle(np.ascontiguousarray(circle.normal, dtype=float),
                              np.ascontiguousarray(circle.center, dtype=float),
@@ -88,9 +91,12 @@ def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np
 
 @kernel
 def _pose_from_circle(up, center, lamp_position, ray, target, rotation, position):
-    """``pose_from_circle`` into ``rotation`` and ``position``; False if there is none. The ray
-    meets the target's height on the lamp's plane (``up`` its normal); the heading from the
-    lamp centre to that point, in the camera and in the map, fixes the yaw."""
+    """
+    ``pose_from_circle`` into ``rotation`` and ``position``; False if there is none.
+
+    The ray meets the target's height on the lamp's plane (``up`` its normal); the heading
+    from the lamp centre to that point, in the camera and in the map, fixes the yaw.
+    """
     height = up[0] * center[0] + up[1] * center[1] + up[2] * center[2] + (target[2] - lamp_position[2])
     along_ray = up[0] * ray[0] + up[1] * ray[1] + up[2] * ray[2]
     if not (along_ray > 0.0 and height > 0.0):
@@ -126,7 +132,7 @@ def _pose_from_circle(up, center, lamp_position, ray, target, rotation, position
 
 
 def closed_form_poses(measurement: LampMeasurement) -> list[Pose]:
-    """The unrefined pose of each circle candidate (one or two)."""
+    """Return the unrefined pose of each circle candidate (one or two)."""
     lamp = measurement.lamp
     if measurement.marker_ray is None:
         raise ValueError(f'lamp {lamp.name!r}: a single lamp needs its marker to fix the yaw')
@@ -140,8 +146,10 @@ def closed_form_poses(measurement: LampMeasurement) -> list[Pose]:
 
 def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel,
                up: Sequence[UpMeasurement] = ()) -> list[PoseCandidate]:
-    """Refined candidate poses (one or two, cheapest first, covariance set) from one lamp and
-    any measured up directions."""
+    """
+    Refined candidate poses (one or two, cheapest first, covariance set) from one lamp and
+    any measured up directions.
+    """
     measurement = LampMeasurement.from_observation(observation, lamp, camera)
     starts = closed_form_poses(measurement)
 
@@ -170,8 +178,10 @@ def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel,
 
 def widened_where_up_disagrees(candidates: list[PoseCandidate], up: Sequence[UpMeasurement],
                                pivot: np.ndarray) -> list[PoseCandidate]:
-    """``candidates`` with each covariance widened toward every up measurement it disagrees with
-    beyond ``UP_DOUBT`` (``covariance.widened_toward_up``; ``pivot`` the map point the image pins)."""
+    """
+    ``candidates`` with each covariance widened toward every up measurement it disagrees with
+    beyond ``UP_DOUBT`` (``covariance.widened_toward_up``; ``pivot`` the map point the image pins).
+    """
     for candidate in candidates:
         pose = candidate.pose
         for measurement in up:
@@ -184,9 +194,12 @@ def widened_where_up_disagrees(candidates: list[PoseCandidate], up: Sequence[UpM
 
 
 def _clearly_apart(starts: list[Pose], measurement: LampMeasurement) -> bool:
-    """Whether the closed-form pair is too far apart to straddle a frontal view, without
-    refining it: its separation under the rim's information at one start tracks the
-    refined pair's within ~30% (measured, 0-11 degree views, 4K and 1080p)."""
+    """
+    Whether the closed-form pair is too far apart to straddle a frontal view, without refining it.
+
+    Its separation under the rim's information at one start tracks the refined pair's
+    within ~30% (measured, 0-11 degree views, 4K and 1080p).
+    """
     if len(starts) != 2:
         return False
     _, jacobian = linearize([measurement], starts[0])
@@ -195,9 +208,12 @@ def _clearly_apart(starts: list[Pose], measurement: LampMeasurement) -> bool:
 
 
 def _one_of_pair(pair: list[PoseCandidate], up: Sequence[UpMeasurement]) -> bool:
-    """Whether the up measurements single out one of a pair that straddles a frontal view:
-    then the pair was two poses after all and the one they favour is refined with them; else
-    it is one blurred pose, and its merge is updated with them."""
+    """
+    Whether the up measurements single out one of a pair that straddles a frontal view.
+
+    Then the pair was two poses after all and the one they favour is refined with them; else
+    it is one blurred pose, and its merge is updated with them.
+    """
     if not up:
         return False
     first, second = (_up_update(candidate.pose, up)[2] for candidate in pair)
@@ -219,8 +235,10 @@ def _refined_with_up(starts: list[Pose], measurement: LampMeasurement,
 
 
 def _updated(merged: PoseCandidate, measurement: LampMeasurement, up: Sequence[UpMeasurement]) -> PoseCandidate:
-    """The merged frontal pose corrected by the up measurements (one linear update: the up
-    residuals are nearly linear over the pair's few degrees of spread)."""
+    """
+    The merged frontal pose corrected by the up measurements (one linear update: the up
+    residuals are nearly linear over the pair's few degrees of spread).
+    """
     if not up:
         return merged
     step, covariance, _ = _up_update(merged.pose, up)
@@ -230,8 +248,11 @@ def _updated(merged: PoseCandidate, measurement: LampMeasurement, up: Sequence[U
 
 
 def _up_update(pose: Pose, up: Sequence[UpMeasurement]) -> tuple[np.ndarray, np.ndarray, float]:
-    """The linear (Kalman) update of ``pose`` and its covariance by the up measurements:
-    (pose step, covariance after, innovation chi-square)."""
+    """
+    Return the linear (Kalman) update of ``pose`` and its covariance by the up measurements.
+
+    (pose step, covariance after, innovation chi-square).
+    """
     residuals, jacobian = linearize(up, pose)
     step, covariance = np.empty(6), np.empty((6, 6))
     chi_square = _kalman_update(residuals, jacobian, np.ascontiguousarray(pose.covariance, dtype=float),
@@ -241,8 +262,11 @@ def _up_update(pose: Pose, up: Sequence[UpMeasurement]) -> tuple[np.ndarray, np.
 
 @kernel
 def _kalman_update(residuals, jacobian, covariance, step, covariance_after):
-    """``_up_update`` into ``step`` and ``covariance_after``, returning the innovation
-    chi-square: S = J P J^T + I, gain K = P J^T S^-1, step -K r, P - K J P, r^T S^-1 r."""
+    """
+    ``_up_update`` into ``step`` and ``covariance_after``, returning the innovation chi-square.
+
+    S = J P J^T + I, gain K = P J^T S^-1, step -K r, P - K J P, r^T S^-1 r.
+    """
     count = residuals.shape[0]
     projected = np.zeros((count, 6))
     for a in range(count):
@@ -300,4 +324,3 @@ def _midpoint(a: PoseCandidate, b: PoseCandidate, measurement: LampMeasurement) 
     pose.covariance = 0.5 * (a.pose.covariance + b.pose.covariance) + 0.25 * np.outer(separation, separation)
     residuals, _ = linearize([measurement], pose)
     return PoseCandidate(pose=pose, cost=float(residuals @ residuals), residual_count=len(residuals))
-

@@ -1,4 +1,5 @@
-"""Observations of a camera the solvers do not model, seen through the ideal pinhole camera with its K.
+"""
+Observations of a camera the solvers do not model, seen through the ideal pinhole camera with its K.
 
 The solver kernels model plumb_bob exactly (projection and its Jacobian). For the other
 models (rational_polynomial, equidistant, a rectified frame turned by camera_info's R) each
@@ -20,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from vlp_ros.core.camera import PLUMB_BOB, CameraModel
+from vlp_ros.core.camera import CameraModel, PLUMB_BOB
 from vlp_ros.core.ellipse import conic_from_ellipse, fit_ellipse
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
@@ -31,7 +32,11 @@ STEP_PX = 0.5
 
 def solver_view(pairs: list[tuple[LampObservation, Lamp]],
                 camera: CameraModel) -> tuple[list[tuple[LampObservation, Lamp]], CameraModel]:
-    """The (observation, lamp) pairs and camera the solvers take: unchanged for plumb_bob, else mapped to the pinhole."""
+    """
+    Return the (observation, lamp) pairs and camera the solvers take.
+
+    Unchanged for plumb_bob, else mapped to the pinhole.
+    """
     if camera.model == PLUMB_BOB:
         return pairs, camera
     return [(seen_through_pinhole(observation, camera), lamp) for observation, lamp in pairs], camera.pinhole()
@@ -57,7 +62,7 @@ def seen_through_pinhole(observation: LampObservation, camera: CameraModel) -> L
 
 
 def _light_seen_through_pinhole(observation: LampObservation, camera: CameraModel) -> LampObservation:
-    """A rim-less observation (a point lamp's light): its centre mapped, its sigma as the marker's."""
+    """Return a rim-less observation (a point lamp's light): its centre mapped, its sigma as the marker's."""
     centre, jacobian = _mapped_with_jacobians(camera, observation.center.reshape(1, 2))
     ellipse = np.array(observation.ellipse, dtype=float)
     ellipse[:2] = centre[0]

@@ -1,5 +1,8 @@
-"""Point lamps (map radius 0): the centre of a lamp's light as a projected point, and where
-poses from such points start.
+"""
+Point lamps (map radius 0).
+
+The centre of a lamp's light as a projected point, and where poses from such points
+start.
 
 A point lamp is a bare LED, or a lamp too small or too soft for an ellipse. Its measurement
 is the offset of the observed centre of its light from the projection of its map position
@@ -15,8 +18,8 @@ from which it was seen. The remaining solutions are told apart as the disc lamps
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
+import math
 
 import cv2
 import numpy as np
@@ -25,7 +28,7 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
-from vlp_ros.solvers.fit_kernels import Terms, linearize
+from vlp_ros.solvers.fit_kernels import linearize, Terms
 
 # The ellipse centre of a detected blob, from N rim points of sigma s across the edge, has a
 # spread of ~ s sqrt(2 / N) per axis for independent points; blur and stripes correlate
@@ -38,8 +41,11 @@ CENTER_SIGMA_FLOOR = 0.01
 
 
 def center_sigma(observation: LampObservation) -> float:
-    """Standard deviation (px, per axis) of the observation's centre as a point lamp's image:
-    the detector's own when it measured the centre, else from the rim's fit."""
+    """
+    Return standard deviation (px, per axis) of the observation's centre as a point lamp's image.
+
+    The detector's own when it measured the centre, else from the rim's fit.
+    """
     if observation.center_sigma is not None:
         return float(observation.center_sigma)
     count = max(len(observation.rim_points), 1)
@@ -48,8 +54,11 @@ def center_sigma(observation: LampObservation) -> float:
 
 @dataclass(frozen=True, eq=False)
 class PointLampMeasurement:
-    """A point lamp seen at ``pixel`` (raw, distorted) with ``sigma`` (px, per axis);
-    ``ray`` is that pixel's homogeneous normalised coordinates."""
+    """
+    A point lamp seen at ``pixel`` (raw, distorted) with ``sigma`` (px, per axis).
+
+    ``ray`` is that pixel's homogeneous normalised coordinates.
+    """
 
     lamp: Lamp
     camera: CameraModel
@@ -94,8 +103,12 @@ def seen_from_below(pose: Pose, points: list[PointLampMeasurement]) -> bool:
 
 
 def point_starts(points: list[PointLampMeasurement], up_directions: list[np.ndarray]) -> list[Pose]:
-    """Poses from the points alone: P3P on the three that span the largest triangle in the
-    image, and, for each up direction, the closed form on the two farthest apart."""
+    """
+    Poses from the points alone.
+
+    P3P on the three that span the largest triangle in the image, and, for each up
+    direction, the closed form on the two farthest apart.
+    """
     starts = []
     rays = np.array([m.ray for m in points])
     positions = np.array([m.lamp.position for m in points])
@@ -123,13 +136,14 @@ def p3p_poses(positions: np.ndarray, normalized: np.ndarray) -> list[Pose]:
 
 
 def pose_from_opencv(rvec: np.ndarray, tvec: np.ndarray) -> Pose:
-    """The camera pose of OpenCV's map-to-camera rotation vector and translation."""
+    """Return the camera pose of OpenCV's map-to-camera rotation vector and translation."""
     map_to_camera, _ = cv2.Rodrigues(rvec)
     return Pose(map_to_camera.T, -map_to_camera.T @ np.asarray(tvec, dtype=float).reshape(3))
 
 
 def two_points_with_up(positions: np.ndarray, rays: np.ndarray, up: np.ndarray) -> list[Pose]:
-    """Poses that see map points ``positions`` (2, 3) along camera rays ``rays`` (2, 3) with map +z
+    """
+    Poses that see map points ``positions`` (2, 3) along camera rays ``rays`` (2, 3) with map +z
     along ``up`` in the camera: at most two (the camera's height solves a quadratic).
 
     With R0 turning camera vectors into a levelled frame (R0 up = e_z) and d_i = R0 ray_i, a
@@ -171,7 +185,7 @@ def _triangle_area(corners: np.ndarray) -> float:
 
 
 def _levelling(up: np.ndarray) -> np.ndarray:
-    """A rotation taking camera vectors to a frame whose +z is ``up`` (unit)."""
+    """Return a rotation taking camera vectors to a frame whose +z is ``up`` (unit)."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, up)
     x /= np.linalg.norm(x)

@@ -1,4 +1,5 @@
-"""Maximum-likelihood camera pose: least squares over all six DoF and all lamp measurements.
+"""
+Maximum-likelihood camera pose: least squares over all six DoF and all lamp measurements.
 
 A small Levenberg-Marquardt loop on the analytic Jacobians of ``measurement``
 rather than scipy.optimize.least_squares: the starts are close, so a solve
@@ -18,7 +19,7 @@ import numpy as np
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import allow_for_model_error, perturbed
-from vlp_ros.solvers.fit_kernels import CONVERGED, PAUSED, SINGULAR, Terms, forecast, iterate, joined, linearize_into
+from vlp_ros.solvers.fit_kernels import CONVERGED, forecast, iterate, joined, linearize_into, PAUSED, SINGULAR, Terms
 from vlp_ros.solvers.fit_kernels import linearize as linearize_terms
 from vlp_ros.solvers.measurement import LampMeasurement, rim_error_modes
 from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -52,10 +53,12 @@ def linearize(measurements: Sequence[Measurement], pose: Pose) -> tuple[np.ndarr
 
 def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequence[UpMeasurement] = (),
                 give_up: Callable[[Pose, float], bool] | None = None) -> PoseCandidate | None:
-    """The least-squares pose nearest ``initial`` given the lamps and any measured up directions,
+    """
+    The least-squares pose nearest ``initial`` given the lamps and any measured up directions,
     with its covariance; None if the fit breaks down (the optical centre in a lamp's plane, a
     lamp behind the camera, a pose direction the measurements leave free, or no convergence),
-    or if ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations."""
+    or if ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations.
+    """
     terms = [*measurements, *up]
     count = sum(m.residual_count for m in terms)
     if count < 6:
@@ -78,8 +81,11 @@ def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequ
 
 
 def forecast_minimum(initial: Pose, measurements: Sequence[Measurement]) -> float:
-    """The chi-square that the Gauss-Newton model at ``initial`` forecasts for the nearest
-    minimum: one linearisation, against the several iterations of reaching it."""
+    """
+    Return the chi-square that the Gauss-Newton model at ``initial`` forecasts for the nearest minimum.
+
+    One linearisation, against the several iterations of reaching it.
+    """
     return forecast_from(*linearize(measurements, initial))
 
 
@@ -90,9 +96,11 @@ def forecast_from(residuals: np.ndarray, jacobian: np.ndarray) -> float:
 
 def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: int,
             give_up: Callable[[Pose, float], bool] | None = None) -> tuple[Pose, float] | None:
-    """The least-squares pose and its chi-square reached from ``initial`` within
+    """
+    The least-squares pose and its chi-square reached from ``initial`` within
     ``max_iterations`` (a cheap probe of where a start leads); None if not reached, or if
-    ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations."""
+    ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations.
+    """
     try:
         pose, residuals, _, converged = _levenberg_marquardt(initial, joined([m.terms for m in measurements]),
                                                              max_iterations, give_up)

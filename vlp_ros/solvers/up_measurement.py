@@ -1,4 +1,5 @@
-"""A measured up direction (IMU gravity, or a mount prior with a known spread) as pose residuals.
+"""
+A measured up direction (IMU gravity, or a mount prior with a known spread) as pose residuals.
 
 The residual is where the pose puts map +z in the camera frame, ``u = R^T e_z``,
 seen from the measured direction g: its stereographic projection onto g's
@@ -11,9 +12,9 @@ from the line of sight, these two residuals fix it.
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+import math
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from vlp_ros.compiled import kernel
 from vlp_ros.compiled.linalg import pseudo_inverse_form, rcond_cutoff, symmetric_eigen
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
-from vlp_ros.solvers.fit_kernels import Terms, linearize
+from vlp_ros.solvers.fit_kernels import linearize, Terms
 # Largest innovation chi-square (2 dof) of a measured up direction that agrees with the
 # lamps: exceeded by chance with probability 1e-4 (exp(-18.42 / 2)).
 UP_INNOVATION_GATE = 18.42
@@ -41,9 +42,11 @@ def unit_direction(vector: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class UpMeasurement:
-    """Map +z measured in the camera optical frame as ``direction`` (any non-zero length),
+    """
+    Map +z measured in the camera optical frame as ``direction`` (any non-zero length),
     with ``sigma`` (rad) the standard deviation of its error about each of the two axes
-    perpendicular to it."""
+    perpendicular to it.
+    """
 
     direction: np.ndarray
     sigma: float
@@ -62,18 +65,22 @@ class UpMeasurement:
                                                 up_sigma=np.array([self.sigma])))
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals over sigma (2,) for the camera pose and their Jacobian (2, 6) with respect
-        to the pose perturbation of ``covariance.perturbed`` (the position columns are zero)."""
+        """
+        Residuals over sigma (2,) for the camera pose and their Jacobian (2, 6) with respect
+        to the pose perturbation of ``covariance.perturbed`` (the position columns are zero).
+        """
         return linearize(self.terms, rotation, position)
 
     def innovation(self, pose: Pose, covariance: np.ndarray | None = None) -> float:
-        """Chi-square (2 dof) of this measurement against the rest of a fit that included it,
+        """
+        Chi-square (2 dof) of this measurement against the rest of a fit that included it,
         at that fit's ``pose`` with the fit's ``covariance`` (None: the pose's):
         r^T (I - J P J^T)^-1 r, the residual over its own variance after the fit has absorbed
         part of it. It is the measurement's disagreement with what the lamps alone say about
         the up direction, in sigmas squared; 0 along directions the lamps do not observe at all
         (nothing to disagree with). P must be the fit's own posterior (a covariance widened
-        for model error is not: ``PoseCandidate.separating_covariance``)."""
+        for model error is not: ``PoseCandidate.separating_covariance``).
+        """
         covariance = pose.covariance if covariance is None else covariance
         if covariance is None:
             raise ValueError('the pose has no covariance')
@@ -101,8 +108,11 @@ def _innovation(jacobian, covariance, residual, rcond):
 
 @kernel
 def _tangent_axes(direction):
-    """Tangent axes (1, 2, 3) of a unit ``direction`` g: g x e for the axis e least aligned
-    with g, normalised, then g x that."""
+    """
+    Tangent axes (1, 2, 3) of a unit ``direction`` g.
+
+    G x e for the axis e least aligned with g, normalised, then g x that.
+    """
     least = 0
     for i in range(1, 3):
         if abs(direction[i]) < abs(direction[least]):
@@ -128,9 +138,11 @@ def _cross(a, b, out):
 
 def with_agreeing_up(solve: Callable[[Sequence[UpMeasurement]], list[PoseCandidate]],
                      up: Sequence[UpMeasurement]) -> list[PoseCandidate]:
-    """``solve(up)``, solved again without every up measurement that no candidate agrees
+    """
+    ``solve(up)``, solved again without every up measurement that no candidate agrees
     with (innovation over ``UP_INNOVATION_GATE``): an accelerating IMU's "gravity" would
-    otherwise pull the pose away from what the lamps show."""
+    otherwise pull the pose away from what the lamps show.
+    """
     candidates = solve(up)
     agreeing = [m for m in up if any(m.innovation(c.pose, c.separating_covariance) <= UP_INNOVATION_GATE
                                      for c in candidates)]

@@ -1,4 +1,5 @@
-"""Tone mode (Luxapose style): which lamp's frequency the stripes repeat at.
+"""
+Tone mode (Luxapose style): which lamp's frequency the stripes repeat at.
 
 Row r samples the light at ``r * row_time``, so a square wave of frequency f
 shows stripes of period ``1 / (f * row_time)`` rows. A zero-padded FFT of the
@@ -22,15 +23,15 @@ file only.
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
+import math
 from typing import NamedTuple
 
 import numpy as np
 
-from vlp_ros.beacon.profile import RowProfile, light_profile, relative_brightness
-from vlp_ros.beacon.reading import (MIN_CONFIDENCE, UNMAPPED, UNMAPPED_WEIGHT, BeaconReading, has_evidence,
-                                    log_prior, no_evidence, reading)
+from vlp_ros.beacon.profile import light_profile, relative_brightness, RowProfile
+from vlp_ros.beacon.reading import (BeaconReading, has_evidence, log_prior, MIN_CONFIDENCE, no_evidence, reading,
+                                    UNMAPPED, UNMAPPED_WEIGHT)
 from vlp_ros.beacon.tone import scan
 from vlp_ros.beacon.tone.bands import band_edges, log_band_masses
 from vlp_ros.beacon.tone.model import ToneFit
@@ -65,9 +66,12 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
                 unmapped_weight: float = UNMAPPED_WEIGHT, min_confidence: float = MIN_CONFIDENCE,
                 min_periods: float = 2.0, exposure: float | None = None,
                 row_time_tolerance: float = ROW_TIME_TOLERANCE) -> BeaconReading:
-    """The lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within its band: the frequency
-    +- (``tolerance_hz`` + ``row_time_tolerance`` x the frequency), since a row time off by 2 % reads every
-    frequency 2 % off. Where neighbouring bands overlap, a frequency in both gives neither (no ID).
+    """
+    Return the lamp (by ID) whose ``frequencies`` entry (Hz) matches the stripes within its band.
+
+    The frequency +- (``tolerance_hz`` + ``row_time_tolerance`` x the frequency), since a row time off by 2
+    % reads every frequency 2 % off. Where neighbouring bands overlap, a frequency in both gives neither
+    (no ID).
 
     A frequency outside every band counts for the candidate ``UNMAPPED`` (prior
     ``unmapped_weight`` per hertz relative to the bands). Fewer than
@@ -135,17 +139,22 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
 
 
 def point_light_profile(image: np.ndarray, observation: LampObservation) -> RowProfile:
-    """Brightness per row of a lamp without a rim (a bare LED: core and glow), from every row its light
-    reaches, for ``decode_tone``: the core alone spans a few stripe periods, its glow many."""
+    """
+    Brightness per row of a lamp without a rim (a bare LED: core and glow), from every row its light
+    reaches, for ``decode_tone``: the core alone spans a few stripe periods, its glow many.
+    """
     profile = light_profile(image, observation, reach=POINT_LIGHT_REACH)
     cap = _ROW_WEIGHT_SHARE * float(profile.weights.max(initial=0.0))
     return RowProfile(profile.values, np.minimum(profile.weights, cap), profile.saturated, profile.first_row)
 
 
 def agreeing(light: BeaconReading, disc: BeaconReading) -> BeaconReading:
-    """One lamp's reading from its light (``point_light_profile``) checked against its disc's: the light's
-    when the disc weighs no other candidate highest, the disc's when the light has no evidence, and
-    none when the two favour different candidates."""
+    """
+    One lamp's reading from its light (``point_light_profile``) checked against its disc's.
+
+    The light's when the disc weighs no other candidate highest, the disc's when the light has no
+    evidence, and none when the two favour different candidates.
+    """
     if not has_evidence(light):
         return disc
     if has_evidence(disc) and _favourite(disc) != _favourite(light):

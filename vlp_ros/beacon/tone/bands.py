@@ -1,4 +1,5 @@
-"""Each lamp's band of frequencies, and the share of the frequency's likelihood that falls in it.
+"""
+Each lamp's band of frequencies, and the share of the frequency's likelihood that falls in it.
 
 The likelihood comes on an even grid of cycles per window (``scan.likelihood``); between grid
 points it is taken as exponential (a Gaussian's tails are integrated well from a coarse grid),
@@ -6,8 +7,8 @@ and beyond the grid a Student's t continues it, whose density meets the grid's e
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -50,7 +51,8 @@ def band_edges(centres: tuple[float, ...], tolerance_hz: float,
 
 def log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray, dof: int, low: np.ndarray,
                     high: np.ndarray, search: tuple[float, float]) -> np.ndarray:
-    """Return log P(f in each band: [``low``, ``high``], per lamp) and, last, log P(f in none).
+    """
+    Return log P(f in each band: [``low``, ``high``], per lamp) and, last, log P(f in none).
 
     f's density is given on an even ``grid`` of cycles per window of ``duration`` (exponential between
     grid points), continued beyond it by the Student's t (``dof`` degrees of freedom, centred on the
@@ -65,7 +67,8 @@ def log_band_masses(grid: np.ndarray, duration: float, log_density: np.ndarray, 
 
 
 def _add_t_tail(integrated: GridCdf, dof: int, end: int) -> None:
-    """Add to the cdf at the edges beyond the grid's ``end`` (0 or -1) the mass of the Student's t there.
+    """
+    Add to the cdf at the edges beyond the grid's ``end`` (0 or -1) the mass of the Student's t there.
 
     The t is the one whose density meets the grid's at that end.
     """
@@ -83,7 +86,8 @@ def _add_t_tail(integrated: GridCdf, dof: int, end: int) -> None:
 @kernel
 def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, low: np.ndarray, high: np.ndarray,
               search_low: float, search_high: float) -> GridCdf:
-    """Return the grid's frequencies (cycles per window of ``duration``), the bands' edges and the cdf there.
+    """
+    Return the grid's frequencies (cycles per window of ``duration``), the bands' edges and the cdf there.
 
     The edges are the bands' low edges, high edges, then the search range's ends, all cut to that range;
     the log density is taken relative to its peak (at least _FLOOR); its integral runs from the grid's
@@ -118,7 +122,8 @@ def _grid_cdf(grid: np.ndarray, duration: float, log_density: np.ndarray, low: n
 
 @kernel
 def _band_log_masses(cdf: np.ndarray, edges: np.ndarray, bands: int) -> np.ndarray:
-    """Return the log of each band's share of the search range and, last, of what lies in no band.
+    """
+    Return the log of each band's share of the search range and, last, of what lies in no band.
 
     ``cdf`` is given at the ``edges``: the bands' low edges, high edges and the range's ends. Overlapping
     bands share.

@@ -1,4 +1,5 @@
-"""Tone's small dense linear algebra, in closed form: the stripe model's 3x3 whitening and 2x2 / 3x3 inverse.
+"""
+Tone's small dense linear algebra, in closed form: the stripe model's 3x3 whitening and 2x2 / 3x3 inverse.
 
 Both belong in ``vlp_ros.compiled.linalg`` (the one place for the small dense linear algebra that
 kernels share). Numba's ``np.linalg`` in their place (``inv(cholesky(gram))``; ``det`` and ``inv``)

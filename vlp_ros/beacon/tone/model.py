@@ -1,4 +1,5 @@
-"""The stripe model: a profile as an envelope (1, u, u^2) plus an exposure-smeared square wave, and its fit.
+"""
+The stripe model: a profile as an envelope (1, u, u^2) plus an exposure-smeared square wave, and its fit.
 
 Time runs in units of the window from its centre (tau in [-0.5, 0.5)), frequency in cycles per
 window, phase in periods at the window's centre (where it hardly moves with the frequency). A row
@@ -88,7 +89,8 @@ class ToneFit:
         self.use(1)
 
     def use(self, stride: int) -> None:
-        """Fit every ``stride``-th row.
+        """
+        Fit every ``stride``-th row.
 
         Templates are taken at every row from the one before the first kept to the one after the last, a
         kept row's own and its neighbours' (tau_around); the envelope is orthonormal (weighted) over the
@@ -100,7 +102,8 @@ class ToneFit:
                                  self.kept.null_rss, 0.5 * (self.dof + 1))
 
     def thin(self, cycles: float, exposure_rows: float) -> None:
-        """Keep every k-th row of a long window, while the rows' exposures still cover the time axis.
+        """
+        Keep every k-th row of a long window, while the rows' exposures still cover the time axis.
 
         A gap between them would hide edges.
         """
@@ -110,7 +113,8 @@ class ToneFit:
             self.use(stride)
 
     def peak(self, cycles: float, phase: float, exposure_rows: float, free: bool) -> Peak | None:
-        """Return the best square wave near (``cycles``, ``phase``, ``exposure_rows``), the exposure ``free`` or not.
+        """
+        Return the best square wave near (``cycles``, ``phase``, ``exposure_rows``), the exposure ``free`` or not.
 
         One Gauss-Newton step (the likelihood grid around it finds the rest), with the spreads of its
         frequency and phase; None where neither edges nor gaps place it.
@@ -152,7 +156,8 @@ def envelope_fit(z: np.ndarray, w: np.ndarray, stride: int) -> EnvelopeFit:
 @kernel
 def rss(cycles: np.ndarray, phase: np.ndarray, exposure_rows: np.ndarray, rows: int, tau_around: np.ndarray,
         stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> np.ndarray:
-    """Return the residual sum of squares of each (cycles, phase, exposure rows), as both cameras together have it.
+    """
+    Return the residual sum of squares of each (cycles, phase, exposure rows), as both cameras together have it.
 
     The arguments after the three 1-d arrays (of one length) are a fit's ``StripeModel``. The envelope
     and amplitude are at their best; the cameras are the rows' own light, or mixed with the neighbouring
@@ -262,7 +267,8 @@ def gauss_newton(cycles: float, phase: float, exposure_rows: float, free: bool, 
 def _linearised(cycles: float, phase: float, exposure: float, free_exposure: bool, rows: int, tau: np.ndarray,
                 sqrt_w: np.ndarray, envelope: np.ndarray, y: np.ndarray,
                 null_rss: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """Return the residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient.
+    """
+    Return the residual sum of squares at (cycles, phase, exposure rows), and the normal matrix and gradient.
 
     The normal matrix and gradient (J^T J, J^T r) are over cycles, phase (and exposure) with envelope and
     amplitude at their best (Kaufman's variable projection Jacobian J), all from products of the template

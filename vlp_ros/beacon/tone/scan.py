@@ -1,4 +1,5 @@
-"""The frequency scan: the FFT's peak, a coarse scan of square waves around it, and the likelihood grid.
+"""
+The frequency scan: the FFT's peak, a coarse scan of square waves around it, and the likelihood grid.
 
 Each step narrows the one before: the zero-padded FFT finds the tone (``spectral_peak``), a scan of
 frequencies, phases and (unknown) exposures around it the best square wave (``start``), and, after
@@ -13,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from vlp_ros.beacon.tone.model import Peak, ToneFit, rss
+from vlp_ros.beacon.tone.model import Peak, rss, ToneFit
 from vlp_ros.compiled import kernel
 
 _PAD = 8
@@ -84,7 +85,8 @@ class GridPass(NamedTuple):
 
 
 def spectral_peak(fit: ToneFit, low: float, high: float) -> float | None:
-    """Return the cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles.
+    """
+    Return the cycles per window of the strongest sinusoid between ``low`` and ``high`` cycles.
 
     That is the zero-padded FFT's peak; None if the range holds no frequency the FFT resolves.
     """
@@ -94,7 +96,8 @@ def spectral_peak(fit: ToneFit, low: float, high: float) -> float | None:
 
 
 def start(fit: ToneFit, cycles: float, exposure_rows: float | None) -> Start:
-    """Return the best square wave among a scan around ``cycles`` (the FFT's peak).
+    """
+    Return the best square wave among a scan around ``cycles`` (the FFT's peak).
 
     The harmonics that few rows per period alias can pull the FFT's peak aside: the scan tries
     frequencies around it, phases over half a period (the other half only flips the sign) and, unknown,
@@ -104,7 +107,8 @@ def start(fit: ToneFit, cycles: float, exposure_rows: float | None) -> Start:
 
 
 def likelihood(fit: ToneFit, peak: Peak, quantum: float, start: Start) -> Likelihood | None:
-    """Return cycles per window on a grid around the ``peak``, and the log likelihood of each.
+    """
+    Return cycles per window on a grid around the ``peak``, and the log likelihood of each.
 
     Phase, envelope and amplitude are at their best, the noise level marginalised, the likelihood blurred
     by ``quantum`` cycles; ``other_peaks`` says whether a frequency beyond the grid that the ``start``
@@ -142,7 +146,8 @@ def _spectral_peak(spectrum: np.ndarray, n: int, size: int, low: float, high: fl
 @kernel
 def _scan(peak_cycles: float, given_exposure_rows: float, dof: int, rows: int, tau_around: np.ndarray, stride: int,
           products: np.ndarray, weights: np.ndarray, null_rss: float, power: float) -> Start:
-    """Return start's scan: rss at every cycles around ``peak_cycles`` x exposure rows x phase of _PHASE_SCAN.
+    """
+    Return start's scan: rss at every cycles around ``peak_cycles`` x exposure rows x phase of _PHASE_SCAN.
 
     The exposure rows are the given ones, or unknown (nan) _KAPPAS of the period. The best's phase is
     refined by a parabola through it and its neighbours.
@@ -183,7 +188,8 @@ def _likelihood_grid(cycles: float, phase: float, slope: float, scale: float, sp
                      quantum: float, start_tried: np.ndarray, start_rss: np.ndarray, dof: int, rows: int,
                      tau_around: np.ndarray, stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float,
                      power: float) -> tuple[bool, Likelihood]:
-    """Return whether a grid resolves the likelihood (_grid_pass's passes until one does), and the last grid.
+    """
+    Return whether a grid resolves the likelihood (_grid_pass's passes until one does), and the last grid.
 
     The last grid comes with its log likelihood (blurred by ``quantum``), and whether a frequency beyond
     it fits nearly as well: of the first scan or of an earlier pass (these with the grid's phases: a
@@ -231,7 +237,8 @@ def _likelihood_grid(cycles: float, phase: float, slope: float, scale: float, sp
 def _grid_pass(grid: np.ndarray, phase: np.ndarray, spread: float, exposure_rows: float, quantum: float, rows: int,
                tau_around: np.ndarray, stride: int, products: np.ndarray, weights: np.ndarray, null_rss: float,
                power: float) -> GridPass:
-    """Return one pass of the likelihood grid.
+    """
+    Return one pass of the likelihood grid.
 
     At each cycles of ``grid`` the phase is at its best among ``phase`` and ``spread`` x _PHASE_STEPS
     either side.
