@@ -97,6 +97,8 @@ def no_evidence(candidates: np.ndarray, mapped: np.ndarray, log_prior: np.ndarra
 def _most_probable(log_likelihoods: np.ndarray, log_prior: np.ndarray) -> tuple[int, float]:
     """Return the most probable candidate and its posterior probability; -1 if none has a finite posterior."""
     log_post = log_likelihoods + log_prior
+    if log_post.size == 0:
+        return -1, 0.0
     best = int(np.argmax(log_post))
     if np.isnan(log_post).any() or not math.isfinite(log_post[best]):
         return -1, 0.0
