@@ -15,8 +15,8 @@ One concern per module: this one is the API (``decode_tone``, and the bare
 LEDs' ``point_light_profile`` and ``agreeing``) and the decisions between its
 steps; ``model`` the stripe model and its fit (``ToneFit``); ``scan`` the FFT's
 peak, the coarse scan and the likelihood grid; ``bands`` the lamps' bands and
-the likelihood's mass in each, with Student's t tails; ``linalg`` the model's
-closed-form 3x3 whitening and small inverse. Each module's tuning
+the likelihood's mass in each, with Student's t tails. The model's closed-form
+3x3 whitening and small inverse are in ``vlp_ros.compiled.linalg``. Each module's tuning
 constants open it, beside the kernels that read them: numba freezes a kernel's
 globals when it compiles, and its cache notices changes in the kernel's own
 file only.

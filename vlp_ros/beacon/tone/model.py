@@ -14,8 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from vlp_ros.beacon.tone.linalg import inverse_2x2_or_3x3, inverse_cholesky_3x3
 from vlp_ros.compiled import kernel
+from vlp_ros.compiled.linalg import inverse_2x2_or_3x3, inverse_cholesky_3x3
 
 # Envelope terms (1, u, u^2) and the tone's amplitude (linear), frequency and phase (not).
 _PARAMETERS = 6
