@@ -37,6 +37,7 @@ def read_only(path: Path) -> Path:
 
 
 def writable_again(path: Path) -> None:
+    """Let the test's owner write ``path`` and everything below it again (to clean up)."""
     for item in [path, *path.rglob('*')]:
         item.chmod(item.stat().st_mode | stat.S_IWUSR)
 
@@ -54,6 +55,7 @@ def read_only_install(tmp_path: Path):
 
 
 def run_kernel(site: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """Run a kernel of the package in ``site`` in a fresh interpreter, as an account held to permissions."""
     environ = {k: v for k, v in os.environ.items() if k not in ('NUMBA_CACHE_DIR', 'XDG_CACHE_HOME', 'ROS_HOME')}
     environ.update(env, PYTHONPATH=str(site), PYTHONDONTWRITEBYTECODE='1')
     return subprocess.run([*AS_AN_ACCOUNT, sys.executable, '-c', RUN_A_KERNEL], cwd=site, env=environ,
@@ -61,6 +63,7 @@ def run_kernel(site: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
 
 
 def cache_files(directory: Path) -> list[Path]:
+    """Return numba's cache index files below ``directory``."""
     return sorted(directory.rglob('*.nbi'))
 
 

@@ -98,6 +98,7 @@ def startup_times(node, prefix: Path, params: Path, cold: bool, runs: int, timeo
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Time the starts of each prefix and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument('--prefix', type=Path, action='append',
                         help='install prefix of vlp_ros (repeatable; default: the one sourced)')

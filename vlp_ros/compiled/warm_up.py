@@ -230,6 +230,7 @@ def warm_up() -> None:
 
 
 def main() -> None:
+    """Make the kernels ready and say how long it took."""
     started = time.perf_counter()
     warm_up()
     print(f'numba kernels ready in {time.perf_counter() - started:.1f} s')
