@@ -1,8 +1,8 @@
 """
 Pose accuracy in simulation.
 
-Python -m vlp_ros.benchmarks.accuracy [--quick] [--seed S] [--frames N] [--only TEXT] [--drive-speed V]
-[--drive-turn-rate W] [--figures DIR].
+    python -m vlp_ros.benchmarks.accuracy [--quick] [--seed S] [--frames N] [--only TEXT] [--drive-speed V]
+        [--drive-turn-rate W] [--figures DIR]
 
 The seed paper's experiment reproduced in this process (no ROS, no bags): every
 frame is rendered by the frame simulator and run through ``Pipeline.process``
@@ -125,6 +125,8 @@ class Drive:
 
 def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -> list[Setup]:
     """
+    Return the setups, numbered in order.
+
     The paper's grid at both heights with both cameras, the robot's drive, then the looks and issue-13 cases.
     """
     points, postures = (3, 1) if quick else (7, 3)
@@ -434,7 +436,8 @@ def write_figures(runs: list[tuple[Setup, SetupRun]], folder: Path) -> list[Path
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.accuracy', description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.accuracy',
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--quick', action='store_true',
                         help='3 x 3 grid, one posture, 3 s of robot row, 7 s of drive, 12 tone stills')
     parser.add_argument('--only', action='append', default=None, metavar='TEXT',

@@ -34,8 +34,10 @@ _SCENARIO_MOUNTING = Mounting(ROBOT_CAMERA_MOUNT, np.array([0.0, 0.0, 0.45]))
 
 def mounted_robot_scenario(mounting: Mounting, first: int, frames: int, seed: int) -> tuple[Scenario, list[Pose]]:
     """
-    Frames ``first`` to ``first + frames`` of the robot scenario's drive, the camera mounted by
-    ``mounting`` on the same base path; (scenario, true base poses).
+    Return part of the robot scenario's drive with the camera mounted by ``mounting``, and the true base poses.
+
+    Frames ``first`` to ``first + frames`` of the drive, the camera mounted by ``mounting`` on the same
+    base path; (scenario, true base poses).
     """
     scenario = robot_scenario(seed=seed)
     bases = [_SCENARIO_MOUNTING.base_pose(pose) for pose in scenario.poses[first:first + frames]]

@@ -242,7 +242,9 @@ def packet_trial(rng: np.random.Generator, condition: Condition, tally: Tally, t
 def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
                  unmapped_weight: float = UNMAPPED_WEIGHT) -> tuple[Scene, Callable, Callable]:
     """
-    A lamp's scene, and the pipeline's decoders of its disc (sharp chips) and of its light (blur weighed in).
+    Return a lamp's scene and two of the pipeline's decoders for it.
+
+    The decoders read its disc (sharp chips) and its light (blur weighed in).
     """
     row_time = rng.uniform(7e-6, 35e-6)
     rows_per_chip = rng.uniform(*condition.rows_per_chip)
@@ -253,6 +255,7 @@ def packet_setup(rng: np.random.Generator, condition: Condition, lamp_id: int,
     scene = lamp_scene(rng, lamp_id, rows, waveform, condition, row_time, exposure)
     nominal_rate = chip_rate * (1.0 + rng.uniform(-0.02, 0.02))
     nominal_row_time = row_time * (1.0 + rng.uniform(-0.01, 0.01)) / (1.0 + condition.look.row_time_error)
+
     def decode(profile: RowProfile) -> BeaconReading:
         return decode_packet(profile, nominal_rate, nominal_row_time, ID_BITS, MAP_IDS,
                              unmapped_weight=unmapped_weight)
@@ -301,7 +304,7 @@ def tone_trial(rng: np.random.Generator, condition: Condition, tally: Tally, tim
 @dataclass
 class TrackLog:
     """
-    Per track of a lamp in the map.
+    Frames until an ID was certain, per track of a lamp in the map.
 
     Frames until the tracker was certain, and until a noiseless decoder could be, with chips
     counted when at least half of them, or any part, is in view (``TRACK_FRAMES + 1``, or more,
@@ -349,8 +352,9 @@ def track_trial(rng: np.random.Generator, condition: Condition, tally: Tally, lo
 
 def sampled_chips(scene: Scene, frame: RenderedFrame, profile: RowProfile) -> tuple[float, float]:
     """
-    The stretch [a, b) of packet chips (a in [0, L)) that the profile's rows sample, each row one
-    row time around the middle of its exposure.
+    Return the stretch [a, b) of packet chips (a in [0, L)) that the profile's rows sample.
+
+    Each row samples one row time around the middle of its exposure.
     """
     sensor, waveform = scene.sensor, scene.sim.waveform
     used = np.flatnonzero(profile.weights > 0)
@@ -454,7 +458,7 @@ def base_rate(rng: np.random.Generator, condition: Condition, trial: Callable, t
 
 
 def report_time(title: str, timer: Timer) -> float:
-    """Print the medians per lamp; returns the reading's (profiles and decoding, ms)."""
+    """Print the medians per lamp; return the reading's (profiles and decoding, ms)."""
     copy, read, repeated = (np.median(v) * 1e3 for v in (timer.copy, timer.read, timer.repeated))
     print(f'{title}: median per lamp: read (profiles + decode) {read:.3f} ms, ROI copy {copy:.4f} ms '
           f'(read / copy {read / copy:.0f}); repeated at once (warm): {repeated:.3f} ms')
@@ -464,6 +468,8 @@ def report_time(title: str, timer: Timer) -> float:
 def track_checks(name: str, results: dict[tuple[float, float, float], tuple[float, float, float]],
                  weight: float) -> list[tuple[str, bool]]:
     """
+    Return the tracker's checks, each (text, met).
+
     The tracker against the issue's 99 % over spans of at least half a packet, and at exactly half a
     packet (where the frames' coverage alone leaves less than 99 %) against what that coverage allows.
     """

@@ -1,7 +1,7 @@
 """
 The robot's pose with the lens models robot cameras are calibrated with.
 
-Python -m vlp_ros.benchmarks.camera_models [--frames N] [--first K] [--seed S].
+    python -m vlp_ros.benchmarks.camera_models [--frames N] [--first K] [--seed S]
 
 The robot scenario's drive (1080p, 100 deg HFOV, looking up) seen through its own
 plumb_bob camera, a rational_polynomial wide-angle lens and an equidistant fisheye, each

@@ -1,7 +1,7 @@
 """
 Covariance honesty on rendered frames.
 
-Python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S] [--look NAME ...] [--ids-from-truth].
+    python -m vlp_ros.benchmarks.covariance_honesty [--frames N] [--imu-sigma S] [--look NAME ...] [--ids-from-truth]
 
 Whether the published pose covariance is honest, and which measurement makes it
 not. Setups: the seed paper's grid with a 4K camera and the lamp 2 m and 1.5 m up

@@ -1,7 +1,7 @@
 """
 Per-frame pipeline speed on one core.
 
-Python -m vlp_ros.benchmarks.pipeline_speed [--poses N] [--repeats N] [--clock cpu].
+    python -m vlp_ros.benchmarks.pipeline_speed [--poses N] [--repeats N] [--clock cpu]
 
 Times ``Pipeline.process`` (detection to pose, perspective solver, IMU gravity)
 on simulated 1080p and 4K frames, as the median time per frame and as a ratio to
@@ -27,17 +27,16 @@ are sized when numpy is first imported.
 """
 from __future__ import annotations
 
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
+import itertools
 import os
+import time
 
 if __name__ == '__main__':
     for _variable in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
         os.environ.setdefault(_variable, '1')
-
-import argparse  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-import itertools  # noqa: E402
-import time  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -50,8 +49,8 @@ from vlp_ros.evaluation.metrics import format_table  # noqa: E402
 from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree  # noqa: E402
 from vlp_ros.pipeline.frame import Pipeline  # noqa: E402
 from vlp_ros.sim.imu import specific_force  # noqa: E402
-from vlp_ros.sim.render import RenderedFrame, render_frame  # noqa: E402
-from vlp_ros.sim.scenarios import Scenario, paper_scenario, robot_scenario  # noqa: E402
+from vlp_ros.sim.render import render_frame, RenderedFrame  # noqa: E402
+from vlp_ros.sim.scenarios import paper_scenario, robot_scenario, Scenario  # noqa: E402
 from vlp_ros.solvers.ambiguity import DisambiguationHints, UpHint  # noqa: E402
 from vlp_ros.solvers.fusion import solve_lamps  # noqa: E402
 

@@ -8,8 +8,9 @@ python -m vlp_ros.benchmarks.point_lamps [--photos N] [--camera 4k] [--seed S]
 
 Per setup: LEDs fully in view and detected (an observation centred within 3 px of the
 true centre), IDs right / unknown / wrong, frames with a pose and why the rest have none,
-the pose error and the mean NEES, for each look, raw and as JPEG with the row time 2 % off. Targets (issue 14): every LED detected; IDs right or
-unknown, never wrong; with 3 or more identified, a pose within 5 cm.
+the pose error and the mean NEES, for each look, raw and as JPEG with the row time 2 % off.
+Targets (issue 14): every LED detected; IDs right or unknown, never wrong; with 3 or more
+identified, a pose within 5 cm.
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from vlp_ros.sim.sensor import encode_jpeg
 # An observation this close (px) to an LED's true centre is that LED's detection.
 DETECTED_PX = 3.0
 TARGET_M = 0.05
+
 
 @dataclass(frozen=True)
 class Setup:
@@ -118,7 +120,8 @@ def table(rows: list[tuple[str, Tally]], photos: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.point_lamps', description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.point_lamps',
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--photos', type=int, default=24)
     parser.add_argument('--camera', default='4k', choices=('full', '4k', '1080p'))
     parser.add_argument('--seed', type=int, default=1)
@@ -126,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name, setup in SETUPS.items():
         for imu in (False, True):
-            rows.append((f'{name} | {"yes" if imu else "no"}', run_setup(setup, imu, args.camera, args.photos, args.seed)))
+            tally = run_setup(setup, imu, args.camera, args.photos, args.seed)
+            rows.append((f'{name} | {"yes" if imu else "no"}', tally))
     print(f'bare-LED rig, {args.camera}, {args.photos} photos per setup, seed {args.seed}')
     print(table(rows, args.photos))
     return 0

@@ -26,7 +26,8 @@ def noise_pass(height: int, width: int, bayer: bool) -> Callable[[], object]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.render_speed', description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.render_speed',
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--repeats', type=int, default=15)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
@@ -35,7 +36,8 @@ def main(argv: list[str] | None = None) -> None:
              ('paper 1080p bgr8', paper_scenario('1080p', points=1, postures=1), None),
              ('robot 1080p bgr8 (3 lamps)', robot_scenario(), 240),
              ('paper 4k roi 256x256', paper_scenario('4k', points=1, postures=1), 'roi'),
-             ('paper 4k realistic look', apply_look(paper_scenario('4k', points=1, postures=1), LOOKS['realistic']), None),
+             ('paper 4k realistic look',
+              apply_look(paper_scenario('4k', points=1, postures=1), LOOKS['realistic']), None),
              ('robot 1080p realistic look', apply_look(robot_scenario(), LOOKS['realistic']), 240)]
     print(f'{"case":<28} {"median ms":>10} {"noise pass ms":>14} {"ratio":>7}')
     for name, scenario, which in cases:

@@ -1,7 +1,7 @@
 """
 Single-lamp accuracy against the view angle, with gravity as a gate only and as a measurement.
 
-Python -m vlp_ros.benchmarks.up_study [--trials N] [--imu-sigma-deg S] [--imu-error-deg E].
+    python -m vlp_ros.benchmarks.up_study [--trials N] [--imu-sigma-deg S] [--imu-error-deg E]
 
 The paper's phone (Lumia 1020 field of view at 4K) under its 11 cm lamp, rim and
 marker noise 0.2 px. The view angle is between the line of sight and the lamp's

@@ -1,7 +1,7 @@
 """
 What vlp/debug_image and vlp/lamps cost per frame.
 
-Python -m vlp_ros.benchmarks.visualization_cost [--poses N] [--repeats N].
+    python -m vlp_ros.benchmarks.visualization_cost [--poses N] [--repeats N]
 
 On the frames of the pipeline speed benchmark (``pipeline_speed.cases``), with a
 subscriber present on both topics (a second node in this process: the messages

@@ -35,8 +35,7 @@ from vlp_ros.pipeline.config import settings_from_params_file
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import AIMED_OFF_AXIS_DEG, AIMED_TWIST_DEG, paper_scenario
 
-if TYPE_CHECKING:
-    # Only the nodes import rclpy: this module imports vlp_ros.nodes.pose_listener where it plays.
+if TYPE_CHECKING:  # only the nodes import rclpy: this module imports vlp_ros.nodes.pose_listener where it plays
     from vlp_ros.nodes.pose_listener import PoseListener
 
 TOPICS = RecordingTopics()
@@ -57,9 +56,11 @@ def outcomes_from_answers(truth: dict[int, Pose], listener: PoseListener, group:
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.demo', description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.demo',
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('--out', type=Path, default=Path('demo_output'), help='where bags and the report go')
-    parser.add_argument('--heights', type=float, nargs='+', default=[1.5, 2.0], help='lamp heights above the camera (m)')
+    parser.add_argument('--heights', type=float, nargs='+', default=[1.5, 2.0],
+                        help='lamp heights above the camera (m)')
     parser.add_argument('--posture-models', dest='models', nargs='+', choices=tuple(POSTURE_TITLES),
                         default=list(POSTURE_TITLES), help='posture models to play')
     parser.add_argument('--points', type=int, default=4, help='grid points per side of the 3 m x 3 m area')
@@ -68,7 +69,8 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     add_paper_tiebreak_argument(parser)
     parser.add_argument('--camera', choices=('4k', '1080p'), default='4k')
     parser.add_argument('--seed', type=int, default=2017)
-    parser.add_argument('--keep-bags', action='store_true', help='keep the rendered recordings (about 25 MB per 4K frame)')
+    parser.add_argument('--keep-bags', action='store_true',
+                        help='keep the rendered recordings (about 25 MB per 4K frame)')
     return parser.parse_args(argv)
 
 

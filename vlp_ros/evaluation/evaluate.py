@@ -58,7 +58,8 @@ def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopi
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.evaluate', description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.evaluation.evaluate',
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('bag', type=Path, help='rosbag2 directory')
     parser.add_argument('--params', type=Path, required=True, help='locator params file (vlp_locator section)')
     parser.add_argument('--out', type=Path, default=Path('evaluation_report'), help='report folder')

@@ -1,8 +1,8 @@
 """
-Figures in the style of the seed paper's Figs.
+Figures in the style of the seed paper's Figs. 4-6, and the error against the off-axis angle.
 
-4-6 (per-point error, error CDF, X-Y view), and the 3D error against the lamp's angle off
-the optical axis.
+Figs. 4-6: per-point error, error CDF, X-Y view; then the 3D error against the lamp's angle
+off the optical axis.
 """
 from __future__ import annotations
 
@@ -89,9 +89,10 @@ def xy_view(outcomes: list[FrameOutcome], path: Path, title: str) -> Path:
 def error_vs_off_axis(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str,
                       reference_distance_m: float | None = None) -> Path:
     """
-    3D error against the lamp's angle off the optical axis, one marker set per series
-    (label -> (angles in deg, errors in m)); with ``reference_distance_m``, the weak-perspective
-    rule of thumb error = distance x tan(angle) as a dashed line.
+    Plot the 3D error against the lamp's angle off the optical axis, one marker set per series.
+
+    ``series``: label -> (angles in deg, errors in m); with ``reference_distance_m``, the
+    weak-perspective rule of thumb error = distance x tan(angle) as a dashed line.
     """
     fig, ax = plt.subplots(figsize=(7.2, 4.8))
     largest = 1.0

@@ -112,7 +112,7 @@ class BeaconPlan:
         return 1.0 / (self.chip_rate * self.row_time)
 
     def classify(self, span_rows: np.ndarray) -> np.ndarray:
-        """``Decodability`` codes for lamps spanning ``span_rows`` image rows (0 for no lamp)."""
+        """Return the ``Decodability`` codes for lamps spanning ``span_rows`` image rows (0 for no lamp)."""
         span_rows = np.asarray(span_rows, dtype=float)
         codes = np.full(span_rows.shape, int(Decodability.NONE))
         if self.mode == 'tone':
@@ -130,9 +130,11 @@ class BeaconPlan:
 @dataclass(frozen=True)
 class Deployment:
     """
-    A ``room`` (width along x, depth along y, m, from the origin), its lamps (centres
-    ``lamp.position[2]`` m above the camera, which moves in the plane z = 0) and the camera
-    with its orientation (camera to map) at every floor point.
+    A room, its lamps and the camera that moves over its floor.
+
+    ``room``: width along x, depth along y (m, from the origin); ``lamps``: their centres
+    ``lamp.position[2]`` m above the camera, which moves in the plane z = 0; ``camera`` with
+    its orientation (``camera_rotation``, camera to map) at every floor point.
     """
 
     room: tuple[float, float]
@@ -163,7 +165,7 @@ class Deployment:
 @dataclass
 class FloorPlan:
     """
-    Per floor cell (rows along y, columns along x).
+    What a deployment gives per floor cell (rows along y, columns along x).
 
     Expected 3D position error (cm, NaN where there is no fix), lamps in view, and
     ``Decodability`` codes.
@@ -200,8 +202,9 @@ def ceiling_lamp(name: str, lamp_id: int, x: float, y: float, ceiling: float, ra
 
 def grid_positions(room: tuple[float, float], spacing: float) -> np.ndarray:
     """
-    Lamp (x, y) (N, 2) on a square grid of ``spacing``, as many per side as fit the room
-    at that spacing (at least one), centred in it.
+    Return lamp (x, y) (N, 2) on a square grid of ``spacing``, centred in the room.
+
+    As many per side as fit the room at that spacing (at least one).
     """
     if not spacing > 0.0:
         raise ValueError(f'lamp spacing must be positive, got {spacing}')
@@ -215,8 +218,10 @@ def grid_positions(room: tuple[float, float], spacing: float) -> np.ndarray:
 
 def looking_up(tilt: float = 0.0, tilt_azimuth: float = 0.0, yaw: float = 0.0) -> np.ndarray:
     """
-    Camera-to-map rotation of a camera looking straight up (image x along map direction
-    ``yaw``), then tilted by ``tilt`` toward map direction ``tilt_azimuth`` (all rad).
+    Return the camera-to-map rotation of a camera looking up, optionally tilted.
+
+    The camera looks straight up (image x along map direction ``yaw``), then is tilted by
+    ``tilt`` toward map direction ``tilt_azimuth`` (all rad).
     """
     c, s = np.cos(yaw), np.sin(yaw)
     turned = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -248,8 +253,9 @@ def visible_spans(deployment: Deployment, pose: Pose, noise: MeasurementNoise) -
 def lamp_observations(deployment: Deployment, pose: Pose, spans: dict[int, float],
                       noise: MeasurementNoise) -> list[tuple[LampObservation, Lamp]]:
     """
-    Exact observations of the lamps in ``spans`` (from ``visible_spans``) with the noise's sigmas,
-    two rim points per row each lamp spans.
+    Return exact observations of the lamps in ``spans`` (from ``visible_spans``) with the noise's sigmas.
+
+    Two rim points per row each lamp spans.
     """
     pairs = []
     for index, span in spans.items():
@@ -264,8 +270,10 @@ def lamp_observations(deployment: Deployment, pose: Pose, spans: dict[int, float
 def expected_position_error(deployment: Deployment, pose: Pose, spans: dict[int, float],
                             noise: MeasurementNoise) -> float:
     """
-    sqrt(trace) of the position covariance (m) the solver reports for exact observations of
-    the lamps in ``spans`` from ``pose``; NaN when it gives no pose.
+    Return the expected position error (m): sqrt(trace) of the position covariance the solver reports.
+
+    The covariance is for exact observations of the lamps in ``spans`` from ``pose``; NaN when the
+    solver gives no pose.
     """
     pairs = lamp_observations(deployment, pose, spans, noise)
     up = [] if noise.imu_sigma is None else [UpHint(pose.up_in_camera(), noise.imu_tolerance, noise.imu_sigma)]
@@ -284,7 +292,7 @@ def expected_position_error(deployment: Deployment, pose: Pose, spans: dict[int,
 
 
 def plan_floor(deployment: Deployment, beacon: BeaconPlan, noise: MeasurementNoise, points: int = 40) -> FloorPlan:
-    """Expect error and decodability at the centres of a ``points`` x ``points`` floor grid."""
+    """Return the expected error and decodability at the centres of a ``points`` x ``points`` floor grid."""
     if points < 1:
         raise ValueError(f'points must be at least 1, got {points}')
     if beacon.mode == 'packet' and len(deployment.lamps) > 2 ** beacon.id_bits:

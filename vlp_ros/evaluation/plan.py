@@ -24,8 +24,8 @@ from matplotlib.ticker import FuncFormatter  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vlp_ros.core.camera import CameraModel  # noqa: E402
-from vlp_ros.evaluation.floor_plan import (BeaconPlan, Decodability, Deployment, FloorPlan,  # noqa: E402
-                                           MeasurementNoise, ceiling_lamp, grid_positions, looking_up,
+from vlp_ros.evaluation.floor_plan import (BeaconPlan, ceiling_lamp, Decodability, Deployment,  # noqa: E402
+                                           FloorPlan, grid_positions, looking_up, MeasurementNoise,
                                            plan_floor)
 from vlp_ros.sim.scenarios import paper_camera  # noqa: E402
 
@@ -48,7 +48,7 @@ def preset_camera(name: str) -> CameraModel:
 
 
 def error_map_figure(plan: FloorPlan, deployment: Deployment, beacon: BeaconPlan, path: Path, title: str) -> Path:
-    """Return expected 3D error and decodability over the floor, side by side, lamps marked."""
+    """Draw the expected 3D error and decodability over the floor into ``path``, side by side, lamps marked."""
     width, depth = deployment.room
     x_edges = np.linspace(0.0, width, len(plan.xs) + 1)
     y_edges = np.linspace(0.0, depth, len(plan.ys) + 1)

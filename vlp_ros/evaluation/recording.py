@@ -55,7 +55,8 @@ def ground_truth(bag_path: Path | str, topic: str) -> dict[int, Pose]:
         return truth
 
 
-def recorded_frames(bag_path: Path | str, topics: RecordingTopics, gravity: GravityBuffer | None) -> Iterator[RecordedFrame]:
+def recorded_frames(bag_path: Path | str, topics: RecordingTopics,
+                    gravity: GravityBuffer | None) -> Iterator[RecordedFrame]:
     """
     Every image of the recording in order, with its camera_info and (if wanted) IMU up.
 

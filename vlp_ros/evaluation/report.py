@@ -80,9 +80,9 @@ def _evaluation_figures(evaluation: Evaluation, folder: Path) -> list[Path]:
 def write_report(evaluations: Evaluation | Sequence[Evaluation], folder: Path,
                  extra_figures: Sequence[Path] = ()) -> Path:
     """
-    summary.md and PNG figures in ``folder`` (one section per evaluation, then ``extra_figures``, already drawn there).
+    Write summary.md and PNG figures into ``folder``; return the summary's path.
 
-    Returns the summary's path.
+    One section (with its figures) per evaluation, then ``extra_figures``, already drawn there.
     """
     folder.mkdir(parents=True, exist_ok=True)
     lines = []

@@ -22,7 +22,7 @@ _YUV = {
     'yuyv': cv2.COLOR_YUV2BGR_YUYV,
 }
 _CHANNELS = {'mono8': 1, 'bgr8': 3, 'rgb8': 3, 'bgra8': 4, 'rgba8': 4,
-             **{name: 1 for name in _BAYER}, **{name: 2 for name in _YUV}}
+             **dict.fromkeys(_BAYER, 1), **dict.fromkeys(_YUV, 2)}
 SUPPORTED_ENCODINGS = tuple(sorted(_CHANNELS))
 
 

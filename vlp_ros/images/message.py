@@ -36,7 +36,7 @@ class ImageMessage:
 class CompressedImageMessage:
     stamp_ns: int
     frame_id: str
-    format: str
+    format: str  # noqa: A003 sensor_msgs/CompressedImage's field name
     data: np.ndarray
 
 

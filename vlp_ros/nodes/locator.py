@@ -167,7 +167,7 @@ class Locator(Node):
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             self._camera = CameraModel.from_camera_info(msg.width, msg.height, msg.k, msg.d, msg.distortion_model,
-                                                          msg.p, msg.r)
+                                                        msg.p, msg.r)
         except ValueError as err:
             self.get_logger().error(f'camera_info ignored: {err}', throttle_duration_sec=THROTTLE_S)
 

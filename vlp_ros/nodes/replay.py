@@ -74,7 +74,7 @@ def command_line_parser() -> argparse.ArgumentParser:
 
 def split_ros_arguments(argv: Sequence[str]) -> tuple[list[str], list[str]]:
     """
-    (the program's own arguments, the `--ros-args ... [--]` sections for rclpy).
+    Split ``argv`` into the program's own arguments and the `--ros-args ... [--]` sections for rclpy.
 
     rclpy.utilities.remove_ros_args would also swallow bare FROM:=TO words (the
     pre-Foxy remapping syntax), which are the values of --remap here.
@@ -218,7 +218,7 @@ class Replay(Node):
                 self.get_logger().warning(f'{topic.name} was recorded from publishers with different QoS; '
                                           'offering reliable, volatile')
             self._bag_publishers[topic.name] = self.create_publisher(cls, remaps.get(topic.name, topic.name),
-                                                                 offered_qos_profile(topic))
+                                                                     offered_qos_profile(topic))
         for msgtype, names in unavailable.items():
             self.get_logger().warning(f'skipping {", ".join(names)}: message type {msgtype} is not installed')
         if not self._bag_publishers:
@@ -246,7 +246,7 @@ class Replay(Node):
 
     def _wait_for_subscribers(self) -> None:
         """
-        Until every topic has a subscriber, or discovery has settled on some, or DISCOVERY_WAIT_S.
+        Wait until every topic has a subscriber, or discovery has settled on some, or DISCOVERY_WAIT_S.
 
         A publisher counts a subscriber before that subscriber has matched the
         publisher, and what is sent in between is lost to volatile subscribers:

@@ -20,10 +20,10 @@ LABEL = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
 
 def lamp_markers(lamps: LampMap, map_frame: str, used_ids: set[int]) -> MarkerArray:
     """
-    Per lamp.
+    Return the map's lamps as RViz markers, three per lamp.
 
-    A disc (green when used in the latest pose), an arrow from its centre to its rim marker,
-    and a label with its name and ID. Namespaces lamps, marker_direction, labels.
+    Per lamp: a disc (green when used in the latest pose), an arrow from its centre to its rim
+    marker, and a label with its name and ID. Namespaces lamps, marker_direction, labels.
     """
     array = MarkerArray()
     for index, lamp in enumerate(lamps):

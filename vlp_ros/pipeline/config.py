@@ -57,20 +57,27 @@ PARAMETERS = (
                   'fixed mount: where map +z points in the camera optical frame (3 numbers); empty = no prior'),
     ParameterSpec('prior.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and the static prior'),
     ParameterSpec('prior.sigma', 'number', 0.0,
-                  'standard deviation (rad) of the mount prior; > 0 makes it a measurement in the pose fit, 0 only a gate'),
-    ParameterSpec('imu.enabled', 'bool', False, 'use gravity from the imu topic to tell pose candidates apart'),
+                  'standard deviation (rad) of the mount prior; > 0 makes it a measurement in the pose fit, '
+                  '0 only a gate'),
+    ParameterSpec('imu.enabled', 'bool', False,
+                  'use gravity from the imu topic to tell pose candidates apart'),
     ParameterSpec('imu.rotation', 'number_array', [0.0, 0.0, 0.0, 1.0],
                   'quaternion (x, y, z, w) turning IMU-frame vectors into the camera optical frame'),
-    ParameterSpec('imu.max_age', 'number', 0.1, 'an IMU message older than this (s) at the image stamp is not used'),
+    ParameterSpec('imu.max_age', 'number', 0.1,
+                  'an IMU message older than this (s) at the image stamp is not used'),
     ParameterSpec('imu.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and measured gravity'),
     ParameterSpec('imu.sigma', 'number', 0.01,
-                  "standard deviation (rad) of the IMU's up direction; > 0 makes gravity a measurement in the pose fit, 0 only a gate"),
-    ParameterSpec('continuity.gate', 'number', 0.3, 'a candidate within this distance (m) of a recent pose continues it'),
+                  "standard deviation (rad) of the IMU's up direction; > 0 makes gravity a measurement in the pose "
+                  'fit, 0 only a gate'),
+    ParameterSpec('continuity.gate', 'number', 0.3,
+                  'a candidate within this distance (m) of a recent pose continues it'),
     ParameterSpec('continuity.max_age', 'number', 1.0, 'how long (s) a pose may vouch for the next; 0 disables'),
     ParameterSpec('continuity.max_speed', 'number', 2.0,
-                  'fastest the camera is expected to move (m/s): the gate grows by this times the time since the recent pose'),
+                  'fastest the camera is expected to move (m/s): the gate grows by this times the time since the '
+                  'recent pose'),
     ParameterSpec('image_transport', 'string', 'raw', 'raw (image_raw) or compressed (image_raw/compressed)'),
-    ParameterSpec('qos.reliability', 'string', 'best_effort', 'image subscription reliability: best_effort or reliable'),
+    ParameterSpec('qos.reliability', 'string', 'best_effort',
+                  'image subscription reliability: best_effort or reliable'),
     ParameterSpec('qos.depth', 'integer', 1, 'image subscription queue depth'),
     ParameterSpec('base_frame', 'string', '',
                   "the robot's frame whose pose is published; empty = publish the camera optical frame"),
@@ -85,7 +92,8 @@ LAMP_PARAMETERS = (
     ParameterSpec('position', 'number_array', None, 'centre of the luminous disc in the map (x, y, z) (m)'),
     ParameterSpec('radius', 'number', None, 'radius of the luminous disc (m); 0 = a point lamp (bare LED)'),
     ParameterSpec('marker_angle', 'number', 0.0, 'map direction of the red marker from the centre (rad, +x toward +y)'),
-    ParameterSpec('marker_distance', 'number', None, "marker centroid's distance from the centre (m); default the radius"),
+    ParameterSpec('marker_distance', 'number', None,
+                  "marker centroid's distance from the centre (m); default the radius"),
     ParameterSpec('frequency', 'number', None, "tone mode: the lamp's square-wave frequency (Hz)"),
 )
 LAMP_FIELDS = tuple(spec.name for spec in LAMP_PARAMETERS)
@@ -235,7 +243,11 @@ def lamp_map_from_parameters(values: Mapping[str, Any], beacon: BeaconSettings) 
 
 
 def _reject_unlisted_lamps(values: Mapping[str, Any], names: list[str]) -> None:
-    """A lamp whose name is misspelt in leds.names or in its own keys must not vanish silently."""
+    """
+    Raise ConfigError for a lamp key whose lamp is not in leds.names or whose field is unknown.
+
+    A lamp whose name is misspelt in leds.names or in its own keys must not vanish silently.
+    """
     for key in values:
         parts = key.split('.')
         if parts[0] != 'leds' or key == 'leds.names':

@@ -76,6 +76,8 @@ class Pipeline:
     def __init__(self, settings: LocatorSettings, gate_fit: bool = True,
                  paper_choice: Callable[[list[PoseCandidate], DisambiguationHints], Choice] = choose_candidate) -> None:
         """
+        Build a pipeline for ``settings``, with no tracked lamps and no recent pose yet.
+
         ``gate_fit=False`` lets the paper's solver publish poses that do not explain the
         image, and ``paper_choice`` replaces how its mirror poses are told apart: both only
         for measuring that solver as published, never in the locator.
@@ -105,7 +107,8 @@ class Pipeline:
             ids, pairs = self._identified_by_continuity(observations, ids, camera, stamp, gravity_up, solved)
         unknown = sum(r.unknown for r in readings)
         decoded = [lamp.id for _, lamp in pairs]
-        seen = [_seen_lamp(obs, i, reading, self.settings.lamps) for obs, i, reading in zip(observations, ids, readings)]
+        seen = [_seen_lamp(obs, i, reading, self.settings.lamps)
+                for obs, i, reading in zip(observations, ids, readings)]
         if not pairs:
             outcome = UNKNOWN_ID if unknown else NO_ID
             return FrameResult(None, outcome, decoded, unknown, len(observations), seen=seen)
@@ -173,8 +176,8 @@ class Pipeline:
 
     def _identified_by_continuity(self, observations: list[LampObservation], ids: list[int | None],
                                   camera: CameraModel, stamp: float, gravity_up: np.ndarray | None,
-                                  solved: dict[tuple, Choice]) -> tuple[list[int | None],
-                                                                         list[tuple[LampObservation, Lamp]]]:
+                                  solved: dict[tuple, Choice]
+                                  ) -> tuple[list[int | None], list[tuple[LampObservation, Lamp]]]:
         """
         When no lamp is identified otherwise.
 

@@ -52,8 +52,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         description='Simulate a rolling-shutter VLP recording: DIR/<scenario> (rosbag2) and DIR/params.yaml.')
     parser.add_argument('--scenario', required=True, choices=('paper', 'robot', 'drive', 'tone', 'bare_leds'),
                         help='paper: hand-held stills of one lamp; robot: under a row of lamps; drive: a robot '
-                             'driving and turning under packet lamps 2.4 m apart; tone: robot stills under 12 tone lamps; '
-                             'bare_leds: hand-held photos of the five-LED rig')
+                             'driving and turning under packet lamps 2.4 m apart; tone: robot stills under 12 tone '
+                             'lamps; bare_leds: hand-held photos of the five-LED rig')
     parser.add_argument('--out', required=True, type=Path, help='output directory')
     parser.add_argument('--storage', default='sqlite3', choices=tuple(STORAGES))
     parser.add_argument('--frames', type=int, help='write only the first N frames')
@@ -92,7 +92,7 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
         raise UsageError(f'--frames must be at least 1, got {args.frames}')
     if args.height is not None and not args.height > 0.0:
         raise UsageError(f'--height must be positive, got {args.height}')
-    common = dict(seed=args.seed, depth=DEFAULT_DEPTH if args.depth is None else args.depth, bayer=args.bayer)
+    common = {'seed': args.seed, 'depth': DEFAULT_DEPTH if args.depth is None else args.depth, 'bayer': args.bayer}
     if args.height is not None:
         common['height'] = args.height
     try:
@@ -137,7 +137,7 @@ def bare_leds_scenario(args: argparse.Namespace, common: dict) -> Scenario:
         raise UsageError(f'--led-core-radius must be positive, got {args.led_core_radius}')
     if args.led_glow is not None and not 0.0 <= args.led_glow < 1.0:
         raise UsageError(f'--led-glow must be in [0, 1), got {args.led_glow}')
-    given = dict(core_radius=args.led_core_radius, glow_level=args.led_glow)
+    given = {'core_radius': args.led_core_radius, 'glow_level': args.led_glow}
     look = PointLampLook(**{name: value for name, value in given.items() if value is not None})
     camera = chosen_look(args)
     scenario = bare_led_scenario(camera_kind=args.camera or '4k', photos=args.photos or 12, look=look,

@@ -79,8 +79,10 @@ def disc_coverage(camera: CameraModel, pose: Pose, height: float, circles: list[
 def _tangent_cut(centres: np.ndarray, step_x: np.ndarray, step_y: np.ndarray,
                  circle: Circle) -> tuple[np.ndarray, np.ndarray]:
     """
-    Coverage of pixels (plane points of their centres and of one step along x and y)
-    cut by the circle's tangent line, and the plane distance per pixel step across the edge.
+    Return the coverage of pixels cut by the circle's tangent line, and the edge's gradient.
+
+    The pixels are given as plane points of their centres and of one step along x and y; the
+    gradient is the plane distance per pixel step across the edge.
     """
     offset = centres - circle.center_xy
     distance = np.maximum(np.hypot(offset[:, 0], offset[:, 1]), 1e-12 * circle.radius)

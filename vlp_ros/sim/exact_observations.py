@@ -14,6 +14,8 @@ def synthetic_observation(lamp: Lamp, pose: Pose, camera: CameraModel, rim_count
                           rim_sigma: float = 0.3, marker_sigma: float = 0.2,
                           rng: np.random.Generator | None = None, with_marker: bool = True) -> LampObservation:
     """
+    Return an observation of ``lamp`` from ``pose`` computed by projection, not from an image.
+
     ``rim_count`` projected rim points and the projected marker (lens distortion included),
     plus Gaussian noise of the stated sigmas per axis when ``rng`` is given.
     """

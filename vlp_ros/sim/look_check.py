@@ -62,7 +62,9 @@ def read_frames(bag: Path) -> tuple[CameraModel, list[tuple[np.ndarray, Pose, fl
 
 def map_lamps(params: Path, peak_dn: float, rng: np.random.Generator) -> tuple[list[SimLamp], dict]:
     """
-    The lamps of a params file with their beacons (random clock offsets) in the clean look, and its beacon settings.
+    Return the lamps of a params file with their beacons in the clean look, and its beacon settings.
+
+    Each beacon gets a random clock offset.
     """
     values = next(iter(yaml.safe_load(params.read_text()).values()))['ros__parameters']
     leds, beacon = values['leds'], values['beacon']
@@ -95,7 +97,8 @@ def halo_profile(image: np.ndarray, centre: np.ndarray, semi_axes: np.ndarray, d
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.look_check', description=__doc__.strip().splitlines()[0])
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.look_check',
+                                     description=__doc__.strip().splitlines()[0])
     parser.add_argument('folder', type=Path)
     parser.add_argument('--look', default='realistic', choices=tuple(LOOKS))
     parser.add_argument('--peak', type=float, default=210.0, help="clean-look lamp level in DN (the paper scenario's)")

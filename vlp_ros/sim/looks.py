@@ -92,8 +92,8 @@ def apply_look(scenario: Scenario, look: Look, seed: int = 0) -> Scenario:
     if look.jpeg_quality is not None and scenario.sensor.bayer is not None:
         raise ValueError('JPEG needs a bgr8 image, not a raw Bayer mosaic')
     sensor = scenario.sensor
-    changes = dict(glare=look.glare, glare_width=look.glare_width, bloom=look.bloom,
-                   row_time=scenario.nominal_row_time * (1.0 + look.row_time_error))
+    changes = {'glare': look.glare, 'glare_width': look.glare_width, 'bloom': look.bloom,
+               'row_time': scenario.nominal_row_time * (1.0 + look.row_time_error)}
     if look.blur_sigma is not None:
         changes.update(blur_sigma=0.0, image_blur=look.blur_sigma)
     lamps = [replace(sim, falloff=look.falloff, peak_dn=sim.peak_dn * look.brightness) for sim in scenario.lamps]
@@ -115,7 +115,8 @@ def clutter_lamps(lamps: list[SimLamp], count: int, rng: np.random.Generator) ->
         others = [s.lamp.position for s in lamps + placed]
         for _ in range(1000):
             angle = rng.uniform(0.0, 2.0 * np.pi)
-            position = anchor.lamp.position + CLUTTER_DISTANCE_RADII * radius * np.array([np.cos(angle), np.sin(angle), 0.0])
+            direction = np.array([np.cos(angle), np.sin(angle), 0.0])
+            position = anchor.lamp.position + CLUTTER_DISTANCE_RADII * radius * direction
             if min(np.linalg.norm(position - p) for p in others) >= CLUTTER_CLEARANCE_RADII * radius:
                 break
         else:

@@ -68,8 +68,9 @@ class PointLampLook:
 
     def profile(self, r: np.ndarray, core_px: float, scale: float) -> np.ndarray:
         """
-        Light at ``r`` px from the centre (1 = the core's level) for a core of ``core_px``
-        px radius, pixel lengths of the look multiplied by ``scale``.
+        Return the light at ``r`` px from the centre (1 = the core's level).
+
+        For a core of ``core_px`` px radius, pixel lengths of the look multiplied by ``scale``.
         """
         core = 0.5 * erfc((r - core_px) / (np.sqrt(2.0) * self.edge_sigma * scale))
         glow = self.glow_level * np.exp(-r / (self.glow_scale * scale))
@@ -138,12 +139,14 @@ def _project(camera: CameraModel, pose: Pose, sim: PointSimLamp, look: PointLamp
     core_px = camera.focal * look.core_radius / centre[2]
     reach = look.reach(core_px, scale)
     x0, y0 = max(int(np.floor(pixel[0] - reach)), 0), max(int(np.floor(pixel[1] - reach)), 0)
-    x1, y1 = min(int(np.ceil(pixel[0] + reach)) + 1, camera.width), min(int(np.ceil(pixel[1] + reach)) + 1, camera.height)
+    x1 = min(int(np.ceil(pixel[0] + reach)) + 1, camera.width)
+    y1 = min(int(np.ceil(pixel[1] + reach)) + 1, camera.height)
     if x0 >= x1 or y0 >= y1:
         return truth, None
     edge = core_px + 3.0 * look.edge_sigma * scale
     truth.visible = True
-    truth.fully_inside = bool(edge <= pixel[0] <= camera.width - 1 - edge and edge <= pixel[1] <= camera.height - 1 - edge)
+    truth.fully_inside = bool(edge <= pixel[0] <= camera.width - 1 - edge
+                              and edge <= pixel[1] <= camera.height - 1 - edge)
     truth.bbox = (x0, y0, x1, y1)
     return truth, (x0, y0, x1, y1)
 

@@ -19,7 +19,7 @@ LOCATOR_NODE = 'vlp_locator'
 
 
 def write_params(path: Path | str, scenario: Scenario, imu: bool) -> None:
-    """A params file (``--params-file``) configuring the locator for ``scenario``."""
+    """Write a params file (``--params-file``) configuring the locator for ``scenario`` to ``path``."""
     document = {LOCATOR_NODE: {'ros__parameters': scenario.locator_parameters(imu)}}
     Path(path).write_text(yaml.safe_dump(document, sort_keys=False, default_flow_style=None))
 
@@ -28,7 +28,7 @@ def record(scenario: Scenario, bag_path: Path | str, storage: str, imu: bool, rn
            progress: Callable[[int, int], None] | None = None,
            on_frame: Callable[[RenderedFrame], None] | None = None) -> int:
     """
-    Render every frame of ``scenario`` into a new bag; returns how many frames were written.
+    Render every frame of ``scenario`` into a new bag; return how many frames were written.
 
     ``on_frame`` sees each rendered frame with its ground truth (which lamps it shows).
     """

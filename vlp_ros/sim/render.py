@@ -209,7 +209,8 @@ def _field_limit(camera: CameraModel) -> float:
     folds inside the image itself, where the model would be meaningless.
     """
     w, h = camera.width - 0.5, camera.height - 0.5
-    border = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h], [w / 2, -0.5], [w / 2, h], [-0.5, h / 2], [w, h / 2]])
+    border = np.array([[-0.5, -0.5], [w, -0.5], [-0.5, h], [w, h],
+                       [w / 2, -0.5], [w / 2, h], [-0.5, h / 2], [w, h / 2]])
     if not camera.is_distorted:
         return float(4.0 * np.max(np.linalg.norm(camera.normalize(border), axis=1)))
     image_radius = np.max(np.linalg.norm(camera.normalize(border), axis=1))
@@ -224,8 +225,9 @@ def _field_limit(camera: CameraModel) -> float:
 
 def _fold(camera: CameraModel, reach: float) -> tuple[float, float]:
     """
-    Normalised radius where the radial distortion stops growing (inf if not within ``reach``),
-    and the distorted radius there.
+    Return the normalised radius where the radial distortion stops growing, and the distorted radius there.
+
+    Both are inf when it does not stop within ``reach``.
     """
     if camera.model == PLUMB_BOB:
         k1, k2, _, _, k3 = camera.D
@@ -364,7 +366,8 @@ def _clusters(drawn: list, margin: int, camera: CameraModel) -> list[tuple[tuple
     regions: list[tuple[tuple[int, int, int, int], list]] = []
     for item in drawn:
         x0, y0, x1, y1 = item[3]
-        box = (max(x0 - margin, 0), max(y0 - margin, 0), min(x1 + margin, camera.width), min(y1 + margin, camera.height))
+        box = (max(x0 - margin, 0), max(y0 - margin, 0),
+               min(x1 + margin, camera.width), min(y1 + margin, camera.height))
         members = [item]
         # A merged box may reach regions the lamp's own box did not: absorb until none overlaps.
         overlapping = [r for r in regions if _overlap(box, r[0])]

@@ -92,7 +92,7 @@ class Scenario:
 
     @property
     def nominal_row_time(self) -> float:
-        """The row time the locator is told (the sensor's true one differs by ``row_time_error``)."""
+        """Return the row time the locator is told (the sensor's true one differs by ``row_time_error``)."""
         return self.sensor.row_time / (1.0 + self.row_time_error)
 
     def render(self, index: int, rng: np.random.Generator | None) -> RenderedFrame:
@@ -141,8 +141,11 @@ class Scenario:
 def design_beacon(span_rows: float, row_time: float, max_id: int, depth: float,
                   min_packets: float = 1.3, min_rows_per_chip: float = 4.0, max_bits: int = 8) -> BeaconDesign:
     """
-    Most ID bits (<= ``max_bits``) and the chip rate at which a lamp spanning
-    ``span_rows`` rows holds ``min_packets`` packets, each chip at least ``min_rows_per_chip`` rows.
+    Return the beacon design with the most ID bits that a lamp spanning ``span_rows`` rows can carry.
+
+    Most ID bits (<= ``max_bits``, enough for ``max_id``) and the chip rate at which a lamp spanning
+    ``span_rows`` rows holds ``min_packets`` packets, each chip at least ``min_rows_per_chip`` rows;
+    ValueError when no number of bits allows that.
     """
     for bits in range(max_bits, max(int(max_id).bit_length(), 1) - 1, -1):
         rows_per_chip = span_rows / (min_packets * packet_length(bits))
@@ -258,8 +261,10 @@ def _aimed_pose(position: np.ndarray, lamp: Lamp, rng: np.random.Generator,
 def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.15, camera_height: float = 0.45,
                    speed: float = 0.4, seed: int = 0, depth: float = 0.75, bayer: str | None = None) -> Scenario:
     """
-    A robot with a 100 deg HFOV 1080p camera ``camera_height`` m up, looking up, driving
-    under a row of ``lamp_count`` 15 cm lamps ``spacing`` m apart and ``height`` m above the camera.
+    Return a robot driving under a row of ``lamp_count`` 15 cm lamps ``spacing`` m apart.
+
+    Its 100 deg HFOV 1080p camera is ``camera_height`` m up, looking up; the lamps hang ``height``
+    m above the camera.
 
     The robot sways sideways along the row and its chassis rocks by < 1 deg, so the
     static prior (map up along camera +z) holds within a small tolerance.
@@ -315,8 +320,9 @@ def robot_drive_scenario(seed: int = 0, duration: float = 12.0, speed: float = D
                          spacing: float = 2.4, height: float = 2.15, depth: float = 0.75,
                          bayer: str | None = None) -> Scenario:
     """
-    A robot driving ``speed`` m/s and weaving (heading rate up to ``turn_rate`` rad/s) under
-    two rows of four packet lamps ``spacing`` m apart, 10 frames/s.
+    Return a robot driving ``speed`` m/s and weaving under two rows of four packet lamps ``spacing`` m apart.
+
+    Its heading rate goes up to ``turn_rate`` rad/s; 10 frames/s.
 
     Packet IDs at 16 kchip/s, 8 bits: with 15 us rows a chip is 4 rows and a 15 cm lamp
     (~77 px across at 2.15 m) holds 0.8 of a packet. Between the rows of lamps the
@@ -330,7 +336,7 @@ def robot_drive_scenario(seed: int = 0, duration: float = 12.0, speed: float = D
     beacon = BeaconDesign(16000.0, 8, depth)
     ids = rng.choice(np.arange(1, 256), 8, replace=False)
     lamps = [make_lamp(f'lamp_{k}', int(lamp_id), [spacing * (k // 2 - 1), spacing * ((k % 2) - 0.5),
-                                                    ROBOT_CAMERA_HEIGHT + height],
+                                                   ROBOT_CAMERA_HEIGHT + height],
                        ROBOT_LAMP_RADIUS, float(rng.uniform(-np.pi, np.pi)), beacon, rng, peak_dn=190.0)
              for k, lamp_id in enumerate(ids)]
     frame_rate = 10.0
@@ -397,7 +403,9 @@ def robot_tone_scenario(seed: int = 0, frames: int = 24, interval: float = 2.0, 
 
 def with_rim_markers(scenario: Scenario, distance: float = 0.9, radius: float = 0.1) -> Scenario:
     """
-    The scenario with every marker moved: centred at ``distance`` x r from the lamp centre, radius ``radius`` x r.
+    Return the scenario with every marker moved and resized (in fractions of the lamp radius r).
+
+    Each marker is centred at ``distance`` x r from the lamp centre, with radius ``radius`` x r.
 
     The defaults are the paper's "marginal point" (a dot of 0.1 r at 0.9 r, touching the
     rim); ``distance`` from 0.5 out to 1.0 puts it inside, touching or straddling the rim.
