@@ -4,8 +4,9 @@ import subprocess
 import sys
 
 ROOT = Path(__file__).resolve().parents[1]
-# Measures the cost of the locator's visualization messages, so it builds them.
-NEEDS_ROS = {'vlp_ros.benchmarks.visualization_cost'}
+# Benchmarks of the nodes themselves: the cost of the locator's visualization messages (it builds
+# them), and the locator's start-up time (it watches for the locator's subscription over DDS).
+NEEDS_ROS = {'vlp_ros.benchmarks.visualization_cost', 'vlp_ros.benchmarks.startup'}
 
 
 def ros_free_modules() -> list[str]:
