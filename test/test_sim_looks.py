@@ -7,13 +7,13 @@ from scipy.special import i0e
 from scipy.stats import norm
 
 from vlp_ros.beacon.encoding import packet_waveform, tone_waveform, Waveform
+from vlp_ros.benchmarks import look_check
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
 from vlp_ros.images.conversion import decode_compressed
 from vlp_ros.images.message import parse_compressed_image
 from vlp_ros.sim import __main__ as cli
-from vlp_ros.sim import look_check
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC, JPEG_FORMAT, TYPESTORE
 from vlp_ros.sim.looks import apply_look, Look, LOOKS, transported
 from vlp_ros.sim.recording import record, write_params

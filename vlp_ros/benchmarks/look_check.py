@@ -1,5 +1,5 @@
 """
-Our looks against frames of another renderer: python -m vlp_ros.sim.look_check FOLDER [--look NAME] [--peak DN].
+Our looks against frames of another renderer: python -m vlp_ros.benchmarks.look_check FOLDER [--look NAME] [--peak DN].
 
 FOLDER holds ``bag/`` (``/image_raw/compressed``, ``/camera_info``, ``/ground_truth/pose``)
 and ``params.yaml`` (the lamp map), as /work/shared/data/foreign_frames/* do. Each
@@ -97,7 +97,7 @@ def halo_profile(image: np.ndarray, centre: np.ndarray, semi_axes: np.ndarray, d
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.look_check',
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.look_check',
                                      description=__doc__.strip().splitlines()[0])
     parser.add_argument('folder', type=Path)
     parser.add_argument('--look', default='realistic', choices=tuple(LOOKS))
