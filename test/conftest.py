@@ -78,9 +78,9 @@ class RosProcess:
 @pytest.fixture
 def start_process(tmp_path: Path) -> Iterator[Callable[..., RosProcess]]:
     """
-    start_process('locator', '--ros-args', ..., env=None) runs an installed executable.
+    Return a function that runs an installed executable; every process it started is stopped after the test.
 
-    All are stopped after the test.
+    Called as start_process('locator', '--ros-args', ..., env=None).
     """
     started: list[RosProcess] = []
 
@@ -126,9 +126,11 @@ def spin_until(node, condition: Callable[[], bool], timeout: float) -> bool:
 def located_through_the_nodes(test_node, start_process: Callable[..., RosProcess], bag: Path, params: Path,
                               topics, imu: bool, group: str) -> list:
     """
-    Every frame of the recording at ``bag`` played by the installed replay into the installed
-    locator (``params``), one frame at a time; each frame's outcome against the bag's truth, once
-    every frame was answered with its own stamp.
+    Return each frame's outcome against the bag's truth, with ``bag`` played through the installed nodes.
+
+    Every frame of the recording at ``bag`` is played by the installed replay into the installed
+    locator (``params``), one frame at a time; the outcomes are returned once every frame was
+    answered with its own stamp.
     """
     from vlp_ros.evaluation.demo import outcomes_from_answers
     from vlp_ros.evaluation.recording import ground_truth

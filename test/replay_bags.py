@@ -64,7 +64,7 @@ def camera_info_data(stamp_ns: int) -> bytes:
         header=_header(stamp_ns, 'camera'), height=2, width=3, distortion_model='plumb_bob',
         d=np.zeros(5), k=np.eye(3).ravel(), r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0, binning_y=0,
         roi=TYPESTORE.types['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
-                                                               do_rectify=False))
+                                                                do_rectify=False))
     return _serialize(info, CAMERA_INFO)
 
 

@@ -43,7 +43,9 @@ def observe(lamp: Lamp, pose: Pose, camera: CameraModel, rim_count: int = 120, r
             marker_sigma: float = 0.2, rng: np.random.Generator | None = None,
             with_marker: bool = True) -> LampObservation:
     """
-    The lamp's exactly projected rim points and marker, plus Gaussian noise of the stated sigmas if ``rng``.
+    Return the lamp's exactly projected rim points and marker.
+
+    Gaussian noise of the stated sigmas is added if ``rng`` is given.
     """
     return synthetic_observation(lamp, pose, camera, rim_count, rim_sigma, marker_sigma, rng, with_marker)
 
@@ -51,8 +53,10 @@ def observe(lamp: Lamp, pose: Pose, camera: CameraModel, rim_count: int = 120, r
 def measured_up(pose: Pose, sigma: float = 0.0, rng: np.random.Generator | None = None,
                 error: np.ndarray = np.zeros(2)) -> np.ndarray:
     """
-    ``pose``'s up direction in the camera, turned by ``error`` (rad, about two fixed axes
-    perpendicular to it) plus N(0, sigma) about each of them if ``rng``.
+    Return ``pose``'s up direction in the camera, turned by ``error`` plus noise if ``rng``.
+
+    ``error`` is in rad, about two fixed axes perpendicular to the up direction; the noise is
+    N(0, sigma) about each of them.
     """
     up = pose.up_in_camera()
     first = np.cross(up, [1.0, 0.0, 0.0])

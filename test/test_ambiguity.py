@@ -14,7 +14,7 @@ TRUTH = looking_up((0.6, -0.4, 0.2), (-0.25, -0.3, 0.4))
 
 @pytest.fixture(scope='module')
 def pair():
-    """(true candidate, twin) from one noisy oblique view."""
+    """Return (true candidate, twin) from one noisy oblique view."""
     lamp = small_lamp()
     observation = observe(lamp, TRUTH, camera_4k(), rng=np.random.default_rng(11))
     candidates = solve_lamp(observation, lamp, camera_4k())

@@ -26,8 +26,10 @@ MAP = list(range(1, 8))
 
 def clipped_profile(lamp_id: int, seed: int, blur_rows: float, gain: float = 1.64, depth: float = 0.6) -> RowProfile:
     """
-    A lamp ``gain`` times the ceiling at full brightness (the realistic look's overexposure), its rows blurred
-    by a Gaussian of ``blur_rows`` before the sensor clips them, as a lens does.
+    Return the row profile of a lamp ``gain`` times the ceiling at full brightness, blurred, then clipped.
+
+    ``gain`` is the realistic look's overexposure; the lamp's rows are blurred by a Gaussian of
+    ``blur_rows`` before the sensor clips them, as a lens does.
     """
     rng = np.random.default_rng([lamp_id, seed])
     wave = packet_waveform(lamp_id, CHIP_RATE, depth, ID_BITS, offset=rng.uniform(0.0, 14.0 / CHIP_RATE))

@@ -189,7 +189,7 @@ def test_each_mix_is_fitted_exactly(stride):
         start = cycles[index] * ((np.arange(-1, rows + 1) - 0.5 * (rows - 1)) / rows) - phase[index]
         # A row's mean of the square wave over its exposure, up to scale.
         mean = np.abs(start - np.rint(start)) - np.abs(start + cycles[index] * exposure_rows / rows
-                                                        - np.rint(start + cycles[index] * exposure_rows / rows))
+                                                       - np.rint(start + cycles[index] * exposure_rows / rows))
         residuals = []
         for even, odd in itertools.product(model.MIX_LEVELS, repeat=2):
             mix = np.where(np.arange(rows) % 2 == 0, even, odd)

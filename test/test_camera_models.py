@@ -37,7 +37,7 @@ def _points_across_the_image(camera: CameraModel, count: int = 400) -> np.ndarra
 
 
 def _rational(x: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """OpenCV's rational_polynomial model written out: normalised (N, 2) to distorted normalised."""
+    """Apply OpenCV's rational_polynomial model, written out: normalised (N, 2) to distorted normalised."""
     k1, k2, p1, p2, k3, k4, k5, k6 = D
     r2 = np.sum(x ** 2, axis=1)
     radial = (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
@@ -122,7 +122,8 @@ def test_other_models_are_refused_by_name(model, d, named) -> None:
 
 def test_a_turned_p_that_is_no_rotation_is_refused() -> None:
     with pytest.raises(ValueError, match='R is not a rotation'):
-        _info('plumb_bob', [0.0] * 5, p=[600.0, 0, 630, 0, 0, 600, 350, 0, 0, 0, 1, 0], r=np.diag([1.0, 1.0, 2.0]).ravel())
+        _info('plumb_bob', [0.0] * 5, p=[600.0, 0, 630, 0, 0, 600, 350, 0, 0, 0, 1, 0],
+              r=np.diag([1.0, 1.0, 2.0]).ravel())
 
 
 def test_plumb_bob_lamps_reach_the_solvers_untouched() -> None:

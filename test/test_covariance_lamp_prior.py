@@ -21,9 +21,11 @@ BOUND = 22.46
 
 def _smoothly_warped(observation, sigma_px: float, rng: np.random.Generator):
     """
-    The observation with its rim points moved outward by a random offset and first two harmonics
-    of the angle round the rim, each of sigma ``sigma_px``: what falloff, glare, clipping and blur
-    leave in a lamp's crossings, and what its ellipse absorbs.
+    Return the observation with its rim points moved outward by a smooth random pattern.
+
+    The pattern is a random offset plus the first two harmonics of the angle round the rim, each of
+    sigma ``sigma_px``: what falloff, glare, clipping and blur leave in a lamp's crossings, and what
+    its ellipse absorbs.
     """
     outward = observation.rim_points - observation.ellipse[:2]
     angle = np.arctan2(outward[:, 1], outward[:, 0])
@@ -35,9 +37,10 @@ def _smoothly_warped(observation, sigma_px: float, rng: np.random.Generator):
 
 def _two_lamp_poses(prior_px: float, seed: int) -> list:
     """
-    The poses of 40 frames of two lamps, 30 rim points each (0.1 px noise), each rim warped by
-    0.3 px per pattern, solved with ``prior_px`` as each lamp's prior of such patterns (None where
-    the lamps disagree too plainly for one pose).
+    Return the poses of 40 frames of two lamps, each rim warped by 0.3 px per pattern.
+
+    Each lamp has 30 rim points (0.1 px noise) and is solved with ``prior_px`` as its prior of such
+    patterns; a pose is None where the lamps disagree too plainly for one pose.
     """
     rng = np.random.default_rng(seed)
     estimates = []
@@ -52,8 +55,9 @@ def _two_lamp_poses(prior_px: float, seed: int) -> list:
 
 
 def test_each_lamps_prior_of_its_rim_patterns_bounds_what_two_lamps_claim() -> None:
-    # Measured before this allowance (ccc7ce1): the frame's estimate alone left 8 of the 12 poses beyond the bound (mean NEES 56);
-    # with the lamps' prior the same poses have mean NEES 7.5, none beyond.
+    # Measured before this allowance (ccc7ce1): the frame's estimate alone left 8 of the 12 poses
+    # beyond the bound (mean NEES 56); with the lamps' prior the same poses have mean NEES 7.5,
+    # none beyond.
     claimed = _two_lamp_poses(0.0, 51)
     bounded = _two_lamp_poses(0.4, 51)
     solved = [(c, b) for c, b in zip(claimed, bounded) if c is not None]

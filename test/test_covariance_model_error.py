@@ -1,6 +1,8 @@
 """
-The covariance stays honest when the lamps depart from the model (issue 13: a rim that falloff,
-glare or soft edges draw inside the true edge; an up direction the lamps tilt away from).
+The covariance stays honest when the lamps depart from the model.
+
+Issue 13: a rim that falloff, glare or soft edges draw inside the true edge; an up direction the
+lamps tilt away from.
 """
 from dataclasses import replace
 
@@ -25,8 +27,9 @@ def _drawn_inside(observation, by_px: float):
 
 def _poses_of_lamps_seen_as(lamps, count: int, rng: np.random.Generator, seen_as) -> list:
     """
-    ``count`` poses solved from ``lamps`` observed at ``TRUTH`` (60 rim points, 0.1 px noise), each
-    observation passed through ``seen_as``; every frame must be solved.
+    Return ``count`` poses solved from ``lamps`` observed at ``TRUTH``, each observation passed through ``seen_as``.
+
+    Each lamp has 60 rim points (0.1 px noise); every frame must be solved.
     """
     estimates = []
     for _ in range(count):
@@ -92,9 +95,10 @@ def test_two_lamps_whose_rims_are_warped_each_its_own_way_get_a_covariance_that_
 
 def _single_lamp_nees(model_sigma_px: float, seed: int) -> tuple[list[float], list[float]]:
     """
-    NEES and position errors (m) of one 4K lamp 2 m up, seen 10 degrees off frontal, whose rim is
-    drawn 0.3 px inside the edge and 0.5 px wider along a random axis than across it (0.1 px noise),
-    solved with ``model_sigma_px`` as the detector's prior of such patterns.
+    Return the NEES and position errors (m) of one 4K lamp 2 m up, seen 10 degrees off frontal.
+
+    Its rim is drawn 0.3 px inside the edge and 0.5 px wider along a random axis than across it
+    (0.1 px noise), solved with ``model_sigma_px`` as the detector's prior of such patterns.
     """
     rng = np.random.default_rng(seed)
     lamp = small_lamp((0.3, 0.2, 2.0))

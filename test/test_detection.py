@@ -236,8 +236,9 @@ def test_rim_points_lie_on_the_edge_on_average_whatever_the_blur(blur):
 
 def ellipse_chi_square(ellipse, points, sigma):
     """
-    Chi-square, under ``sigma``, of the points' distances from ``ellipse`` that a fitted
-    ellipse absorbs (5 degrees of freedom if the points' errors are independent with ``sigma``).
+    Return the chi-square, under ``sigma``, of the points' distances from ``ellipse`` that a fitted ellipse absorbs.
+
+    It has 5 degrees of freedom if the points' errors are independent with ``sigma``.
     """
     cx, cy, a, b, theta = ellipse
     rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
@@ -394,6 +395,8 @@ def test_bare_leds_with_glow_are_points_with_their_centre(core_radius, peak):
 @pytest.mark.parametrize('glare, falloff', [(0.2, 0.3), (0.0, 0.3), (0.2, 0.0)])
 def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, falloff):
     """
+    Fit the rim of a blurred lamp with a glare halo and falloff to its edge without bias.
+
     Blur 2 px, a row-lit glare halo of 20 % (Gaussian of 0.35 of the image diameter) and a diffuser
     30 % dimmer at the rim: half of the chord's middle lay inside the edge, and the semi-axes came out
     0.2-0.5 px short. Now the rim fits the edge to within 0.2 px in every frame (the halo alone lengthens the

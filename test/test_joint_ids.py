@@ -32,8 +32,9 @@ PHOTOS = 4
 @pytest.fixture(scope='module')
 def photos():
     """
-    Photos of the rig with its tones as FREQUENCIES and the row time 2 % off, and a sixth LED that
-    is not in the map, at 3575 Hz (between the two close bands), beside the centre.
+    Return photos of the rig with its tones as FREQUENCIES and the row time 2 % off, and a sixth LED.
+
+    The sixth LED is not in the map, at 3575 Hz (between the two close bands), beside the centre.
     """
     scenario = bare_led_scenario('4k', photos=PHOTOS, seed=21, look=PointLampLook(), row_time_error=0.02)
     rng = np.random.default_rng(3)

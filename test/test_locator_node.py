@@ -164,7 +164,7 @@ def test_bad_frames_are_dropped_counted_and_reported(start_process, test_node, t
 
 
 def _repeat_until(node, action, condition, timeout: float = 60.0) -> bool:
-    """``action()`` every half second until ``condition()`` holds."""
+    """Call ``action()`` every half second until ``condition()`` holds."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         action()
@@ -181,13 +181,13 @@ def test_compressed_transport_follows_image_raw_remapping(start_process, test_no
     assert spin_until(test_node, feeder.connected, CONNECT_S), locator.output()
     ok, png = cv2.imencode('.png', frame.image)
     msg = TYPESTORE.types['sensor_msgs/msg/CompressedImage'](header=_header(STAMP_NS), format='png',
-                                                            data=png.reshape(-1))
+                                                             data=png.reshape(-1))
     assert feeder.stream(_serialized(msg, 'sensor_msgs/msg/CompressedImage'), scenario.camera,
                          lambda: bool(feeder.poses)), locator.output()
     assert _pose_of(feeder.poses[0]).position_error(frame.pose) < 0.02
     feeder.images.publish(_serialized(
         TYPESTORE.types['sensor_msgs/msg/CompressedImage'](header=_header(STAMP_NS + 1), format='jpeg',
-                                                          data=np.frombuffer(b'\xff\xd8junk', np.uint8)),
+                                                           data=np.frombuffer(b'\xff\xd8junk', np.uint8)),
         'sensor_msgs/msg/CompressedImage'))
     assert spin_until(test_node, lambda: 'corrupt' in locator.output(), 30.0), locator.output()
     assert locator.popen.poll() is None

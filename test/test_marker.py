@@ -93,8 +93,9 @@ class _Model:
 
 def reference_inflation(residual, rows):
     """
-    (1 + rho) / (1 - rho) per axis, rho the residuals' lag-one correlation (clipped to [0, 0.8])
-    along rows and between adjacent used rows.
+    Return the product of (1 + rho) / (1 - rho) per axis, rho the residuals' lag-one correlation.
+
+    The axes are along rows and between adjacent used rows; rho is clipped to [0, 0.8].
     """
     factor = 1.0
     adjacent = np.flatnonzero(np.diff(rows) == 1)

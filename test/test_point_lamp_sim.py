@@ -20,8 +20,9 @@ import yaml
 @pytest.fixture(scope='module')
 def full_resolution_photo():
     """
-    One noise-free photo at the rig's full 7712 px, with the tone unmodulated (depth ~0)
-    for the profile and a second one striped.
+    Return one noise-free photo at the rig's full 7712 px with the tone unmodulated, and a second one striped.
+
+    The unmodulated one (depth ~0) is for the profile.
     """
     flat = bare_led_scenario('full', photos=1, seed=2, depth=1e-6)
     striped = bare_led_scenario('full', photos=1, seed=2, depth=0.75)
@@ -61,7 +62,8 @@ def test_bare_leds_on_the_command_line_writes_point_lamps_in_tone_mode(tmp_path,
                      '--out', str(out)]) == 0
     assert 'tone lamps' in capsys.readouterr().out
     values = default_parameters()
-    values.update(flatten_parameters(yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
+    values.update(flatten_parameters(
+        yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
     settings = settings_from_parameters(values)
     assert settings.beacon.mode == 'tone' and len(settings.lamps) == 5
     assert all(lamp.is_point for lamp in settings.lamps)

@@ -30,8 +30,9 @@ SIGMA_PX = 0.5
 def point_observation(lamp: Lamp, pose: Pose, camera, rng: np.random.Generator | None,
                       sigma: float = SIGMA_PX) -> LampObservation:
     """
-    A round blob centred on the lamp's projection plus N(0, sigma) per axis, its centre's
-    sigma measured by the detector.
+    Return a round blob centred on the lamp's projection plus N(0, sigma) per axis.
+
+    Its centre's sigma (``center_sigma``) is set as the detector measures it.
     """
     centre = camera.project(pose.map_to_camera(lamp.position))[0]
     if rng is not None:

@@ -39,7 +39,7 @@ def recorded_messages() -> list[Recorded]:
 
 @pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
 def test_a_split_bag_whose_files_overlap_in_time_arrives_complete_and_in_order(start_process, test_node,
-                                                                              tmp_path: Path, storage: str) -> None:
+                                                                               tmp_path: Path, storage: str) -> None:
     bag = write_overlapping_split_bag(tmp_path / 'bag', overlapping_recording(), storage=storage)
     expected = expected_strings(recorded_messages())
     received = subscribe_strings(test_node, expected)

@@ -158,7 +158,7 @@ def test_split_and_compressed_bags_play_every_message(start_process, test_node, 
 
 
 def test_types_without_installed_module_are_skipped_with_one_warning(start_process, test_node,
-                                                                    tmp_path: Path) -> None:
+                                                                     tmp_path: Path) -> None:
     from std_msgs.msg import String
     exotic = [Recorded('/exotic', 'foo_msgs/msg/Bar', m.timestamp_ns + 1, m.data) for m in chatter(3, 0.05)]
     bag = write_bag(tmp_path / 'bag', sorted(chatter(3, 0.05) + exotic, key=lambda m: m.timestamp_ns))
@@ -224,7 +224,7 @@ def test_bad_options_are_usage_errors_with_status_2(start_process) -> None:
 
 
 def test_deterministic_mode_publishes_each_frame_after_the_previous_answer(start_process, test_node,
-                                                                          tmp_path: Path) -> None:
+                                                                           tmp_path: Path) -> None:
     """Frames 100 s apart play in seconds, each after the answer to the previous one (or the timeout)."""
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import CameraInfo, Image

@@ -107,9 +107,10 @@ def test_command_line_writes_bag_and_params(tmp_path, capsys):
     assert 'wrote' in capsys.readouterr().out
     with Reader(out / 'paper_1080p') as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
-    assert counts == {topic: 4 for topic in TOPICS}
+    assert counts == dict.fromkeys(TOPICS, 4)
     values = default_parameters()
-    values.update(flatten_parameters(yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
+    values.update(flatten_parameters(
+        yaml.safe_load((out / 'params.yaml').read_text())['vlp_locator']['ros__parameters']))
     settings = settings_from_parameters(values)
     assert settings.imu_enabled and settings.prior_up is None and settings.continuity_max_age == 0.0
     assert settings.lamps.ids == [11] and settings.beacon.id_bits == 4

@@ -40,7 +40,7 @@ def lamp(radius=0.05, waveform=STEADY, marker_distance=0.88, marker_radius=0.09,
 
 
 def sensor(**changes) -> SensorModel:
-    settings = dict(row_time=3e-5, exposure=2e-5, ambient_bgr=(0.0, 0.0, 0.0), blur_sigma=0.0)
+    settings = {'row_time': 3e-5, 'exposure': 2e-5, 'ambient_bgr': (0.0, 0.0, 0.0), 'blur_sigma': 0.0}
     settings.update(changes)
     return SensorModel(**settings)
 
@@ -115,7 +115,8 @@ def test_blooming_spills_charge_beyond_a_saturated_disc_and_nowhere_else():
     bright = SimLamp(bright.lamp, STEADY, peak_dn=3 * LEVEL, color_bgr=WHITE, marker_radius=bright.marker_radius)
     clipped, spilled = render(bright, sensor()), render(bright, sensor(bloom=0.3, bloom_sigma=2.0))
     assert clipped[240, 320] == 255.0 and spilled[240, 320] == 255.0
-    # Beyond the rim (at column 349.5) the spill is bloom x the excess charge spread by its Gaussian; 20 px out, nothing.
+    # Beyond the rim (at column 349.5) the spill is bloom x the excess charge spread by its Gaussian;
+    # 20 px out, nothing.
     columns = np.arange(351, 355)
     expected = 0.3 * (3 * LEVEL - 255.0) * norm.cdf(-(columns - 349.5) / 2.0)
     np.testing.assert_allclose(spilled[240, columns] - clipped[240, columns], expected, atol=1.5)
@@ -229,9 +230,9 @@ def test_command_line_rejects_bad_looks_in_one_line(tmp_path, capsys, option, va
 
 def test_command_line_records_a_look_with_its_options(tmp_path, capsys):
     out = tmp_path / 'out'
-    status = cli.main(['--scenario', 'paper', '--camera', '1080p', '--points', '1', '--postures', '2', '--out', str(out),
-                       '--look', 'realistic_jpeg', '--row-time-error', '0.015', '--marker-distance', '0.9',
-                       '--still-interval', '0.1'])
+    status = cli.main(['--scenario', 'paper', '--camera', '1080p', '--points', '1', '--postures', '2',
+                       '--out', str(out), '--look', 'realistic_jpeg', '--row-time-error', '0.015',
+                       '--marker-distance', '0.9', '--still-interval', '0.1'])
     assert status == 0 and 'look realistic_jpeg' in capsys.readouterr().out
     with Reader(out / 'paper_1080p') as reader:
         stamps = [t for c, t, _ in reader.messages() if c.topic == COMPRESSED_TOPIC]
@@ -244,7 +245,8 @@ def test_command_line_records_a_look_with_its_options(tmp_path, capsys):
 
 
 def test_look_check_finds_our_own_realistic_frames_match_our_realistic_look(tmp_path, capsys):
-    scenario = apply_look(with_rim_markers(paper_scenario('1080p', points=1, postures=2, seed=4)), LOOKS['realistic_jpeg'])
+    scenario = apply_look(with_rim_markers(paper_scenario('1080p', points=1, postures=2, seed=4)),
+                          LOOKS['realistic_jpeg'])
     record(scenario, tmp_path / 'bag', 'mcap', False, np.random.default_rng(2))
     write_params(tmp_path / 'params.yaml', scenario, False)
     assert look_check.main([str(tmp_path), '--look', 'realistic']) == 0

@@ -41,7 +41,7 @@ def make_lamp(lamp_id=9, xy=(0.05, 0.15), height=1.0, radius=0.1, marker_angle=n
 
 
 def quiet_sensor(**changes) -> SensorModel:
-    settings = dict(row_time=3e-5, exposure=2e-5, ambient_bgr=(0.0, 0.0, 0.0), blur_sigma=0.0)
+    settings = {'row_time': 3e-5, 'exposure': 2e-5, 'ambient_bgr': (0.0, 0.0, 0.0), 'blur_sigma': 0.0}
     settings.update(changes)
     return SensorModel(**settings)
 
