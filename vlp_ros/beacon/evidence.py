@@ -76,7 +76,7 @@ class EvidenceTracker:
         if not (gate > 0.0 and max_gap > 0.0 and reach >= 0.0):
             raise ValueError(f'gate and max_gap must be positive and reach not negative, got {gate}, {max_gap} '
                              f'and {reach}')
-        self.known_ids = None if known_ids is None else set(int(i) for i in known_ids)
+        self.known_ids = None if known_ids is None else {int(i) for i in known_ids}
         self.min_confidence = min_confidence
         self.gate = gate
         self.max_gap = max_gap

@@ -74,7 +74,7 @@ def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
     ``chip_weights`` (L, 2 + id_bits) say what the constant (the preamble) and each bit put on
     every packet position (Manchester: +-1 on the bit's two chips).
     """
-    ids, length = 2 ** id_bits, packet_length(id_bits)
+    ids = 2 ** id_bits
     signs = np.array([packet_chips(i, id_bits) for i in range(ids)], dtype=float) * 2 - 1
     bit_signs = np.array([packet_bits(i, id_bits) for i in range(ids)], dtype=float).T * 2 - 1
     design = np.vstack([np.ones(ids), bit_signs])

@@ -5,7 +5,7 @@ Every row of the sensor starts exposing ``row_time`` after the one above, so the
 mean over a row's lamp pixels samples the beacon's light at that row's time. The
 disc's curved edge is blurred into the background and the marker is dimmer than
 the disc, so both are left out; rows that keep fewer pixels are weighted less.
-"""
+"""  # noqa: A005 the package's own ``vlp_ros.beacon.profile``, imported by its full name, never the stdlib's
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,6 +17,7 @@ import numpy as np
 
 from vlp_ros.compiled import kernel
 from vlp_ros.core.observation import LampObservation
+
 
 @dataclass(frozen=True)
 class RowProfile:

@@ -18,7 +18,7 @@ class Lamp:
     """
 
     name: str
-    id: int
+    id: int  # noqa: A003 the lamp's beacon ID, a public field named as the map file's ``id`` key
     position: np.ndarray
     radius: float
     marker_angle: float = 0.0

@@ -480,8 +480,9 @@ def _marker_rows(profile: np.ndarray, background: float,
     """
     Whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, and each row's
     level gradient, of a row profile (NaN: unknown). The gradient is the level's signed relative
-    derivative, on unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
-    clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours).
+    derivative, on unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows
+    count when a neighbour is clipped too (a lone clipped row is the crest of a stripe blur has mixed
+    with both its neighbours).
     """
     lit, brightest = False, -np.inf
     for level in profile:

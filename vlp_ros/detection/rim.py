@@ -90,7 +90,8 @@ def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
 
 @kernel
 def _crossings(brightness: np.ndarray, rows: np.ndarray, first: np.ndarray, last: np.ndarray,
-               plateau: np.ndarray, background: float, reach: int, fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               plateau: np.ndarray, background: float, reach: int,
+               fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``row_crossings``: left crossings in row order, then right ones."""
     width = brightness.shape[1]
     points = np.empty((2 * rows.size, 2))
@@ -431,9 +432,9 @@ def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.nda
             if across < _MIN_ACROSS or (2.0 * far - near) / across > 0.5 * (right[i] - left[i]):
                 continue
             found_1, inside_1, outside_1 = _band_levels(brightness, rows[i], edge, inward, near / across,
-                                                         far / across, width)
+                                                        far / across, width)
             found_2, inside_2, outside_2 = _band_levels(brightness, rows[i], edge, inward, far / across,
-                                                         (2.0 * far - near) / across, width)
+                                                        (2.0 * far - near) / across, width)
             if not (found_1 and found_2):
                 continue
             # Band centres at c and c + (far - near) blurs: a straight line back to the edge.

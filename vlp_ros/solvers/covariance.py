@@ -139,9 +139,9 @@ def _add_rotation_curvature(covariance, lever):
 # a lamp's own prior (``mode_prior_sigma``, from its edge) bounds what the fit may claim: the
 # covariance is that of the fit's estimate with the lamp's modes spread by that prior (the sandwich
 # of ``_add_mode_prior_excess``), and the pose stays where the estimated sigma put it (a floor on
-# the sigma itself moved the independent renderer's robot poses, doubling their errors). Besides, a common rim offset (all lamps alike) is a
-# parameter with a prior of ``RIM_OFFSET_FLOOR_PX`` (or ``RIM_OFFSET_PRIOR`` times the rim's
-# scatter, if more); with several lamps, which fix the scale, it moves the pose where the
+# the sigma itself moved the independent renderer's robot poses, doubling their errors). Besides,
+# a common rim offset (all lamps alike) is a parameter with a prior of ``RIM_OFFSET_FLOOR_PX``
+# (or ``RIM_OFFSET_PRIOR`` times the rim's scatter, if more); with several lamps, which fix the scale, it moves the pose where the
 # data determine it (its variance below ``OFFSET_DETERMINED`` of the prior's). One lamp's
 # marker would fix the scale too, but too noisily and with a bias near frontal views
 # (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance along

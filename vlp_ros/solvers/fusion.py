@@ -74,7 +74,8 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
     if len(pairs) == 1:
         observation, lamp = pairs[0]
         if observation.marker is None:
-            return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+            return Choice(None, Reason.NO_CANDIDATES,
+                          f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
         candidates = solve_lamp(observation, lamp, camera, up)
         explaining = [c for c in candidates if explains_the_image(c)]
         if candidates and not explaining:

@@ -101,8 +101,8 @@ def open_lamps(observations: list[LampObservation], ids: list[int | None], readi
         posterior = np.exp(log_post - log_post.max())
         posterior /= posterior.sum()
         order = [k for k in np.argsort(-posterior)
-                 if reading.mapped[k] and int(reading.candidates[k]) not in taken and int(reading.candidates[k]) in lamps
-                 and usable(observation, lamps.get(int(reading.candidates[k])))]
+                 if reading.mapped[k] and int(reading.candidates[k]) not in taken
+                 and int(reading.candidates[k]) in lamps and usable(observation, lamps.get(int(reading.candidates[k])))]
         order = _plausible(order, posterior)
         if order:
             found.append(OpenLamp(observation, tuple(lamps.get(int(reading.candidates[k])) for k in order),

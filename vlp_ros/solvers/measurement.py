@@ -92,9 +92,9 @@ class LampMeasurement:
         lamp, count = self.lamp, len(self.rim_rays)
         markers = {}
         if self.marker_pixel is not None:
-            markers = dict(marker_maps=lamp.marker_position().reshape(1, 3),
-                           marker_pixels=np.array(self.marker_pixel, dtype=float).reshape(1, 2),
-                           marker_sigma=np.array([self.marker_sigma]))
+            markers = {'marker_maps': lamp.marker_position().reshape(1, 3),
+                       'marker_pixels': np.array(self.marker_pixel, dtype=float).reshape(1, 2),
+                       'marker_sigma': np.array([self.marker_sigma])}
         terms = Terms(rays=np.ascontiguousarray(self.rim_rays, dtype=float),
                       lens=np.ascontiguousarray(self.rim_pixel_jacobian, dtype=float).reshape(count, 4),
                       rim_sigma=np.full(count, self.rim_sigma), lamp_of_point=np.zeros(count, dtype=np.int64),

@@ -158,7 +158,8 @@ def agreeing(light: BeaconReading, disc: BeaconReading) -> BeaconReading:
     if not has_evidence(light):
         return disc
     if has_evidence(disc) and _favourite(disc) != _favourite(light):
-        return no_evidence(light.candidates, light.mapped, light.log_prior, 'its disc and its glow read different tones')
+        return no_evidence(light.candidates, light.mapped, light.log_prior,
+                           'its disc and its glow read different tones')
     return light
 
 
