@@ -59,7 +59,8 @@ def tone_setting_advice(frequencies: Mapping[str, float], row_time: float, expos
         advice.append(f'beacon.exposure {exposure * 1e6:g} us is shorter than beacon.row_time {row_time * 1e6:g} us: '
                       f"stripe edges between the rows' exposures cannot be placed, and lamps are identified less "
                       f'often; an exposure of at least a row time reads them best')
-    few_rows = {name: 1.0 / (f * row_time) for name, f in frequencies.items() if f * row_time * MIN_ROWS_PER_PERIOD > 1.0}
+    few_rows = {name: 1.0 / (f * row_time) for name, f in frequencies.items()
+                if f * row_time * MIN_ROWS_PER_PERIOD > 1.0}
     if few_rows:
         advice.append(f'fewer than {MIN_ROWS_PER_PERIOD:g} rows per stripe period at beacon.row_time '
                       f'{row_time * 1e6:g} us for {_listed(few_rows, "rows")}: these lamps need more stripe periods '

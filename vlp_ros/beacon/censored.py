@@ -72,9 +72,11 @@ def clipped_run_grids(share: np.ndarray, period: float, tolerance: float) -> lis
 def raw_chips(z: np.ndarray, w: np.ndarray, share: np.ndarray, levels: ChipLevels,
               margin: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    Each chip of ``levels`` as the rows it averages show it, before the local extremes normalise it
-    (they squeeze a clipped neighbourhood's contrast to the ceiling's): its relative brightness, the weight
-    of its rows, and the weighted share of its pixels that are clipped.
+    Return each chip of ``levels`` as the rows it averages show it, before normalisation.
+
+    That is before the local extremes normalise it (they squeeze a clipped neighbourhood's contrast to
+    the ceiling's): its relative brightness, the weight of its rows, and the weighted share of its pixels
+    that are clipped.
     """
     sums = [np.concatenate([[0.0], np.cumsum(values)]) for values in (w, w * z, w * share)]
     low, high = interior_bounds(levels, margin, len(w))
@@ -92,9 +94,11 @@ def raw_chips(z: np.ndarray, w: np.ndarray, share: np.ndarray, levels: ChipLevel
 def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
                              mixes: tuple[float, ...]) -> tuple[np.ndarray, float]:
     """
-    Log-likelihood of each ID (shift and mix marginalised, equally likely a priori) of chip levels ``x``
-    (weights ``v``, chip indices ``k``, ``censored`` ones lower bounds), and the best hypothesis's deviance
-    (weighted squared residuals of the measured chips plus -2 log P of the censored ones).
+    Return the log-likelihood of each ID of chip levels ``x``, and the best hypothesis's deviance.
+
+    Shift and mix are marginalised, the IDs equally likely a priori; ``v`` are the weights, ``k`` the
+    chip indices, and ``censored`` ones are lower bounds. The deviance is the weighted squared residuals
+    of the measured chips plus -2 log P of the censored ones.
     """
     fits = _censored_fits(np.asarray(x, dtype=float), np.asarray(v, dtype=float), np.asarray(k, dtype=np.int64),
                           np.asarray(censored, dtype=np.bool_), _signs(id_bits), np.asarray(mixes, dtype=float))
@@ -139,8 +143,10 @@ def _censored_fits(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.nda
 @kernel
 def _fit(design: np.ndarray, x: np.ndarray, v: np.ndarray, root: np.ndarray, censored: np.ndarray) -> float:
     """
-    Newton's method from the least-squares fit of every chip (censored ones at their bounds), halving
-    steps that do not raise the log-likelihood; the contrast is kept positive (``_positive_contrast``).
+    Return the log-likelihood that Newton's method maximises.
+
+    Newton's method starts from the least-squares fit of every chip (censored ones at their bounds), halving steps
+    that do not raise the log-likelihood; the contrast is kept positive (``_positive_contrast``).
     """
     n, size = len(x), _PARAMETERS
     gradient, hessian = np.zeros(size), np.zeros((size, size))
@@ -233,8 +239,9 @@ def _mills(u: float) -> float:
 @kernel
 def _solve(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
     """
-    matrix^-1 vector for a small symmetric positive semi-definite matrix, a tiny ridge against a singular
-    one (a hypothesis whose template the envelope explains).
+    Return matrix^-1 vector for a small symmetric positive semi-definite matrix.
+
+    A tiny ridge guards against a singular one (a hypothesis whose template the envelope explains).
     """
     ridged = matrix.copy()
     for a in range(len(vector)):

@@ -58,9 +58,10 @@ class ChipLevels:
 @kernel
 def _cumulative(z: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
-    Cumulative sums of w, w z, w z^2 and of used rows up to each row boundary (4, n + 1), and each
-    row's own terms (4, n + 1; 0 past the end): a sum to position u (rows split pro rata) is
-    ``_at(sums, rows, field, u)``.
+    Return cumulative sums of w, w z, w z^2 and of used rows up to each row boundary, and each row's own terms.
+
+    The sums are (4, n + 1); each row's own terms (4, n + 1; 0 past the end): a sum to position u (rows
+    split pro rata) is ``_at(sums, rows, field, u)``.
     """
     n = len(z)
     sums = np.zeros((4, n + 1))
@@ -121,8 +122,9 @@ def chip_levels(z: np.ndarray, w: np.ndarray, period: float, tolerance: float,
 def levels_on_grid(z: np.ndarray, w: np.ndarray, period: float, phase: float,
                    margin: float | None) -> ChipLevels | None:
     """
-    Chip levels of modulation ``z`` (weights ``w``) on the grid whose chips begin at ``phase`` + k ``period``
-    rows (None: no chip holds enough rows).
+    Return the chip levels of modulation ``z`` (weights ``w``) on a grid of chips.
+
+    The grid's chips begin at ``phase`` + k ``period`` rows. None: no chip holds enough rows.
     """
     sums, rows = _cumulative(z, w)
     return _on_grid(sums, rows, period, phase, margin, max(_noise_variance(z, w), 1e-12))
@@ -247,8 +249,10 @@ def _levels(sums: np.ndarray, rows: np.ndarray, period: float, phase: float, mar
 def _search_grid(sums: np.ndarray, rows: np.ndarray, period: float, tolerance: float,
                  sigma2: float, thorough: bool) -> tuple[float, float]:
     """
-    A coarse grid, then a fine one around its best on the whole window (a period error drifts the grid in
-    proportion to the rows it spans from where it is anchored).
+    Search a coarse grid, then a fine one around its best on the whole window.
+
+    The fine one spans the whole window because a period error drifts the grid in proportion to the rows
+    it spans from where it is anchored.
 
     Quick: the coarse grid on the window's first 24 chips, 6 phases. ``thorough``: on the whole window, its
     period steps as fine as the window's length needs, 24 phases, anchored at the window's weighted middle. A

@@ -72,11 +72,13 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
 
 def confirmed_by_light(disc: BeaconReading, light: BeaconReading) -> BeaconReading:
     """
-    ``light`` (the reading over every row the lamp's light reaches) where it is certain and names ``disc``'s
-    most probable candidate; otherwise ``disc``. A glare halo carries the stripes on rows above and below the
-    disc, so a lamp that shows less than a packet on its disc can show all of it in its light (the simulator's
-    hand-held glare stills: 0.7 of a packet on the disc, read at 0.97; certain on the light). Both must agree:
-    a certain light reading alone is not enough where the disc's own rows favour another ID.
+    Return ``light`` where it is certain and names ``disc``'s most probable candidate; otherwise ``disc``.
+
+    ``light`` is the reading over every row the lamp's light reaches. A glare halo carries the stripes on
+    rows above and below the disc, so a lamp that shows less than a packet on its disc can show all of it
+    in its light (the simulator's hand-held glare stills: 0.7 of a packet on the disc, read at 0.97;
+    certain on the light). Both must agree: a certain light reading alone is not enough where the disc's
+    own rows favour another ID.
     """
     if light.lamp_id is None:
         return disc

@@ -76,7 +76,7 @@ class EvidenceTracker:
         if not (gate > 0.0 and max_gap > 0.0 and reach >= 0.0):
             raise ValueError(f'gate and max_gap must be positive and reach not negative, got {gate}, {max_gap} '
                              f'and {reach}')
-        self.known_ids = None if known_ids is None else set(int(i) for i in known_ids)
+        self.known_ids = None if known_ids is None else {int(i) for i in known_ids}
         self.min_confidence = min_confidence
         self.gate = gate
         self.max_gap = max_gap
@@ -126,10 +126,11 @@ class EvidenceTracker:
 
     def _inheriting_another_lamps_id(self, followed: list[_Track], readings: Sequence[BeaconReading]) -> list[int]:
         """
-        The observations whose track is certain of an ID that another lamp of this frame reads with certainty
-        on its own: one lamp cannot be in two places, and the frame's own reading says where it is now. The
-        other track was continued by a lamp that came near the old place of a lamp now elsewhere (a hand-held
-        camera moved between stills, an unmodulated lamp beside the track's lamp).
+        Return the observations whose track is certain of an ID that another lamp of this frame reads with certainty.
+
+        The other lamp reads it on its own: one lamp cannot be in two places, and the frame's own reading says
+        where it is now. The other track was continued by a lamp that came near the old place of a lamp now
+        elsewhere (a hand-held camera moved between stills, an unmodulated lamp beside the track's lamp).
         """
         read_now = {r.lamp_id for r in readings if r.lamp_id is not None}
         return [k for k, (track, reading) in enumerate(zip(followed, readings))

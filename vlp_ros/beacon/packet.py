@@ -74,7 +74,7 @@ def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
     ``chip_weights`` (L, 2 + id_bits) say what the constant (the preamble) and each bit put on
     every packet position (Manchester: +-1 on the bit's two chips).
     """
-    ids, length = 2 ** id_bits, packet_length(id_bits)
+    ids = 2 ** id_bits
     signs = np.array([packet_chips(i, id_bits) for i in range(ids)], dtype=float) * 2 - 1
     bit_signs = np.array([packet_bits(i, id_bits) for i in range(ids)], dtype=float).T * 2 - 1
     design = np.vstack([np.ones(ids), bit_signs])
@@ -131,10 +131,12 @@ def decode_clipped_packet(profile: RowProfile, chip_rate: float, row_time: float
                           min_confidence: float = MIN_CONFIDENCE, model_error: float = 0.2,
                           blur_mixes: tuple[float, ...] = BLUR_MIXES) -> BeaconReading:
     """
-    ``decode_packet`` of a clipped window of a disc's ``row_profile`` (clipped pixels kept at the ceiling),
-    its mostly clipped chips read as censored, "at least this bright" (vlp_ros.beacon.censored), blur weighed
-    in (``blur_mixes``) on the thoroughly searched grid. No evidence for a window that is not clipped (the
-    Gaussian reading holds there), and for one whose best fit misfits even so.
+    Decode a clipped window of a disc's ``row_profile`` as ``decode_packet`` does, its clipped chips censored.
+
+    Clipped pixels are kept at the ceiling; the window's mostly clipped chips are read as censored, "at
+    least this bright" (vlp_ros.beacon.censored), blur weighed in (``blur_mixes``) on the thoroughly
+    searched grid. No evidence for a window that is not clipped (the Gaussian reading holds there), and
+    for one whose best fit misfits even so.
     """
     period, margin = _chip_timing(chip_rate, row_time, id_bits, exposure)
     candidates, mapped, prior = _hypotheses(id_bits, None if known_ids is None else tuple(known_ids),
@@ -183,8 +185,9 @@ def _censored_fit(z: np.ndarray, w: np.ndarray, clipped_share: np.ndarray, level
 def _chip_timing(chip_rate: float, row_time: float, id_bits: int,
                  exposure: float | None) -> tuple[float, float | None]:
     """
-    The nominal chip period in rows, and the rows at each chip edge whose exposure sees both neighbours
-    (None: unknown exposure).
+    Return the nominal chip period in rows, and the rows at each chip edge whose exposure sees both neighbours.
+
+    The latter is None for an unknown exposure.
     """
     if not (chip_rate > 0.0 and row_time > 0.0):
         raise ValueError(f'chip_rate and row_time must be positive, got {chip_rate} and {row_time}')
@@ -282,8 +285,9 @@ def _hypotheses(id_bits: int, known_ids: tuple[int, ...] | None,
 def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: int,
                         mixes: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, float]:
     """
-    Log-likelihood of each ID (the window's start in the packet and the blur's mix marginalised), and the
-    best fit's weighted squared residual.
+    Return the log-likelihood of each ID, and the best fit's weighted squared residual.
+
+    The window's start in the packet and the blur's mix are marginalised.
 
     Chip k of the window is packet position (k + shift) % L; its level is a
     quadratic baseline in k plus beta * (sign_k + mix (sign_k-1 + sign_k+1)), Gaussian with weights ``v``,
@@ -397,8 +401,9 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
 @kernel
 def _half_gains(sums: np.ndarray, energy: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
     """
-    Half the gain of each (shift, ID)'s best-fitting contrast (L, ids) from ``sums`` (4 L, ids), and each
-    ID's best (float32 arithmetic, like the sums).
+    Return half the gain of each (shift, ID)'s best-fitting contrast, and each ID's best.
+
+    The gains are (L, ids), from ``sums`` (4 L, ids), in float32 arithmetic like the sums.
 
     With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
     contrast must be positive.
@@ -420,8 +425,9 @@ def _half_gains(sums: np.ndarray, energy: np.ndarray, length: int) -> tuple[np.n
 @kernel
 def _orthonormal_baseline(k: np.ndarray, v: np.ndarray) -> np.ndarray:
     """
-    1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v`` (Gram-Schmidt,
-    written out through the weighted moments of t), (3, n).
+    Return 1, t, t^2 in the (increasing) chip index, made orthonormal under the weights ``v``, (3, n).
+
+    Gram-Schmidt, written out through the weighted moments of t.
     """
     n = len(k)
     middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)

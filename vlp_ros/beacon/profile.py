@@ -5,7 +5,7 @@ Every row of the sensor starts exposing ``row_time`` after the one above, so the
 mean over a row's lamp pixels samples the beacon's light at that row's time. The
 disc's curved edge is blurred into the background and the marker is dimmer than
 the disc, so both are left out; rows that keep fewer pixels are weighted less.
-"""
+"""  # noqa: A005 the package's own ``vlp_ros.beacon.profile``, imported by its full name, never the stdlib's
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,6 +17,7 @@ import numpy as np
 
 from vlp_ros.compiled import kernel
 from vlp_ros.core.observation import LampObservation
+
 
 @dataclass(frozen=True)
 class RowProfile:
@@ -138,8 +139,9 @@ def _row_means(luma: np.ndarray, peak: np.ndarray, disc: np.ndarray, marker: np.
 @kernel
 def _usable(disc: np.ndarray, margin: int) -> np.ndarray:
     """
-    Each row's span [start, end) of the disc shrunk by ``margin`` (pixels whose (2 margin + 1)^2 square
-    lies wholly in the disc and the bbox), (height, 2).
+    Return each row's span [start, end) of the disc shrunk by ``margin``, (height, 2).
+
+    The span holds the pixels whose (2 margin + 1)^2 square lies wholly in the disc and the bbox.
 
     The disc is convex: one run of pixels per row (a row whose pixels are not one run raises).
     Shrunk along the row, each run loses ``margin`` pixels at either end; across rows, a pixel must
@@ -354,9 +356,11 @@ def _separable_light(pixels: np.ndarray, y0: int, y1: int, x0: int, x1: int, str
 def _fit_light(total: np.ndarray, count: np.ndarray, use: np.ndarray, brightness: np.ndarray,
                measured: np.ndarray) -> np.ndarray:
     """
-    Each radial bin's light given the rows' brightness (least squares over the unclipped pixels of the
-    bins in ``use`` and the rows ``measured`` > 0); bins dimmer than _MIN_LIGHT of the brightest are
-    background (0). Every bin's sums run over the rows in order, all bins at once (a row is contiguous).
+    Return each radial bin's light given the rows' brightness.
+
+    Least squares over the unclipped pixels of the bins in ``use`` and the rows ``measured`` > 0; bins
+    dimmer than _MIN_LIGHT of the brightest are background (0). Every bin's sums run over the rows in
+    order, all bins at once (a row is contiguous).
     """
     rows, bins = total.shape
     top, bottom = np.zeros(bins), np.zeros(bins)

@@ -27,7 +27,11 @@ def median(values: np.ndarray) -> float:
 
 @kernel
 def percentile(values: np.ndarray, q: float) -> float:
-    """np.percentile(values, q) of a non-empty 1D array, linearly interpolated as numpy does."""
+    """
+    Return the q-th percentile of a non-empty 1D array, linearly interpolated as numpy does.
+
+    It equals np.percentile(values, q).
+    """
     n = len(values)
     position = q / 100.0 * (n - 1)
     below = int(math.floor(position))

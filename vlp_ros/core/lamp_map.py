@@ -9,8 +9,9 @@ import numpy as np
 @dataclass(frozen=True)
 class Lamp:
     """
-    A flat luminous disc facing down (-z) with a red marker just inside its rim, or, with
-    ``radius`` 0, a point lamp (a bare LED, or a lamp too small or soft for an ellipse): the
+    A flat luminous disc facing down (-z) with a red marker just inside its rim, or a point lamp.
+
+    A point lamp has ``radius`` 0 (a bare LED, or a lamp too small or soft for an ellipse): the
     solvers see only the centre of its light, and it shines down, so it is seen from below.
 
     ``marker_angle`` is measured in the map from +x toward +y; ``marker_distance``
@@ -18,7 +19,7 @@ class Lamp:
     """
 
     name: str
-    id: int
+    id: int  # noqa: A003 the lamp's beacon ID, a public field named as the map file's ``id`` key
     position: np.ndarray
     radius: float
     marker_angle: float = 0.0

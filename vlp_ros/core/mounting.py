@@ -70,7 +70,9 @@ class Mounting:
 
     def camera_pose(self, base: Pose) -> Pose:
         """
-        The camera optical frame's pose in the map for a base pose (no covariance): the inverse of base_pose.
+        Return the camera optical frame's pose in the map for a base pose (no covariance).
+
+        It is the inverse of base_pose.
         """
         return Pose(base.rotation @ self.rotation, base.position + base.rotation @ self.translation)
 

@@ -314,10 +314,10 @@ def _ranked_level(counts: np.ndarray, rank: int) -> int:
 def _rim_points(box: _LampBox, levels: RowLevels, options: DetectionOptions, fraction: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    Row crossings (N, 2) at ``fraction`` of each row's rise (``edge_level_fraction``; None: a half),
-    their rows' plateaus, and which rows are clipped.
+    Return row crossings (N, 2) at ``fraction`` of each row's rise, their rows' plateaus, and which rows are clipped.
 
-    Clipped rows are left out when enough unclipped ones remain.
+    ``fraction`` is ``edge_level_fraction``'s (None: a half). Clipped rows are left out when enough
+    unclipped ones remain.
     """
     points, plateaus = row_crossings(box.brightness, levels, box.background, options.reach, fraction)
     seed = box.seed
@@ -417,10 +417,12 @@ def clipped_row_share(box: _LampBox, options: DetectionOptions) -> float:
 
 def clipped_edge_model_sigma(clipped_share: float, blur_px: float) -> float:
     """
-    How far (px, one sigma per mode of ``measurement.rim_error_modes``) the crossings of a
-    lamp whose lit rows clip on ``clipped_share`` may depart from its edge beyond what its blur
-    alone allows (``edge_model_sigma``): the light of the clipped rows, of unknown level, that
-    blur of ``blur_px`` mixes into the rows' ends and glare blooms out of them.
+    Return how far the crossings of a lamp whose lit rows clip may depart from its edge beyond its blur.
+
+    The distance is in px, one sigma per mode of ``measurement.rim_error_modes``, for a lamp whose lit
+    rows clip on ``clipped_share``, beyond what its blur alone allows (``edge_model_sigma``): the light
+    of the clipped rows, of unknown level, that blur of ``blur_px`` mixes into the rows' ends and glare
+    blooms out of them.
     """
     return _CLIPPED_EDGE_BLURS * clipped_share * blur_px
 
@@ -478,10 +480,13 @@ class _MarkerRows(NamedTuple):
 def _marker_rows(profile: np.ndarray, background: float,
                  saturation_level: float) -> _MarkerRows:
     """
-    Whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, and each row's
-    level gradient, of a row profile (NaN: unknown). The gradient is the level's signed relative
-    derivative, on unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows count when a neighbour is
-    clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its neighbours).
+    Return what ``_marker`` may fit on of a row profile, and each row's level gradient.
+
+    That is whether any row is lit, the unclipped and the clipped rows ``_marker`` may fit on, and each
+    row's level gradient (NaN: unknown). The gradient is the level's signed relative derivative, on
+    unclipped rows between known unclipped neighbours only (elsewhere 0). Clipped rows count when a
+    neighbour is clipped too (a lone clipped row is the crest of a stripe blur has mixed with both its
+    neighbours).
     """
     lit, brightest = False, -np.inf
     for level in profile:
@@ -531,8 +536,9 @@ def _marker_levels(red: np.ndarray, seed: MarkerSeed, profile: np.ndarray, uncli
 def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: np.ndarray, unclipped: np.ndarray,
                   clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
-    Mean redness over the seed's middle half in each unclipped row crossing it (over the row's
-    level) and in each clipped one.
+    Return the mean redness over the seed's middle half in each unclipped and in each clipped row crossing it.
+
+    The unclipped rows' redness is over the row's level.
     """
     half = 0.5 * radius
     y0, y1 = max(math.ceil(centre[1] - half), 0), min(math.floor(centre[1] + half), red.shape[0] - 1)
@@ -560,10 +566,11 @@ def _core_redness(red: np.ndarray, centre: np.ndarray, radius: float, profile: n
 def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_shape: tuple[int, int],
                    origin: tuple[int, int], frame_shape: tuple[int, int], options: DetectionOptions) -> bool:
     """
-    The rim is elliptic, big enough, seen on both sides, and its blurred disc (``extent``: its
-    ellipse's ``_extent``) lies inside the box and frame: three of the blurs its ramps measured (up to
-    ``max_blur``'s, which stands where they do not tell) beyond the rim, where the light has reached
-    the ceiling's level.
+    Tell whether the rim is elliptic, big enough, seen on both sides, and its blurred disc lies inside.
+
+    The blurred disc (``extent``: its ellipse's ``_extent``) must lie inside the box and frame: three of
+    the blurs its ramps measured (up to ``max_blur``'s, which stands where they do not tell) beyond the
+    rim, where the light has reached the ceiling's level.
     """
     cx, _, a, b, _ = rim.ellipse.tolist()
     count = len(rim.points)

@@ -153,8 +153,9 @@ def redness(bgr: np.ndarray) -> np.ndarray:
 
 def redness_and_peaks(bgr: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
     """
-    ``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels
-    (the detector's first over a lamp box: reading it from the frame costs more than either).
+    Return ``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels.
+
+    It is the detector's first pass over a lamp box: reading it from the frame costs more than either.
     """
     return tuple(_redness(bgr))
 
@@ -229,8 +230,9 @@ def _redness(bgr: np.ndarray) -> _Redness:
 @kernel
 def _seed(red: np.ndarray, search_radius: float, min_redness: float) -> _Seed:
     """
-    The first maximum of ``red`` (as np.argmax), and the box of the
-    pixels above 0.4 of it within ``search_radius`` (a square) around it.
+    Return the first maximum of ``red`` (as np.argmax), and the box of the pixels above 0.4 of it.
+
+    The box holds those pixels within ``search_radius`` (a square) around the maximum.
     """
     height, width = red.shape
     flat = red.ravel()

@@ -45,8 +45,10 @@ _MAX_CORRELATION = 0.8
 @dataclass(frozen=True)
 class PointFit:
     """
-    Centre (box pixels) and radius of the core, the centre's standard deviation per axis
-    (px, the larger of the two), the kept crossings and their RMS distance from the circle.
+    Centre (box pixels) and radius of the core, and the quality of its fit.
+
+    That is the centre's standard deviation per axis (px, the larger of the two), the kept crossings and
+    their RMS distance from the circle.
     """
 
     center: np.ndarray
@@ -59,8 +61,9 @@ class PointFit:
 def fit_point(brightness: np.ndarray, background: float, noise: float, min_radius: float,
               noise_factor: float, saturation_level: float) -> PointFit | None:
     """
-    The centre of the light in ``brightness`` (one lamp's box, one channel), or None when its core
-    is not round enough, or too small (``min_radius`` px), to give one.
+    Return the centre of the light in ``brightness`` (one lamp's box, one channel).
+
+    None when its core is not round enough, or too small (``min_radius`` px), to give one.
 
     A clipped row's maximum is not its level, and where it leaves the clip depends on how
     far its stripe overexposes it: clipped rows are used only when the unclipped ones give
@@ -106,9 +109,10 @@ def _core_fit(points: np.ndarray, rows: np.ndarray, core: np.ndarray, min_radius
 def _half_maximum_crossings(brightness: np.ndarray, background: float, floor: float,
                             saturation_level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    Left and right crossings (interleaved, (2N, 2)) of half of each bright row's maximum (of the
-    clip level in clipped rows), around the run of pixels above it that holds the maximum, the N rows
-    and which of them are clipped.
+    Return the left and right crossings of half of each bright row's maximum, the N rows and which are clipped.
+
+    The crossings are interleaved, (2N, 2), at half the clip level in clipped rows, around the run of
+    pixels above it that holds the maximum.
     """
     light = brightness.astype(np.float64) - background
     maxima = light.max(axis=1)

@@ -58,11 +58,12 @@ _FRACTION_BOUNDS = (0.25, 0.75)
 @dataclass(frozen=True)
 class RimFit:
     """
-    The ellipse through the kept rim points, their RMS distance across the edge (px), how
-    many points were left after grazing rows were dropped (before outlier rejection), and the
-    prior sigma (px) of the smooth patterns round the rim by which the edge may depart from the
-    model's (``edge_model_sigma``; 0 where the ramps do not tell the blur), and the edge's blur
-    sigma (px) that the ramps measured (None where they do not tell).
+    The ellipse through the kept rim points, and how well and how blurred the rim was seen.
+
+    It holds their RMS distance across the edge (px), how many points were left after grazing rows were
+    dropped (before outlier rejection), and the prior sigma (px) of the smooth patterns round the rim by
+    which the edge may depart from the model's (``edge_model_sigma``; 0 where the ramps do not tell the
+    blur), and the edge's blur sigma (px) that the ramps measured (None where they do not tell).
     """
 
     ellipse: np.ndarray
@@ -76,8 +77,10 @@ class RimFit:
 def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
                   reach: int, fraction: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """
-    Left and right crossings of every row at ``fraction`` (one per row of ``levels``; None: a
-    half) of the way from background to the row's plateau, as points (N, 2) in the array's pixels.
+    Return the left and right crossings of every row at ``fraction`` of the way from background to its plateau.
+
+    There is one ``fraction`` per row of ``levels`` (None: a half); the crossings are points (N, 2) in
+    the array's pixels.
 
     Returns the points and each one's row plateau. ``reach`` bounds how far inside
     the first pixel above threshold the crossing may lie. Rows whose edge leaves the
@@ -90,7 +93,8 @@ def row_crossings(brightness: np.ndarray, levels: RowLevels, background: float,
 
 @kernel
 def _crossings(brightness: np.ndarray, rows: np.ndarray, first: np.ndarray, last: np.ndarray,
-               plateau: np.ndarray, background: float, reach: int, fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               plateau: np.ndarray, background: float, reach: int,
+               fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``row_crossings``: left crossings in row order, then right ones."""
     width = brightness.shape[1]
     points = np.empty((2 * rows.size, 2))
@@ -194,8 +198,10 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
 def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
                   ellipse: np.ndarray) -> float | None:
     """
-    Variance (px^2) across the edge of the blur it went through (optics and pixel area together),
-    from the ramps of unclipped rows at their crossings ``points``; None if too few rows tell.
+    Return the variance (px^2) across the edge of the blur it went through; None if too few rows tell.
+
+    The blur is optics and pixel area together, measured from the ramps of unclipped rows at their
+    crossings ``points``.
 
     A Gaussian-blurred edge with unit normal n reads Phi(+-(edge - x) |n_x| / s) along
     a row, so the probits of the two pixels around the crossing differ by |n_x| / s.
@@ -302,11 +308,12 @@ UNCORRECTED_LIFT_SHARE = 0.35
 
 def edge_departure(blur: float, level: float, lift: float, corrected: bool) -> float:
     """
-    How far (px, one sigma per smooth pattern round the rim) a lamp's crossings may lie off its edge
-    for what the light shows of its departure from a uniform disc on a dark ceiling, given the edge's
-    ``blur`` (px), the median ``level`` of the edge's midpoint over the row's rise (0.5 uniform), the
-    median ``lift`` of the ceiling next to the edge over the rise (0 dark), and whether the crossings were
-    ``corrected`` to the measured level.
+    Return how far a lamp's crossings may lie off its edge for what the light shows of its departure.
+
+    The distance is in px, one sigma per smooth pattern round the rim, for what the light shows of its
+    departure from a uniform disc on a dark ceiling, given the edge's ``blur`` (px), the median ``level``
+    of the edge's midpoint over the row's rise (0.5 uniform), the median ``lift`` of the ceiling next to
+    the edge over the rise (0 dark), and whether the crossings were ``corrected`` to the measured level.
 
     A glare halo lifts the ceiling beside the edge and the disc inside it alike, which moves the step's
     midpoint little but its level on either side, and the halo's slope and its stripes move each row's
@@ -367,8 +374,10 @@ def _fraction_line(radius: np.ndarray, fractions: np.ndarray) -> tuple[bool, flo
 @kernel
 def _least_squares_line(x: np.ndarray, y: np.ndarray, kept: np.ndarray) -> tuple[float, float]:
     """
-    (intercept, slope) of the least-squares line through the ``kept`` points (x, y) (np.linalg.lstsq's:
-    when all their x are equal, as for a shape that is no disc, the smallest such line).
+    Return (intercept, slope) of the least-squares line through the ``kept`` points (x, y).
+
+    It is np.linalg.lstsq's: when all their x are equal, as for a shape that is no disc, the smallest
+    such line.
     """
     count = centre_x = centre_y = 0.0
     for i in range(x.size):
@@ -408,8 +417,9 @@ def _chord_middle_radius(rows: np.ndarray, conic: np.ndarray, ellipse: np.ndarra
 def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.ndarray, background: float,
                     conic: np.ndarray, ellipse: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
     """
-    ``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius`` and the
-    ceiling's level next to the edge (its outer band traced back to it) over the row's rise.
+    Return ``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius`` and the ceiling's level.
+
+    The ceiling's level is that next to the edge (its outer band traced back to it) over the row's rise.
     """
     middle = _chord_middle_radius(rows, conic, ellipse)
     width = brightness.shape[1]
@@ -431,9 +441,9 @@ def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.nda
             if across < _MIN_ACROSS or (2.0 * far - near) / across > 0.5 * (right[i] - left[i]):
                 continue
             found_1, inside_1, outside_1 = _band_levels(brightness, rows[i], edge, inward, near / across,
-                                                         far / across, width)
+                                                        far / across, width)
             found_2, inside_2, outside_2 = _band_levels(brightness, rows[i], edge, inward, far / across,
-                                                         (2.0 * far - near) / across, width)
+                                                        (2.0 * far - near) / across, width)
             if not (found_1 and found_2):
                 continue
             # Band centres at c and c + (far - near) blurs: a straight line back to the edge.
@@ -451,8 +461,9 @@ def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.nda
 def _band_levels(brightness: np.ndarray, row: int, edge: float, inward: float, lo: float, hi: float,
                  width: int) -> tuple[bool, float, float]:
     """
-    (in the array, mean inside, mean outside) of the pixels ``lo`` to ``hi`` px along the row from
-    ``edge``, inward and outward (at least one pixel each).
+    Return (in the array, mean inside, mean outside) of the pixels ``lo`` to ``hi`` px along the row from ``edge``.
+
+    The pixels are taken inward and outward (at least one pixel each).
     """
     start, end = math.ceil(lo), max(math.floor(hi), math.ceil(lo))
     inside = outside = 0.0
@@ -477,11 +488,12 @@ EDGE_MODEL_PER_BLUR_VARIANCE = 0.15
 
 def edge_model_sigma(blur_variance_px2: float, departure_px: float = 0.0) -> float:
     """
-    How far (px, one sigma per mode) the half-level crossings of a blurred edge may depart from
-    the disc's edge in smooth patterns round the rim (an offset and the first two harmonics:
-    ``measurement.rim_error_modes``), given the edge's blur variance and what the light shows of its
-    departure from a uniform disc (``edge_departure``): the larger of the two, as a sharp edge's
-    crossings, which the blur term leaves exact, still move with glare and falloff.
+    Return how far the half-level crossings of a blurred edge may depart from the disc's edge.
+
+    The distance is in px, one sigma per mode, in smooth patterns round the rim (an offset and the first
+    two harmonics: ``measurement.rim_error_modes``), given the edge's blur variance and what the light
+    shows of its departure from a uniform disc (``edge_departure``): the larger of the two, as a sharp
+    edge's crossings, which the blur term leaves exact, still move with glare and falloff.
 
     Any departure of the light from a uniform disc with a step edge moves the crossing of a
     blurred edge by the blur variance times the light's relative change across it: a diffuser's
@@ -525,8 +537,11 @@ def _shifts(ellipse: np.ndarray, points: np.ndarray, variance: float) -> np.ndar
 
 @kernel
 def edge_slopes(conic: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """|dx/dy| of the edge of the ellipse ``conic`` (3x3) near each point: large where a row meets
-    the edge at a grazing angle."""
+    """
+    Return |dx/dy| of the edge of the ellipse ``conic`` (3x3) near each point.
+
+    It is large where a row meets the edge at a grazing angle.
+    """
     slopes = np.empty(points.shape[0])
     for i in range(points.shape[0]):
         gx = points[i, 0] * conic[0, 0] + points[i, 1] * conic[1, 0] + conic[2, 0]

@@ -93,9 +93,11 @@ def _lit_rows(brightness: np.ndarray, threshold: float) -> _LitRows:
 def clear_levels(brightness: np.ndarray, levels: RowLevels, ellipse: np.ndarray, clearance: float,
                  marker: tuple[np.ndarray, float] | None) -> RowLevels:
     """
-    ``levels`` with each row's plateau measured again where the disc is at least ``clearance`` (px)
-    inside ``ellipse``, on the middle half of the row's chord, away from the ``marker`` disc
-    (centre, radius) if given; rows without enough such samples are dropped.
+    Return ``levels`` with each row's plateau measured again well inside ``ellipse``.
+
+    The plateau is measured where the disc is at least ``clearance`` (px) inside ``ellipse``, on the
+    middle half of the row's chord, away from the ``marker`` disc (centre, radius) if given; rows
+    without enough such samples are dropped.
 
     Blur dims the disc within a few blurs of its edge, and near the disc's top and
     bottom that reaches the middle of the chord: a plateau a few tenths of a level low
@@ -182,8 +184,9 @@ def row_profile(brightness: np.ndarray, ellipse: np.ndarray, background: float, 
 def _chord_plateaus(brightness: np.ndarray, ellipse: np.ndarray, background: float,
                     blur: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    The rows whose chord lies in the array with its middle two blurs inside the edge, their
-    plateaus above ``background`` and the clearance of their chord's middle.
+    Return the rows whose chord lies in the array with its middle two blurs inside the edge.
+
+    Also return their plateaus above ``background`` and the clearance of their chord's middle.
     """
     height, width = brightness.shape
     conic = conic_of(ellipse)

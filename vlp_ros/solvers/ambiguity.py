@@ -45,9 +45,10 @@ COST_GAP = 40.0
 @dataclass(frozen=True, eq=False)
 class UpHint:
     """
-    Where map +z points in the camera optical frame, from one source (a static mounting
-    prior, or the IMU's gravity: an accelerometer at rest measures +g along up; any
-    non-zero length). ``tolerance`` (rad) gates: no pose whose up is farther from
+    Where map +z points in the camera optical frame, from one source, and how far it may be trusted.
+
+    The source is a static mounting prior, or the IMU's gravity: an accelerometer at rest measures +g
+    along up; any non-zero length. ``tolerance`` (rad) gates: no pose whose up is farther from
     ``vector`` is ever chosen. ``sigma`` (rad), when known, is the standard deviation of
     ``vector``'s error about each of the two axes perpendicular to it; the direction is
     then also a measurement in the pose fit (``UpMeasurement``), not only a gate.
@@ -111,9 +112,10 @@ class DisambiguationHints:
 def choose_candidate(candidates: list[PoseCandidate], hints: DisambiguationHints,
                      cost_reason: Reason = Reason.COST) -> Choice:
     """
-    The candidate the hints (or an overwhelming cost gap, reported as ``cost_reason``)
-    single out, or no pose and why. A candidate singled out against continuity restarts
-    the track (``Choice.restarts_track``).
+    Return the candidate the hints (or an overwhelming cost gap) single out, or no pose and why.
+
+    An overwhelming cost gap is reported as ``cost_reason``. A candidate singled out against
+    continuity restarts the track (``Choice.restarts_track``).
     """
     candidates = distinct(candidates)
     if not candidates:

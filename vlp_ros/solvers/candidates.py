@@ -30,7 +30,7 @@ class PoseCandidate:
 
     @property
     def separating_covariance(self) -> np.ndarray | None:
-        """The covariance by which this candidate is told apart from others."""
+        """Return the covariance by which this candidate is told apart from others."""
         return self.pose.covariance if self.fit_covariance is None else self.fit_covariance
 
 
@@ -81,8 +81,9 @@ COINCIDENT_MAHALANOBIS2 = 1.0
 
 def coincide(better: PoseCandidate, other: PoseCandidate) -> bool:
     """
-    Whether two candidates are the same pose within ``better``'s uncertainty
-    (exactly equal when either has no covariance).
+    Tell whether two candidates are the same pose within ``better``'s uncertainty.
+
+    They must be exactly equal when either has no covariance.
     """
     error = other.pose.error_vector(better.pose)
     if better.pose.covariance is None or other.pose.covariance is None:

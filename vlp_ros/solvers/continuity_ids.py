@@ -43,8 +43,9 @@ Solver = Callable[[list[Pair]], Choice]
 def settled_by_continuity(observation: LampObservation, evidence: BeaconReading, lamps: LampMap,
                           recent: Pose, gate: float, solve: Solver) -> Lamp | None:
     """
-    The one lamp of ``lamps`` that ``observation`` can be within ``gate`` (m) of the ``recent``
-    pose, if the beacon's ``evidence`` leans to it; None otherwise. ``solve`` should remember its
+    Return the one lamp of ``lamps`` that ``observation`` can be within ``gate`` (m) of the ``recent`` pose.
+
+    Only if the beacon's ``evidence`` leans to it; None otherwise. ``solve`` should remember its
     answers: the most probable lamp's pose is asked for twice.
     """
     if evidence.unknown or not observation.rim_usable or not has_evidence(evidence):

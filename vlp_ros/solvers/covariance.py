@@ -43,8 +43,10 @@ def covariance_from_jacobian(jacobian: np.ndarray) -> np.ndarray:
 @kernel
 def _covariance(jacobian, max_condition):
     """
-    Symmetrised (J^T J)^-1, or None if J^T J is not finite, has an unobserved direction or a
-    condition number (scaled to unit diagonal) over ``max_condition``.
+    Return the symmetrised (J^T J)^-1, or None if J^T J is not finite or is ill-conditioned.
+
+    None also if it has an unobserved direction or a condition number (scaled to unit diagonal) over
+    ``max_condition``.
     """
     information = np.empty((6, 6))
     information_matrix(jacobian, information)
@@ -73,8 +75,10 @@ def nees(estimate: Pose, truth: Pose) -> float:
 
 def with_rotation_curvature(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:
     """
-    ``covariance`` widened by the second-order position error of a pose that turns about a
-    point whose bearing it sees sharply: the lamp centre, at map offset ``lever`` from the camera.
+    Return ``covariance`` widened by the second-order position error of a pose turning about a sharp bearing.
+
+    The pose turns about a point whose bearing it sees sharply: the lamp centre, at map offset ``lever``
+    from the camera.
 
     With the bearing pinned, a rotation error d moves the camera by
     -(exp([d]x) - I) lever = -d x lever + q / 2, q = d x (d x lever). Along the lever
@@ -139,13 +143,13 @@ def _add_rotation_curvature(covariance, lever):
 # a lamp's own prior (``mode_prior_sigma``, from its edge) bounds what the fit may claim: the
 # covariance is that of the fit's estimate with the lamp's modes spread by that prior (the sandwich
 # of ``_add_mode_prior_excess``), and the pose stays where the estimated sigma put it (a floor on
-# the sigma itself moved the independent renderer's robot poses, doubling their errors). Besides, a common rim offset (all lamps alike) is a
-# parameter with a prior of ``RIM_OFFSET_FLOOR_PX`` (or ``RIM_OFFSET_PRIOR`` times the rim's
-# scatter, if more); with several lamps, which fix the scale, it moves the pose where the
-# data determine it (its variance below ``OFFSET_DETERMINED`` of the prior's). One lamp's
-# marker would fix the scale too, but too noisily and with a bias near frontal views
-# (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance along
-# range by ``RIM_OFFSET_PRIOR`` times the rim's scatter. The rim points' scatter beyond their
+# the sigma itself moved the independent renderer's robot poses, doubling their errors). Besides,
+# a common rim offset (all lamps alike) is a parameter with a prior of ``RIM_OFFSET_FLOOR_PX``
+# (or ``RIM_OFFSET_PRIOR`` times the rim's scatter, if more); with several lamps, which fix the
+# scale, it moves the pose where the data determine it (its variance below ``OFFSET_DETERMINED``
+# of the prior's). One lamp's marker would fix the scale too, but too noisily and with a bias near
+# frontal views (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance
+# along range by ``RIM_OFFSET_PRIOR`` times the rim's scatter. The rim points' scatter beyond their
 # stated sigma, and a marker that the pose cannot place within ``MARKER_CONSISTENT`` sigmas,
 # widen their own information by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
@@ -185,15 +189,17 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
                           modes: np.ndarray, lamp_of_point: np.ndarray, lamp_count: int,
                           marker_count: int, mode_prior_sigma: np.ndarray | None = None) -> ModelErrorFit:
     """
-    The linear update of a converged fit (whitened ``residuals`` and ``jacobian`` laid out as
-    ``fit_kernels.Terms``: rim points, then 2 per marker, then 2 per up direction) by a common
-    rim offset, each lamp's rim ``modes`` (``measurement.rim_error_modes``, rows as the rim points,
-    ``lamp_of_point`` their lamp) and the residuals' own scatter; ValueError if the pose is not
-    fully observed. ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows
-    of its modes (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate
-    the modes' sigma (one lamp), the modes are marginalised with it, widening the covariance
-    along what they trade with and leaving the pose where the fit put it; with several lamps, a
-    lamp's prior over the estimated sigma widens the covariance alike, the pose left in place.
+    Return the linear update of a converged fit by a common rim offset, each lamp's rim modes and the scatter.
+
+    The fit is given as whitened ``residuals`` and ``jacobian`` laid out as ``fit_kernels.Terms``: rim
+    points, then 2 per marker, then 2 per up direction. The update is by a common rim offset, each
+    lamp's rim ``modes`` (``measurement.rim_error_modes``, rows as the rim points, ``lamp_of_point``
+    their lamp) and the residuals' own scatter; ValueError if the pose is not fully observed.
+    ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows of its modes
+    (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate the modes' sigma (one
+    lamp), the modes are marginalised with it, widening the covariance along what they trade with and
+    leaving the pose where the fit put it; with several lamps, a lamp's prior over the estimated sigma
+    widens the covariance alike, the pose left in place.
     """
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
@@ -244,9 +250,10 @@ class _ModelErrorScalars(NamedTuple):
 def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_count, marker_count, offset_sigma,
                      estimated, rim_dof, mode_sigma_grid, mode_prior_sigma, step, covariance, fit_covariance):
     """
-    ``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``, returning the rest
-    (``_ModelErrorScalars``). Parameters: the pose (6), the common rim offset, ``RIM_MODES`` per lamp (several lamps,
-    or one with a prior sigma of its modes).
+    Write ``allow_for_model_error`` into ``step``, ``covariance`` and ``fit_covariance``.
+
+    It returns the rest (``_ModelErrorScalars``). Parameters: the pose (6), the common rim offset,
+    ``RIM_MODES`` per lamp (several lamps, or one with a prior sigma of its modes).
     """
     count, rims = residuals.shape[0], rim_sigma.shape[0]
     per_lamp = modes.shape[1]
@@ -317,10 +324,12 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
 @kernel
 def _add_mode_prior_excess(inverse, mode_sigma, spread, per_lamp):
     """
-    ``inverse`` (of the fit with every lamp's modes under the prior sigma ``mode_sigma``) turned into
-    the covariance of that fit's estimate where a lamp's modes spread by more, ``spread`` (px, per
-    lamp): the sandwich H^-1 (H - P + P S P) H^-1, which adds (spread^2 - sigma^2) g g^T per mode, g =
-    H^-1 e_k / sigma^2 the estimate's pull by the mode. The pose stays where the fit put it.
+    Turn ``inverse`` (in place) into the covariance of its fit's estimate where a lamp's modes spread by more.
+
+    ``inverse`` is of the fit with every lamp's modes under the prior sigma ``mode_sigma``; the modes
+    spread by ``spread`` (px, per lamp): the sandwich H^-1 (H - P + P S P) H^-1, which adds
+    (spread^2 - sigma^2) g g^T per mode, g = H^-1 e_k / sigma^2 the estimate's pull by the mode. The
+    pose stays where the fit put it.
     """
     variance = mode_sigma * mode_sigma
     pulls = inverse[:, 7:] / variance
@@ -339,8 +348,9 @@ def _add_mode_prior_excess(inverse, mode_sigma, spread, per_lamp):
 def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
                         offset_precision):
     """
-    The inverse information of the pose, the offset and each lamp's modes under their prior sigmas
-    (a lamp without one: its modes fixed at 0), the rim points weighted as the fit left them.
+    Return the inverse information of the pose, the offset and each lamp's modes under their prior sigmas.
+
+    A lamp without one has its modes fixed at 0; the rim points are weighted as the fit left them.
     """
     upper, gradient = np.zeros((width, width)), np.zeros(width)
     _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
@@ -359,9 +369,11 @@ def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point,
 def _weighted_normal_equations(design, columns, start, stop, residuals, weights, lamp_of_point, per_lamp, gram,
                                gradient):
     """
-    (D^T W D, D^T W r) of the whitened ``design``'s first ``columns`` and ``residuals`` over rows
-    ``start`` to ``stop``, under ``weights``, added to ``gram`` (upper triangle) and ``gradient``. A
-    rim point moves only the pose, the offset and its own lamp's modes; other rows only the pose.
+    Add (D^T W D, D^T W r) of the whitened ``design`` to ``gram`` (upper triangle) and ``gradient``.
+
+    The sums are over the design's first ``columns`` and ``residuals`` over rows ``start`` to
+    ``stop``, under ``weights``. A rim point moves only the pose, the offset and its own lamp's modes;
+    other rows only the pose.
     """
     per_lamp = (design.shape[1] - 7) // max(lamp_of_point.shape[0] and (lamp_of_point.max() + 1), 1)
     used = np.empty(7 + per_lamp, dtype=np.int64)
@@ -404,7 +416,7 @@ def _symmetric(upper):
 
 @kernel
 def _predict(design, residuals, solution, predicted):
-    """The residuals after the step ``solution`` (over the design's first columns), into ``predicted``."""
+    """Write the residuals after the step ``solution`` (over the design's first columns) into ``predicted``."""
     for n in range(residuals.shape[0]):
         total = residuals[n]
         for k in range(solution.shape[0]):
@@ -415,9 +427,10 @@ def _predict(design, residuals, solution, predicted):
 @kernel
 def _offset_rule_solution(information, gradient, offset_precision, offset_sigma, estimated):
     """
-    The Gauss-Newton step of all parameters of ``information`` (their priors in, except the
-    common offset's) and the inverse information with the offset's prior. The offset is left at
-    0 in the step unless ``estimated`` and the data determine it.
+    Return the Gauss-Newton step of all parameters of ``information``, and the inverse information.
+
+    The step has their priors in, except the common offset's; the inverse information is with the
+    offset's prior. The offset is left at 0 in the step unless ``estimated`` and the data determine it.
     """
     information = information.copy()
     information[6, 6] += offset_precision
@@ -440,8 +453,9 @@ def _offset_rule_solution(information, gradient, offset_precision, offset_sigma,
 @kernel
 def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
     """
-    The modes' prior sigma on ``grid`` that maximises the restricted likelihood of the weighted
-    residuals, the pose flat and the offset at its prior: with the pose and offset profiled out
+    Return the modes' prior sigma on ``grid`` that maximises the restricted likelihood of the weighted residuals.
+
+    The pose is flat and the offset at its prior: with the pose and offset profiled out
     (information M and gradient h of the modes), it minimises
     log det(I + sigma^2 M) - h^T (M + I / sigma^2)^-1 h.
     """
@@ -470,6 +484,8 @@ def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
 @kernel
 def _reweight(predicted, weights, rims, marker_count, rim_dof):
     """
+    Set ``weights``: rim points and markers that the pose does not explain count for less.
+
     Rim points count for less by their scatter beyond their sigma, a marker the pose cannot place
     within ``MARKER_CONSISTENT`` sigmas by its chi-square.
     """
@@ -489,11 +505,13 @@ def _reweight(predicted, weights, rims, marker_count, rim_dof):
 
 def widened_toward_up(pose: Pose, up_in_camera: np.ndarray, pivot: np.ndarray, share: float = 1.0) -> np.ndarray:
     """
-    ``pose``'s covariance plus ``share`` of the outer product of the pose change that would make it agree
-    with a measured up direction (unit, camera frame): the rotation turning its up onto it, the
-    camera turning about the map point ``pivot`` whose bearing the image pins. Whether the up
-    measurement (an accelerating IMU) or the lamps (a shape off the model) are wrong, the frame
-    cannot tell: the covariance then spans both.
+    Return ``pose``'s covariance widened toward agreeing with a measured up direction.
+
+    It is plus ``share`` of the outer product of the pose change that would make it agree with a
+    measured up direction (unit, camera frame): the rotation turning its up onto it, the camera turning
+    about the map point ``pivot`` whose bearing the image pins. Whether the up measurement (an
+    accelerating IMU) or the lamps (a shape off the model) are wrong, the frame cannot tell: the
+    covariance then spans both.
     """
     measured_in_map = pose.rotation @ up_in_camera
     axis = np.cross(measured_in_map, np.array([0.0, 0.0, 1.0]))

@@ -42,8 +42,9 @@ SINGULAR = 2
 
 class Terms(NamedTuple):
     """
-    Measurements as flat arrays (C-contiguous float64, writable: numba compiles once per
-    array type), passed to the kernels as separate arguments; a kind left out has none.
+    Measurements as flat arrays, passed to the kernels as separate arguments; a kind left out has none.
+
+    The arrays are C-contiguous float64, writable: numba compiles once per array type.
 
     Rim points: ``rays`` (N, 3) homogeneous normalised, ``lens`` (N, 4) d(normalised)/d(pixel)
     as (g00, g01, g10, g11), ``rim_sigma`` (N,), ``lamp_of_point`` (N,) into ``centres`` (L, 3)
@@ -114,8 +115,10 @@ def joined(parts: Sequence[Terms]) -> Terms:
 
 def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
-    Whitened residuals (M,) of ``terms`` at the pose (``rotation`` camera to map, ``position``)
-    and their Jacobian (M, 6) in the pose perturbation of ``covariance.perturbed``.
+    Return the whitened residuals (M,) of ``terms`` at the pose and their Jacobian (M, 6).
+
+    The pose is ``rotation`` camera to map and ``position``; the Jacobian is in the pose perturbation
+    of ``covariance.perturbed``.
     """
     count = terms.residual_count
     residuals, jacobian = np.empty(count), np.empty((count, 6))
@@ -127,8 +130,9 @@ def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple
 @kernel
 def project_point(point, intrinsics, distortion, jacobian):
     """
-    Pixel (u, v) of a camera-frame point as ``cv2.projectPoints`` (K's skew ignored, as
-    there), and d pixel / d point into ``jacobian`` (2, 3).
+    Return the pixel (u, v) of a camera-frame point as ``cv2.projectPoints`` does, and its Jacobian.
+
+    K's skew is ignored, as there; d pixel / d point is written into ``jacobian`` (2, 3).
     """
     z = 1.0 / point[2] if point[2] != 0.0 else 1.0
     x, y = point[0] * z, point[1] * z
@@ -187,8 +191,10 @@ def rim_terms(normalized, intrinsics, distortion, distorted, pinhole_inverse):
 @kernel
 def perturb(rotation, position, delta, rotation_out, position_out):
     """
-    The pose moved by ``delta`` = (dx, dy, dz, rotation vector on the left), the rotation
-    vector's matrix formed as ``cv2.Rodrigues`` forms it.
+    Write the pose moved by ``delta`` = (dx, dy, dz, rotation vector on the left) into the outputs.
+
+    The outputs are ``rotation_out`` and ``position_out``; the rotation vector's matrix is formed as
+    ``cv2.Rodrigues`` forms it.
     """
     rx, ry, rz = delta[3], delta[4], delta[5]
     theta = math.sqrt(rx * rx + ry * ry + rz * rz)
@@ -215,9 +221,9 @@ def perturb(rotation, position, delta, rotation_out, position_out):
 @kernel
 def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_conic):
     """
-    The lamp's rim conic C (3, 3) and its derivatives dC_k (6, 3, 3) along the six pose perturbations.
+    Write the lamp's rim conic C (3, 3) and its derivatives dC_k (6, 3, 3) along the six pose perturbations.
 
-    dH_k of H, then dC = -(M + M^T) with M = C dH H^-1.
+    They go into ``conic`` and ``d_conic``. dH_k of H, then dC = -(M + M^T) with M = C dH H^-1.
     """
     plane = np.empty((3, 3))
     offset = np.empty(3)
@@ -278,8 +284,9 @@ def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, cen
                    marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,
                    up_directions, up_tangents, up_sigma, residuals, jacobian):
     """
-    Whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose, written
-    into ``residuals`` and ``jacobian``; returns the chi-square.
+    Write the whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose.
+
+    They are written into ``residuals`` and ``jacobian``; returns the chi-square.
     """
     lamps = centres.shape[0]
     conics = np.empty((lamps, 3, 3))
@@ -379,8 +386,9 @@ def inverse_form(matrix: np.ndarray, vector: np.ndarray) -> float:
 @kernel
 def forecast(residuals, jacobian):
     """
-    The chi-square that the Gauss-Newton model of (residuals, jacobian) forecasts at its
-    minimum, r^T r - g^T (J^T J)^-1 g with g = J^T r; 0 if J^T J is singular.
+    Return the chi-square that the Gauss-Newton model of (residuals, jacobian) forecasts at its minimum.
+
+    That is r^T r - g^T (J^T J)^-1 g with g = J^T r; 0 if J^T J is singular.
     """
     information, gradient = np.empty((6, 6)), np.empty(6)
     _normal_equations(residuals, jacobian, information, gradient)
@@ -423,10 +431,11 @@ def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
             rays, lens, rim_sigma, lamp_of_point, centres, radii_squared, marker_maps, marker_pixels,
             marker_sigma, intrinsics, distortion, up_directions, up_tangents, up_sigma):
     """
-    Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose, updating
-    ``rotation``, ``position``, ``residuals`` and ``jacobian`` in place; returns (outcome, cost,
-    damping). CONVERGED when even the undamped Gauss-Newton step promises no real decrease:
-    that last step is still taken, its residuals (lower by under the floor) not evaluated,
+    Run Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose.
+
+    The iterations update ``rotation``, ``position``, ``residuals`` and ``jacobian`` in place; returns
+    (outcome, cost, damping). CONVERGED when even the undamped Gauss-Newton step promises no real
+    decrease: that last step is still taken, its residuals (lower by under the floor) not evaluated,
     since near the minimum it lands quadratically close to it. PAUSED at ``stop``; SINGULAR
     when the normal equations are.
     """

@@ -74,7 +74,8 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
     if len(pairs) == 1:
         observation, lamp = pairs[0]
         if observation.marker is None:
-            return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+            return Choice(None, Reason.NO_CANDIDATES,
+                          f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
         candidates = solve_lamp(observation, lamp, camera, up)
         explaining = [c for c in candidates if explains_the_image(c)]
         if candidates and not explaining:
@@ -130,8 +131,9 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
 
 def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement] = ()) -> list[Pose]:
     """
-    Each disc lamp's circle poses, headed by its marker or the farthest other lamp, and
-    SQPnP on all lamp centres when there are enough of them.
+    Return each disc lamp's circle poses, and SQPnP on all lamp centres when there are enough of them.
+
+    The circle poses are headed by the lamp's marker or the farthest other lamp.
     """
     conics = [normalized_conic(m.rim_rays[:, :2]) for m in discs]
     centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics] + [m.ray[:2] for m in points])
@@ -157,8 +159,9 @@ def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement]
 
 def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Pose]:
     """
-    SQPnP's solutions for the lamp centres seen at the ellipse centres (close enough to
-    the projected circle centres for a start).
+    Return the solutions of SQPnP for the lamp centres seen at the ellipse centres.
+
+    The ellipse centres are close enough to the projected circle centres for a start.
     """
     try:
         _, rvecs, tvecs, _ = cv2.solvePnPGeneric(lamp_positions, image_centres.reshape(-1, 1, 2), np.eye(3), None,
@@ -170,8 +173,9 @@ def pnp_starts(lamp_positions: np.ndarray, image_centres: np.ndarray) -> list[Po
 
 def _distinct_poses(starts: list[Pose], measurements: list[Measurement]) -> list[tuple[Pose, float]]:
     """
-    Poses with a finite joint cost, cheapest first, one per neighbourhood, each with the
-    chi-square its Gauss-Newton model forecasts (from the same linearisation).
+    Return the poses with a finite joint cost, cheapest first, one per neighbourhood.
+
+    Each comes with the chi-square its Gauss-Newton model forecasts (from the same linearisation).
     """
     scored = []
     for start in starts:

@@ -64,8 +64,9 @@ Option = TypeVar('Option')
 @dataclass(frozen=True)
 class OpenLamp:
     """
-    A detected lamp without a certain ID, the lamps of the map its reading leaves plausible and their
-    posterior probabilities (the reading alone).
+    A detected lamp without a certain ID, with the map's lamps its reading leaves plausible.
+
+    It holds those lamps of the map and their posterior probabilities (the reading alone).
     """
 
     observation: LampObservation
@@ -74,7 +75,7 @@ class OpenLamp:
 
     @property
     def coverage(self) -> float:
-        """The share of the reading's posterior that the candidates hold."""
+        """Return the share of the reading's posterior that the candidates hold."""
         return float(sum(self.posterior))
 
 
@@ -87,8 +88,9 @@ def claimed_once(ids: list[int | None]) -> list[int | None]:
 def open_lamps(observations: list[LampObservation], ids: list[int | None], readings: list[BeaconReading],
                lamps: LampMap, usable: Callable[[LampObservation, Lamp], bool]) -> list[OpenLamp]:
     """
-    The lamps without an ID whose reading weighs mapped candidates (a surely unmapped one has
-    none), each with its plausible candidates not taken by a certain lamp, most probable first.
+    Return the lamps without an ID whose reading weighs mapped candidates (a surely unmapped one has none).
+
+    Each comes with its plausible candidates not taken by a certain lamp, most probable first.
     """
     taken = {i for i in ids if i is not None}
     found = []
@@ -101,8 +103,8 @@ def open_lamps(observations: list[LampObservation], ids: list[int | None], readi
         posterior = np.exp(log_post - log_post.max())
         posterior /= posterior.sum()
         order = [k for k in np.argsort(-posterior)
-                 if reading.mapped[k] and int(reading.candidates[k]) not in taken and int(reading.candidates[k]) in lamps
-                 and usable(observation, lamps.get(int(reading.candidates[k])))]
+                 if reading.mapped[k] and int(reading.candidates[k]) not in taken
+                 and int(reading.candidates[k]) in lamps and usable(observation, lamps.get(int(reading.candidates[k])))]
         order = _plausible(order, posterior)
         if order:
             found.append(OpenLamp(observation, tuple(lamps.get(int(reading.candidates[k])) for k in order),
@@ -112,9 +114,11 @@ def open_lamps(observations: list[LampObservation], ids: list[int | None], readi
 
 def _plausible(order: list[int], posterior: np.ndarray) -> list[int]:
     """
-    The candidates (most probable first) at ``PLAUSIBLE`` or above, and below it as many as the
-    assignments need to cover ``_COVERED`` of the posterior (at most ``_MAX_CANDIDATES`` in all): a lamp
-    read at 0.9989 with its two neighbours at 6e-4 and 5e-4 is otherwise never covered.
+    Return the plausible candidates, most probable first.
+
+    They are those at ``PLAUSIBLE`` or above, and below it as many as the assignments need to cover
+    ``_COVERED`` of the posterior (at most ``_MAX_CANDIDATES`` in all): a lamp read at 0.9989 with its
+    two neighbours at 6e-4 and 5e-4 is otherwise never covered.
     """
     kept, covered = [], 0.0
     for k in order[:_MAX_CANDIDATES]:
@@ -127,9 +131,10 @@ def _plausible(order: list[int], posterior: np.ndarray) -> list[int]:
 
 def odd_one_out(certain: list[Pair], solve: Solver) -> int | None:
     """
-    The one certain lamp (index) without which a pose explains the others with residuals to spare,
-    when no pose explains them all; None when they are explained, or when no single lamp (or more than
-    one) is the odd one.
+    Return the one certain lamp (index) without which a pose explains the others with residuals to spare.
+
+    That is when no pose explains them all; None when they are explained, or when no single lamp (or
+    more than one) is the odd one.
     """
     if len(certain) < 2 or _residuals(certain) < 6 + _SPARE_RESIDUALS + 2 or solve(certain).reason \
             is not Reason.INCONSISTENT_LAMPS:
@@ -159,8 +164,10 @@ def _anchors(choice: Choice | None) -> bool:
 
 def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp]]:
     """
-    The most certain open lamps whose assignments number at most ``_MAX_ASSIGNMENTS``, and the others
-    (settled against the first ones' pose): five open tone lamps of three candidates each are 243.
+    Return the most certain open lamps whose assignments number at most ``_MAX_ASSIGNMENTS``, and the others.
+
+    The others are settled against the first ones' pose: five open tone lamps of three candidates each
+    are 243 assignments.
     """
     ranked = sorted(lamps, key=lambda o: -max(o.posterior))
     count = 1

@@ -92,9 +92,9 @@ class LampMeasurement:
         lamp, count = self.lamp, len(self.rim_rays)
         markers = {}
         if self.marker_pixel is not None:
-            markers = dict(marker_maps=lamp.marker_position().reshape(1, 3),
-                           marker_pixels=np.array(self.marker_pixel, dtype=float).reshape(1, 2),
-                           marker_sigma=np.array([self.marker_sigma]))
+            markers = {'marker_maps': lamp.marker_position().reshape(1, 3),
+                       'marker_pixels': np.array(self.marker_pixel, dtype=float).reshape(1, 2),
+                       'marker_sigma': np.array([self.marker_sigma])}
         terms = Terms(rays=np.ascontiguousarray(self.rim_rays, dtype=float),
                       lens=np.ascontiguousarray(self.rim_pixel_jacobian, dtype=float).reshape(count, 4),
                       rim_sigma=np.full(count, self.rim_sigma), lamp_of_point=np.zeros(count, dtype=np.int64),
@@ -105,9 +105,10 @@ class LampMeasurement:
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """
-        Residuals over their sigmas (M,) for the camera pose (``rotation`` camera to map,
-        ``position``) and their Jacobian (M, 6) with respect to the pose perturbation of
-        ``covariance.perturbed``: the rim points' in order, then the marker's.
+        Return the residuals over their sigmas (M,) for the camera pose and their Jacobian (M, 6).
+
+        The pose is ``rotation`` camera to map and ``position``; the Jacobian is with respect to the pose
+        perturbation of ``covariance.perturbed``: the rim points' in order, then the marker's.
         """
         return linearize(self.terms, rotation, position)
 
@@ -118,10 +119,10 @@ class LampMeasurement:
 @dataclass(frozen=True)
 class LampMeasurements:
     """
-    Several lamps' measurements, and any up measurements (``UpMeasurement``), evaluated as
-    one (all rims, then all markers, then all up directions, each kind in the order of the
-    parts), with their ``Terms`` joined once: a multi-lamp fit evaluates them for every start
-    it probes.
+    Several lamps' measurements, and any up measurements (``UpMeasurement``), evaluated as one.
+
+    They are evaluated all rims, then all markers, then all up directions, each kind in the order of the
+    parts, with their ``Terms`` joined once: a multi-lamp fit evaluates them for every start it probes.
     """
 
     parts: tuple[LampMeasurement | UpMeasurement, ...]
@@ -144,9 +145,10 @@ RIM_MODES = 5
 
 def rim_error_modes(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
     """
-    How model error can move each rim point of ``terms`` across the edge, for the camera pose
-    (``rotation`` camera to map, ``position``): (N, ``RIM_MODES``) px per unit of each mode, the
-    shape times 1, cos t, sin t, cos 2t, sin 2t of the point's angle t round its disc.
+    Return how model error can move each rim point of ``terms`` across the edge, for the camera pose.
+
+    The pose is ``rotation`` camera to map and ``position``: (N, ``RIM_MODES``) px per unit of each
+    mode, the shape times 1, cos t, sin t, cos 2t, sin 2t of the point's angle t round its disc.
 
     The shape (mean 1 per lamp) is inverse to the image scale across the edge there: a diffuser's
     falloff or a glare halo changes the light by a fixed share per metre of the disc; blurred

@@ -76,9 +76,10 @@ UP_DOUBT = 5.99
 
 def pose_from_circle(circle: CirclePose, lamp: Lamp, ray: np.ndarray, target: np.ndarray) -> Pose | None:
     """
-    Camera pose from the lamp's circle in the camera frame and the ray (normalised,
-    homogeneous) towards a map point ``target`` off the lamp's vertical axis: its marker,
-    or another lamp's centre. None if the ray cannot reach the target's height.
+    Return the camera pose from the lamp's circle in the camera frame and the ray towards a map point.
+
+    The ray (normalised, homogeneous) points towards a map point ``target`` off the lamp's vertical
+    axis: its marker, or another lamp's centre. None if the ray cannot reach the target's height.
     """
     rotation, position = np.empty((3, 3)), np.empty(3)
     if not _pose_from_circle(np.ascontiguousarray(circle.normal, dtype=float),
@@ -147,8 +148,9 @@ def closed_form_poses(measurement: LampMeasurement) -> list[Pose]:
 def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel,
                up: Sequence[UpMeasurement] = ()) -> list[PoseCandidate]:
     """
-    Refined candidate poses (one or two, cheapest first, covariance set) from one lamp and
-    any measured up directions.
+    Return refined candidate poses from one lamp and any measured up directions.
+
+    They are one or two, cheapest first, covariance set.
     """
     measurement = LampMeasurement.from_observation(observation, lamp, camera)
     starts = closed_form_poses(measurement)
@@ -179,8 +181,10 @@ def solve_lamp(observation: LampObservation, lamp: Lamp, camera: CameraModel,
 def widened_where_up_disagrees(candidates: list[PoseCandidate], up: Sequence[UpMeasurement],
                                pivot: np.ndarray) -> list[PoseCandidate]:
     """
-    ``candidates`` with each covariance widened toward every up measurement it disagrees with
-    beyond ``UP_DOUBT`` (``covariance.widened_toward_up``; ``pivot`` the map point the image pins).
+    Return ``candidates`` with each covariance widened toward every up measurement it disagrees with.
+
+    It is widened beyond ``UP_DOUBT`` (``covariance.widened_toward_up``; ``pivot`` the map point the
+    image pins).
     """
     for candidate in candidates:
         pose = candidate.pose
@@ -236,8 +240,9 @@ def _refined_with_up(starts: list[Pose], measurement: LampMeasurement,
 
 def _updated(merged: PoseCandidate, measurement: LampMeasurement, up: Sequence[UpMeasurement]) -> PoseCandidate:
     """
-    The merged frontal pose corrected by the up measurements (one linear update: the up
-    residuals are nearly linear over the pair's few degrees of spread).
+    Return the merged frontal pose corrected by the up measurements.
+
+    It is one linear update: the up residuals are nearly linear over the pair's few degrees of spread.
     """
     if not up:
         return merged

@@ -52,10 +52,11 @@ def seen_through_pinhole(observation: LampObservation, camera: CameraModel) -> L
     normals = rim @ conic[:2, :2].T + conic[:2, 2]
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     across = 1.0 / np.linalg.norm(np.einsum('nji,nj->ni', np.linalg.inv(jacobians), normals), axis=1)
-    changes = dict(ellipse=fit_ellipse(mapped_rim), rim_points=mapped_rim,
-                   rim_sigma=float(observation.rim_sigma * np.sqrt(np.mean(across ** 2))))
+    changes = {'ellipse': fit_ellipse(mapped_rim), 'rim_points': mapped_rim,
+               'rim_sigma': float(observation.rim_sigma * np.sqrt(np.mean(across ** 2)))}
     if observation.marker is not None:
-        marker, marker_jacobian = _mapped_with_jacobians(camera, np.asarray(observation.marker, dtype=float).reshape(1, 2))
+        marker, marker_jacobian = _mapped_with_jacobians(
+            camera, np.asarray(observation.marker, dtype=float).reshape(1, 2))
         changes.update(marker=marker[0],
                        marker_sigma=float(observation.marker_sigma * np.sqrt(abs(np.linalg.det(marker_jacobian[0])))))
     return replace(observation, **changes)

@@ -143,8 +143,9 @@ def pose_from_opencv(rvec: np.ndarray, tvec: np.ndarray) -> Pose:
 
 def two_points_with_up(positions: np.ndarray, rays: np.ndarray, up: np.ndarray) -> list[Pose]:
     """
-    Poses that see map points ``positions`` (2, 3) along camera rays ``rays`` (2, 3) with map +z
-    along ``up`` in the camera: at most two (the camera's height solves a quadratic).
+    Return the poses that see map points ``positions`` (2, 3) along camera rays ``rays`` (2, 3), up along ``up``.
+
+    That is with map +z along ``up`` in the camera: at most two (the camera's height solves a quadratic).
 
     With R0 turning camera vectors into a levelled frame (R0 up = e_z) and d_i = R0 ray_i, a
     camera at height h sees point i at depth l_i = (z_i - h) / d_iz along d_i; the yaw turns

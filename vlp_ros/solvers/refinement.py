@@ -54,10 +54,11 @@ def linearize(measurements: Sequence[Measurement], pose: Pose) -> tuple[np.ndarr
 def refine_pose(initial: Pose, measurements: Sequence[LampMeasurement], up: Sequence[UpMeasurement] = (),
                 give_up: Callable[[Pose, float], bool] | None = None) -> PoseCandidate | None:
     """
-    The least-squares pose nearest ``initial`` given the lamps and any measured up directions,
-    with its covariance; None if the fit breaks down (the optical centre in a lamp's plane, a
-    lamp behind the camera, a pose direction the measurements leave free, or no convergence),
-    or if ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations.
+    Return the least-squares pose nearest ``initial``, with its covariance, given the lamps and any up directions.
+
+    The up directions are measured. None if the fit breaks down (the optical centre in a lamp's plane,
+    a lamp behind the camera, a pose direction the measurements leave free, or no convergence), or if
+    ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations.
     """
     terms = [*measurements, *up]
     count = sum(m.residual_count for m in terms)
@@ -97,8 +98,9 @@ def forecast_from(residuals: np.ndarray, jacobian: np.ndarray) -> float:
 def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: int,
             give_up: Callable[[Pose, float], bool] | None = None) -> tuple[Pose, float] | None:
     """
-    The least-squares pose and its chi-square reached from ``initial`` within
-    ``max_iterations`` (a cheap probe of where a start leads); None if not reached, or if
+    Return the least-squares pose and its chi-square reached from ``initial`` within ``max_iterations``.
+
+    It is a cheap probe of where a start leads; None if not reached, or if
     ``give_up(pose, chi-square)`` holds after ``PATIENCE`` iterations.
     """
     try:

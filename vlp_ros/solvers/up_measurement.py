@@ -43,9 +43,10 @@ def unit_direction(vector: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class UpMeasurement:
     """
-    Map +z measured in the camera optical frame as ``direction`` (any non-zero length),
-    with ``sigma`` (rad) the standard deviation of its error about each of the two axes
-    perpendicular to it.
+    Map +z measured in the camera optical frame as ``direction`` (any non-zero length), with its ``sigma``.
+
+    ``sigma`` (rad) is the standard deviation of its error about each of the two axes perpendicular
+    to it.
     """
 
     direction: np.ndarray
@@ -66,15 +67,18 @@ class UpMeasurement:
 
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """
-        Residuals over sigma (2,) for the camera pose and their Jacobian (2, 6) with respect
-        to the pose perturbation of ``covariance.perturbed`` (the position columns are zero).
+        Return the residuals over sigma (2,) for the camera pose and their Jacobian (2, 6).
+
+        The Jacobian is with respect to the pose perturbation of ``covariance.perturbed`` (the position
+        columns are zero).
         """
         return linearize(self.terms, rotation, position)
 
     def innovation(self, pose: Pose, covariance: np.ndarray | None = None) -> float:
         """
-        Chi-square (2 dof) of this measurement against the rest of a fit that included it,
-        at that fit's ``pose`` with the fit's ``covariance`` (None: the pose's):
+        Return the chi-square (2 dof) of this measurement against the rest of a fit that included it.
+
+        It is taken at that fit's ``pose`` with the fit's ``covariance`` (None: the pose's):
         r^T (I - J P J^T)^-1 r, the residual over its own variance after the fit has absorbed
         part of it. It is the measurement's disagreement with what the lamps alone say about
         the up direction, in sigmas squared; 0 along directions the lamps do not observe at all
@@ -139,9 +143,10 @@ def _cross(a, b, out):
 def with_agreeing_up(solve: Callable[[Sequence[UpMeasurement]], list[PoseCandidate]],
                      up: Sequence[UpMeasurement]) -> list[PoseCandidate]:
     """
-    ``solve(up)``, solved again without every up measurement that no candidate agrees
-    with (innovation over ``UP_INNOVATION_GATE``): an accelerating IMU's "gravity" would
-    otherwise pull the pose away from what the lamps show.
+    Return ``solve(up)``, solved again without every up measurement that no candidate agrees with.
+
+    An up measurement is disagreed with at an innovation over ``UP_INNOVATION_GATE``: an accelerating
+    IMU's "gravity" would otherwise pull the pose away from what the lamps show.
     """
     candidates = solve(up)
     agreeing = [m for m in up if any(m.innovation(c.pose, c.separating_covariance) <= UP_INNOVATION_GATE

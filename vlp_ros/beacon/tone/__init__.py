@@ -140,8 +140,9 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
 
 def point_light_profile(image: np.ndarray, observation: LampObservation) -> RowProfile:
     """
-    Brightness per row of a lamp without a rim (a bare LED: core and glow), from every row its light
-    reaches, for ``decode_tone``: the core alone spans a few stripe periods, its glow many.
+    Return the brightness per row of a lamp without a rim (a bare LED: core and glow), for ``decode_tone``.
+
+    It uses every row the lamp's light reaches: the core alone spans a few stripe periods, its glow many.
     """
     profile = light_profile(image, observation, reach=POINT_LIGHT_REACH)
     cap = _ROW_WEIGHT_SHARE * float(profile.weights.max(initial=0.0))
@@ -158,7 +159,8 @@ def agreeing(light: BeaconReading, disc: BeaconReading) -> BeaconReading:
     if not has_evidence(light):
         return disc
     if has_evidence(disc) and _favourite(disc) != _favourite(light):
-        return no_evidence(light.candidates, light.mapped, light.log_prior, 'its disc and its glow read different tones')
+        return no_evidence(light.candidates, light.mapped, light.log_prior,
+                           'its disc and its glow read different tones')
     return light
 
 
