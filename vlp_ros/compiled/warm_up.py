@@ -199,8 +199,10 @@ def warm_bare_leds(rng: np.random.Generator) -> None:
 
 def refine_from_an_opencv_start(image: np.ndarray, lamps: LampMap) -> None:
     """
-    Refine the pose of point lamps from a start as OpenCV's P3P gives it (a transposed rotation, in Fortran
-    order), which a tilted view of bare LEDs starts from and the drawn level view does not reach.
+    Refine the pose of point lamps from a start as OpenCV's P3P gives it.
+
+    That start is a transposed rotation, in Fortran order: a tilted view of bare LEDs starts from it,
+    and the drawn level view does not reach it.
     """
     points = [PointLampMeasurement.from_observation(observation, lamp, CAMERA)
               for observation, lamp in zip(detect_lamps(image), lamps)]
