@@ -16,7 +16,6 @@ from collections.abc import Sequence
 import os
 from pathlib import Path
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
@@ -26,7 +25,7 @@ import time
 import rclpy
 
 from vlp_ros.evaluation.metrics import format_table
-from vlp_ros.nodes.dds_environment import claim_domain_id, loopback_profile, use_loopback_dds
+from vlp_ros.nodes.dds_environment import claim_domain_id, loopback_profile, stop_process, use_loopback_dds
 
 IMAGE_TOPICS = ('/image_raw', '/image_raw/compressed')
 
@@ -77,12 +76,7 @@ def time_to_subscription(node, prefix: Path, params: Path, timeout: float) -> fl
             time.sleep(0.02)
         raise TimeoutError(f'no image subscription of the locator of {prefix} within {timeout:.0f} s')
     finally:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout=20.0)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_process(process, timeout=20.0)
 
 
 def startup_times(node, prefix: Path, params: Path, cold: bool, runs: int, timeout: float) -> list[float]:

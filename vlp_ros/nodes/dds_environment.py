@@ -4,6 +4,8 @@ from __future__ import annotations
 import fcntl
 import os
 from pathlib import Path
+import signal
+import subprocess
 
 _held_locks: list = []
 
@@ -51,3 +53,14 @@ def loopback_profile() -> Path:
     """Return the installed config/fastdds_loopback.xml."""
     from ament_index_python.packages import get_package_share_directory
     return Path(get_package_share_directory('vlp_ros')) / 'config' / 'fastdds_loopback.xml'
+
+
+def stop_process(process: subprocess.Popen, timeout: float = 10.0) -> None:
+    """Stop a started node as Ctrl-C would, and kill it if it has not exited within ``timeout`` s."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()

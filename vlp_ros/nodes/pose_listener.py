@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-import signal
 import subprocess
 import time
 
@@ -22,7 +21,7 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 
 from vlp_ros.core.pose import Pose
-from vlp_ros.nodes.dds_environment import installed_executable
+from vlp_ros.nodes.dds_environment import installed_executable, stop_process
 
 
 class PoseListener:
@@ -81,16 +80,6 @@ def _start(name: str, *args: str, log: Path) -> subprocess.Popen:
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
 
 
-def _stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-
 def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListener, logs: Path,
                        topics: Sequence[str], progress: Callable[[int, int], None] | None = None) -> float:
     """
@@ -129,4 +118,4 @@ def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListe
     finally:
         for process in (replay, locator):
             if process is not None:
-                _stop(process)
+                stop_process(process)
