@@ -16,6 +16,8 @@ class Lamp:
 
     ``marker_angle`` is measured in the map from +x toward +y; ``marker_distance``
     defaults to the radius. ``frequency`` (Hz) identifies the lamp in tone mode.
+    ``position_sigma`` (m, per map axis) is how well the position is known (a surveyed map's);
+    None: exactly.
     """
 
     name: str
@@ -25,9 +27,12 @@ class Lamp:
     marker_angle: float = 0.0
     marker_distance: float | None = None
     frequency: float | None = None
+    position_sigma: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'position', np.asarray(self.position, dtype=float).reshape(3))
+        if self.position_sigma is not None:
+            object.__setattr__(self, 'position_sigma', np.asarray(self.position_sigma, dtype=float).reshape(3))
         if self.marker_distance is None:
             object.__setattr__(self, 'marker_distance', float(self.radius))
 

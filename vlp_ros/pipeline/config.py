@@ -95,6 +95,8 @@ LAMP_PARAMETERS = (
     ParameterSpec('marker_distance', 'number', None,
                   "marker centroid's distance from the centre (m); default the radius"),
     ParameterSpec('frequency', 'number', None, "tone mode: the lamp's square-wave frequency (Hz)"),
+    ParameterSpec('position_sigma', 'number_array', None,
+                  'standard deviation (m) of the position along map x, y and z (a surveyed map); absent = exact'),
 )
 LAMP_FIELDS = tuple(spec.name for spec in LAMP_PARAMETERS)
 
@@ -218,7 +220,18 @@ def lamp_from_parameters(values: Mapping[str, Any], name: str, tone_mode: bool) 
     angle = _number(values, prefix + 'marker_angle') if values.get(prefix + 'marker_angle') is not None else 0.0
     return Lamp(name=name, id=_integer(values, prefix + 'id', 0, 2 ** 31 - 1),
                 position=_vector(values, prefix + 'position', 3), radius=radius,
-                marker_angle=angle, marker_distance=marker_distance, frequency=frequency)
+                marker_angle=angle, marker_distance=marker_distance, frequency=frequency,
+                position_sigma=_position_sigma(values, prefix + 'position_sigma'))
+
+
+def _position_sigma(values: Mapping[str, Any], name: str) -> np.ndarray | None:
+    """Three standard deviations (m) not below zero, or None where the parameter is absent (exact)."""
+    if values.get(name) is None:
+        return None
+    sigma = _vector(values, name, 3)
+    if np.any(sigma < 0.0):
+        raise ConfigError(name, f'standard deviations must not be negative, got {sigma.tolist()}')
+    return sigma
 
 
 def lamp_map_from_parameters(values: Mapping[str, Any], beacon: BeaconSettings) -> LampMap:
@@ -348,10 +361,15 @@ def flatten_parameters(tree: Mapping[str, Any], prefix: str = '') -> dict[str, A
 def settings_from_params_file(path: Path | str, node: str = 'vlp_locator') -> LocatorSettings:
     """Return settings from a ``--params-file`` YAML, reading the section of ``node`` (or ``/**``)."""
     document = yaml.safe_load(Path(path).read_text()) or {}
+    return settings_from_tree(parameters_tree(document, node, path))
+
+
+def parameters_tree(document: Mapping[str, Any], node: str, path: Path | str) -> dict[str, Any]:
+    """Return the nested ``ros__parameters`` of ``node`` (or ``/**``) in a params file's ``document`` at ``path``."""
     section = next((document[key] for key in (node, f'/{node}', '/**') if key in document), None)
     if not isinstance(section, Mapping) or 'ros__parameters' not in section:
         raise ConfigError('params file', f'{path} has no {node}: ros__parameters section')
-    return settings_from_tree(section['ros__parameters'])
+    return section['ros__parameters']
 
 
 def settings_from_tree(tree: Mapping[str, Any]) -> LocatorSettings:

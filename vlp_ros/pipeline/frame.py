@@ -97,11 +97,9 @@ class Pipeline:
     def process(self, image: np.ndarray, camera: CameraModel, stamp: float,
                 gravity_up: np.ndarray | None = None) -> FrameResult:
         """Pose of the camera for one bgr8/mono8 frame taken at ``stamp`` (s)."""
-        observations = detect_lamps(image)
+        observations, readings, ids = self.identify(image, stamp)
         if not observations:
             return FrameResult(None, NO_LAMP)
-        readings = [self._read_beacon(image, obs) for obs in observations]
-        ids = self.tracker.update(observations, readings, stamp)
         ids, pairs, solved = self._identified_with_geometry(observations, ids, readings, camera, stamp, gravity_up)
         if not pairs:
             ids, pairs = self._identified_by_continuity(observations, ids, camera, stamp, gravity_up, solved)
@@ -118,6 +116,18 @@ class Pipeline:
         if choice.pose is None:
             return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail, seen)
         return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value, seen)
+
+    def identify(self, image: np.ndarray, stamp: float
+                 ) -> tuple[list[LampObservation], list[BeaconReading], list[int | None]]:
+        """
+        Detect the lamps of the frame at ``stamp`` and read their beacons.
+
+        Returns the observations, this frame's readings and each lamp's ID certain so far (None if not yet),
+        by the beacon alone: ``process`` then holds the IDs to the map's geometry.
+        """
+        observations = detect_lamps(image)
+        readings = [self._read_beacon(image, obs) for obs in observations]
+        return observations, readings, self.tracker.update(observations, readings, stamp) if observations else []
 
     def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None = None) -> Choice:

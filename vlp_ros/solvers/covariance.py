@@ -65,6 +65,33 @@ def _covariance(jacobian, max_condition):
     return 0.5 * (covariance + covariance.T)
 
 
+def with_lamp_position_uncertainty(covariance: np.ndarray, lamp_jacobians: list[np.ndarray],
+                                   other_information: np.ndarray, position_sigmas: list[np.ndarray | None]
+                                   ) -> np.ndarray:
+    """
+    Return the pose ``covariance`` widened by how uncertain the lamps' map positions are.
+
+    ``lamp_jacobians`` are each lamp's whitened residual Jacobians (M_l, 6) at the pose, ``other_information``
+    the information (6, 6) of the fit's other measurements (up directions), ``position_sigmas`` each lamp's
+    standard deviations (m) along the map axes (None: exact). A lamp moved by ``d`` in the map moves its
+    residuals as the camera moved by ``-d`` would (only their difference is seen), so the least-squares pose
+    moves by ``A_l d``, ``A_l = (J^T J)^-1 J_l^T J_l[:, :3]``; independent lamps add ``A_l diag(sigma_l^2) A_l^T``.
+    One lamp alone carries the camera along: ``A = [I; 0]``.
+    """
+    information = other_information + sum(j.T @ j for j in lamp_jacobians)
+    try:
+        fit_covariance = np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        return covariance
+    widened = np.array(covariance, dtype=float)
+    for jacobian, sigma in zip(lamp_jacobians, position_sigmas):
+        if sigma is None:
+            continue
+        shift = fit_covariance @ (jacobian.T @ jacobian[:, :3])
+        widened += (shift * np.square(sigma)) @ shift.T
+    return 0.5 * (widened + widened.T)
+
+
 def nees(estimate: Pose, truth: Pose) -> float:
     """Normalised estimation error squared of ``estimate`` under its own covariance (mean 6 if honest)."""
     if estimate.covariance is None:

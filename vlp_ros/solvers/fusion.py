@@ -35,6 +35,7 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints
 from vlp_ros.solvers.candidates import Choice, distinct, explains_the_image, PoseCandidate, Reason
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
+from vlp_ros.solvers.covariance import with_lamp_position_uncertainty
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp, widened_where_up_disagrees
 from vlp_ros.solvers.point_lamps import point_starts, PointLampMeasurement, pose_from_opencv, seen_from_below
@@ -60,7 +61,30 @@ _PNP_MIN_LAMPS = 4
 
 def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
                 hints: DisambiguationHints) -> Choice:
-    """Return the camera pose from all identified lamps of one frame, or no pose and why."""
+    """
+    Return the camera pose from all identified lamps of one frame, or no pose and why.
+
+    Its covariance includes the uncertainty of the lamps' map positions (``Lamp.position_sigma``).
+    """
+    choice = _chosen_pose(pairs, camera, hints)
+    if choice.pose is None or choice.pose.covariance is None or all(l.position_sigma is None for _, l in pairs):
+        return choice
+    return replace(choice, pose=Pose(choice.pose.rotation, choice.pose.position,
+                                     _with_map_uncertainty(choice.pose, pairs, camera, hints)))
+
+
+def _with_map_uncertainty(pose: Pose, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
+                          hints: DisambiguationHints) -> np.ndarray:
+    measurements = [(PointLampMeasurement if lamp.is_point else LampMeasurement).from_observation(obs, lamp, camera)
+                    for obs, lamp in pairs]
+    jacobians = [m.linearize(pose.rotation, pose.position)[1] for m in measurements]
+    up = hints.up_measurements()
+    other = sum((j.T @ j for j in (m.linearize(pose.rotation, pose.position)[1] for m in up)), np.zeros((6, 6)))
+    return with_lamp_position_uncertainty(pose.covariance, jacobians, other, [lamp.position_sigma for _, lamp in pairs])
+
+
+def _chosen_pose(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
+                 hints: DisambiguationHints) -> Choice:
     if not pairs:
         return Choice(None, Reason.NO_CANDIDATES, 'no identified lamp')
     ids = [lamp.id for _, lamp in pairs]
