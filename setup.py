@@ -26,6 +26,7 @@ setup(
         'console_scripts': [
             'locator = vlp_ros.nodes.locator:main',
             'replay = vlp_ros.nodes.replay:main',
+            'survey = vlp_ros.nodes.survey:main',
         ],
     },
 )

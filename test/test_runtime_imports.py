@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 ROOT = Path(__file__).resolve().parents[1]
-RUNTIME = ('vlp_ros.nodes.locator', 'vlp_ros.nodes.replay', 'vlp_ros.compiled.warm_up')
+RUNTIME = ('vlp_ros.nodes.locator', 'vlp_ros.nodes.replay', 'vlp_ros.nodes.survey', 'vlp_ros.compiled.warm_up')
 TOOLS = ('vlp_ros.sim', 'vlp_ros.evaluation', 'vlp_ros.benchmarks')
 
 

@@ -11,11 +11,12 @@ lamp's frame is its centre and a turn about map z). Measurements, each whitened 
   drifts in heading);
 - gravity: where map up points in the camera, when the recording has an IMU.
 
-Anchors (lamps with a given position) are held fixed. scipy's sparse trust-region least squares
-(``least_squares``, finite differences over the known sparsity) solves it with a Huber loss, so
-a wrong association or a glare-bitten frame is down-weighted instead of pulling the map. The
-lamps' covariance is the inverse of the Gauss-Newton information at the solution, scaled up when
-the sightings' residuals say their stated noise is too small.
+Anchors (lamps with a given position) are held by tight priors. gtsam's Levenberg-Marquardt solves
+the factor graph, every measurement under a Huber loss, so a wrong association or a glare-bitten
+frame is down-weighted instead of pulling the map; the lamps' covariance is gtsam's marginal at the
+solution, scaled up when the sightings' residuals say their stated noise is too small. Each sighting
+has two candidates at most: the one nearest the expected up direction starts, and after one solve each
+sighting takes the candidate the estimate agrees with and the graph is solved again.
 """
 from __future__ import annotations
 
@@ -23,9 +24,8 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
-from scipy.spatial.transform import Rotation
+import gtsam
+from gtsam.symbol_shorthand import L, X
 
 from vlp_ros.core.mounting import Mounting
 from vlp_ros.core.pose import Pose
@@ -48,8 +48,9 @@ CHI2_1_MEDIAN = 0.4549
 # A lamp whose estimate is looser than this is not determined by the recording.
 MAX_POSITION_SIGMA = 0.1
 MAX_ANGLE_SIGMA = 0.2
-_POSITION_COLUMNS = (0, 1, 2)
-_ANGLE_COLUMN = 3
+# Sigmas (m, rad) of what is held (anchors, a disc's level) and of what is left free (a turn about z).
+ANCHOR_SIGMA = 1e-6
+FREE_SIGMA = 1e3
 
 
 @dataclass(frozen=True)
@@ -123,13 +124,13 @@ def estimate_survey(data: SurveyData) -> SurveyEstimate:
     if not cameras or len(undetermined) == len(data.free_lamps) + sum(
             a.marker_angle is None for a in data.anchors.values()):
         return SurveyEstimate({}, {}, undetermined, frames_seen, [])
-    problem = _Problem(data, cameras, lamps)
-    solution = problem.solve(choice)
-    rechosen = [_nearest_candidate(s, problem, solution.x) for s in data.sightings]
+    graph = _Graph(data, cameras, lamps)
+    graph.solve(choice)
+    rechosen = [graph.nearest_candidate(i) for i in range(len(data.sightings))]
     if rechosen != choice:
         choice = rechosen
-        solution = problem.solve(choice)
-    return problem.estimate(solution, choice, undetermined, frames_seen)
+        graph.solve(choice)
+    return graph.estimate(choice, undetermined, frames_seen)
 
 
 def _why_undetermined(lamp_id: int, frames_seen: Counter) -> str:
@@ -210,194 +211,156 @@ def _initial_guess(data: SurveyData, choice: list[int]) -> tuple[dict[int, Pose]
             return cameras, lamps
 
 
-class _Problem:
-    """The least-squares problem over the frames and lamps the initial guess reached."""
+def _pose3(pose: Pose) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3(pose.rotation), np.asarray(pose.position, dtype=float))
+
+
+def _lamp_pose3(position: np.ndarray, angle: float) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3.Rz(angle), np.asarray(position, dtype=float))
+
+
+def _in_gtsam_order(pose: Pose) -> np.ndarray:
+    """
+    Return ``pose``'s covariance in gtsam's Pose3 tangent: (rotation, translation), both in the pose's own frame.
+
+    ``Pose``'s is (translation, rotation) in the outer frame: for ``T exp(xi)`` = the perturbed pose,
+    xi = (R^T d_rotation, R^T d_translation).
+    """
+    turn = np.zeros((6, 6))
+    turn[:3, 3:] = pose.rotation.T
+    turn[3:, :3] = pose.rotation.T
+    return turn @ pose.covariance @ turn.T
+
+
+def _robust(covariance: np.ndarray) -> gtsam.noiseModel.Base:
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(ROBUST_SCALE),
+                                          gtsam.noiseModel.Gaussian.Covariance(covariance))
+
+
+class _Graph:
+    """The factor graph over the frames and lamps the initial guess reached (gtsam keys x<frame>, l<lamp ID>)."""
 
     def __init__(self, data: SurveyData, cameras: dict[int, Pose], lamps: dict[int, tuple[np.ndarray, float]]) -> None:
         self.data = data
-        self.frames = sorted(cameras)
-        self.frame_column = {f: 6 * i for i, f in enumerate(self.frames)}
-        self.start_rotations = Rotation.from_matrix(np.array([cameras[f].rotation for f in self.frames]))
-        x0 = [np.concatenate([np.zeros(3), cameras[f].position]) for f in self.frames]
-        column = 6 * len(self.frames)
-        # Per lamp: (position columns or None, angle column or None), and its fixed values.
-        self.lamp_columns: dict[int, tuple[int | None, int | None]] = {}
-        self.fixed: dict[int, tuple[np.ndarray, float]] = {}
-        for lamp_id, (position, angle) in sorted(lamps.items()):
-            anchor = data.anchors.get(lamp_id)
-            if anchor is not None and anchor.marker_angle is not None:
-                self.fixed[lamp_id] = (anchor.position, anchor.marker_angle)
-            elif anchor is not None:
-                self.lamp_columns[lamp_id] = (None, column)
-                self.fixed[lamp_id] = (anchor.position, 0.0)
-                x0.append(np.array([angle]))
-                column += 1
-            else:
-                self.lamp_columns[lamp_id] = (column, column + 3)
-                self.fixed[lamp_id] = (np.zeros(3), 0.0)
-                x0.append(np.append(position, angle))
-                column += 4
-        self.x0 = np.concatenate(x0)
+        self.cameras = dict(cameras)
+        self.lamps = dict(lamps)
         self.sightings = [(i, s) for i, s in enumerate(data.sightings) if s.frame in cameras and s.lamp_id in lamps]
         self.steps = [s for s in data.odometry if s.first in cameras and s.second in cameras]
-        self.ups = [(f, u) for f, u in sorted(data.up.items()) if f in cameras]
-        self._prepare_odometry()
 
-    def _prepare_odometry(self) -> None:
-        steps = self.steps
-        self.step_rotations = np.array([s.rotation for s in steps]).reshape(-1, 3, 3)
-        self.step_translations = np.array([s.translation for s in steps]).reshape(-1, 3)
-        distance = np.linalg.norm(self.step_translations, axis=1)
-        turn = Rotation.from_matrix(self.step_rotations).magnitude() if steps else np.zeros(0)
-        self.step_sigmas = np.column_stack([
-            np.repeat((ODOMETRY_SCALE_SIGMA * distance + ODOMETRY_TRANSLATION_FLOOR)[:, None], 3, axis=1),
-            np.repeat((ODOMETRY_HEADING_PER_METRE * distance + ODOMETRY_TURN_SIGMA * turn
-                       + ODOMETRY_ROTATION_FLOOR)[:, None], 3, axis=1)])
+    def solve(self, choice: list[int]) -> None:
+        """Optimise from the current poses with the sightings' candidates ``choice``; keep the result."""
+        self.graph = self._factors(choice)
+        values = gtsam.Values()
+        for frame, pose in self.cameras.items():
+            values.insert(X(frame), _pose3(pose))
+        for lamp_id, (position, angle) in self.lamps.items():
+            values.insert(L(lamp_id), _lamp_pose3(position, angle))
+        parameters = gtsam.LevenbergMarquardtParams()
+        parameters.setMaxIterations(100)
+        parameters.setRelativeErrorTol(1e-10)
+        parameters.setAbsoluteErrorTol(1e-10)
+        self.values = gtsam.LevenbergMarquardtOptimizer(self.graph, values, parameters).optimize()
+        for frame in self.cameras:
+            pose = self.values.atPose3(X(frame))
+            self.cameras[frame] = Pose(pose.rotation().matrix(), pose.translation())
+        for lamp_id in self.lamps:
+            pose = self.values.atPose3(L(lamp_id))
+            heading = pose.rotation().matrix()
+            self.lamps[lamp_id] = (np.array(pose.translation()), float(np.arctan2(heading[1, 0], heading[0, 0])))
 
-    def cameras_at(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Camera rotations (F, 3, 3) and positions (F, 3) of ``self.frames``."""
-        blocks = x[:6 * len(self.frames)].reshape(-1, 6)
-        rotations = (Rotation.from_rotvec(blocks[:, :3]) * self.start_rotations).as_matrix()
-        return rotations, blocks[:, 3:]
-
-    def lamp_at(self, x: np.ndarray, lamp_id: int) -> tuple[np.ndarray, float]:
-        position, angle = self.fixed[lamp_id]
-        columns = self.lamp_columns.get(lamp_id)
-        if columns is None:
-            return position, angle
-        start, angle_column = columns
-        if start is not None:
-            position = x[start:start + 3]
-        return position, float(x[angle_column])
-
-    def residuals(self, x: np.ndarray, choice: list[int]) -> np.ndarray:
-        rotations, positions = self.cameras_at(x)
-        parts = [self._sighting_residuals(x, choice, rotations, positions).ravel()]
-        if self.steps:
-            parts.append(self._odometry_residuals(rotations, positions).ravel())
-        if self.ups:
-            index = np.array([self.frames.index(f) for f, _ in self.ups])
-            measured = np.array([u for _, u in self.ups])
-            parts.append(((rotations[index, 2, :] - measured) / self.data.up_sigma).ravel())
-        return np.concatenate(parts)
-
-    def sighting_errors(self, x: np.ndarray, choice: list[int], rotations: np.ndarray,
-                        positions: np.ndarray) -> tuple[np.ndarray, list[Pose]]:
-        """(S, 6) errors of the chosen candidates (position in the lamp frame, rotation vector), and them."""
-        frame_index = {f: i for i, f in enumerate(self.frames)}
-        rows = [frame_index[s.frame] for _, s in self.sightings]
-        lamps = [self.lamp_at(x, s.lamp_id) for _, s in self.sightings]
-        measured = [s.candidates[choice[i]] for i, s in self.sightings]
-        turns = _rz(np.array([angle for _, angle in lamps]))
-        centres = np.array([position for position, _ in lamps])
-        relative_rotations = np.einsum('sji,sjk->sik', turns, rotations[rows])
-        relative_positions = np.einsum('sji,sj->si', turns, positions[rows] - centres)
-        measured_rotations = np.array([m.rotation for m in measured])
-        rotation_errors = Rotation.from_matrix(
-            np.einsum('sij,skj->sik', relative_rotations, measured_rotations)).as_rotvec()
-        return np.column_stack([relative_positions - np.array([m.position for m in measured]),
-                                rotation_errors]), measured
-
-    def _sighting_residuals(self, x: np.ndarray, choice: list[int], rotations: np.ndarray,
-                            positions: np.ndarray) -> np.ndarray:
-        errors, measured = self.sighting_errors(x, choice, rotations, positions)
-        return np.einsum('sij,sj->si', _whitening(measured), errors)
-
-    def _odometry_residuals(self, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        index = {f: i for i, f in enumerate(self.frames)}
-        first = np.array([index[s.first] for s in self.steps])
-        second = np.array([index[s.second] for s in self.steps])
+    def _factors(self, choice: list[int]) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for lamp_id, (position, angle) in self.lamps.items():
+            anchor = self.data.anchors.get(lamp_id)
+            if anchor is not None:
+                yaw = ANCHOR_SIGMA if anchor.marker_angle is not None else FREE_SIGMA
+                graph.add(gtsam.PriorFactorPose3(L(lamp_id), _lamp_pose3(anchor.position, angle),
+                                                 gtsam.noiseModel.Diagonal.Sigmas(
+                                                     np.array([ANCHOR_SIGMA, ANCHOR_SIGMA, yaw, *[ANCHOR_SIGMA] * 3]))))
+            else:
+                # Discs hang level: only the turn about map z is free.
+                graph.add(gtsam.PoseRotationPrior3D(L(lamp_id), gtsam.Rot3.Rz(angle), gtsam.noiseModel.Diagonal.Sigmas(
+                    np.array([ANCHOR_SIGMA, ANCHOR_SIGMA, FREE_SIGMA]))))
+        for index, sighting in self.sightings:
+            relative = sighting.candidates[choice[index]]
+            graph.add(gtsam.BetweenFactorPose3(L(sighting.lamp_id), X(sighting.frame), _pose3(relative),
+                                               _robust(_in_gtsam_order(relative))))
         mounting = self.data.mounting
-        base_rotations, base_positions = rotations, positions
-        if mounting is not None:
-            base_rotations = rotations @ mounting.rotation.T
-            base_positions = positions - base_rotations @ mounting.translation
-        a, b = base_rotations[first], base_rotations[second]
-        moved = np.einsum('sji,sjk->sik', a, b)
-        shift = np.einsum('sji,sj->si', a, base_positions[second] - base_positions[first])
-        turn = Rotation.from_matrix(np.einsum('sij,skj->sik', moved, self.step_rotations)).as_rotvec()
-        return np.column_stack([shift - self.step_translations, turn]) / self.step_sigmas
-
-    def sparsity(self) -> lil_matrix:
-        rows = 6 * len(self.sightings) + 6 * len(self.steps) + 3 * len(self.ups)
-        pattern = lil_matrix((rows, len(self.x0)), dtype=int)
-        row = 0
-        for _, sighting in self.sightings:
-            columns = list(range(self.frame_column[sighting.frame], self.frame_column[sighting.frame] + 6))
-            start, angle_column = self.lamp_columns.get(sighting.lamp_id, (None, None))
-            columns += ([] if start is None else list(range(start, start + 3))) + (
-                [] if angle_column is None else [angle_column])
-            pattern[row:row + 6, columns] = 1
-            row += 6
+        on_base = gtsam.Pose3() if mounting is None else gtsam.Pose3(gtsam.Rot3(mounting.rotation),
+                                                                     mounting.translation)
+        to_camera = on_base.inverse().AdjointMap()
         for step in self.steps:
-            for frame in (step.first, step.second):
-                pattern[row:row + 6, self.frame_column[frame]:self.frame_column[frame] + 6] = 1
-            row += 6
-        for frame, _ in self.ups:
-            pattern[row:row + 3, self.frame_column[frame]:self.frame_column[frame] + 3] = 1
-            row += 3
-        return pattern
+            motion = gtsam.Pose3(gtsam.Rot3(step.rotation), step.translation)
+            distance = float(np.linalg.norm(step.translation))
+            turn = float(np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(step.rotation))))
+            rotation_sigma = ODOMETRY_HEADING_PER_METRE * distance + ODOMETRY_TURN_SIGMA * turn + \
+                ODOMETRY_ROTATION_FLOOR
+            translation_sigma = ODOMETRY_SCALE_SIGMA * distance + ODOMETRY_TRANSLATION_FLOOR
+            covariance = np.diag([rotation_sigma ** 2] * 3 + [translation_sigma ** 2] * 3)
+            graph.add(gtsam.BetweenFactorPose3(X(step.first), X(step.second),
+                                               on_base.inverse().compose(motion).compose(on_base),
+                                               _robust(to_camera @ covariance @ to_camera.T)))
+        for frame, up in sorted(self.data.up.items()):
+            if frame in self.cameras:
+                graph.add(gtsam.AttitudeFactorPose3(X(frame), gtsam.Unit3(np.array([0.0, 0.0, 1.0])),
+                                                    gtsam.noiseModel.Isotropic.Sigma(2, self.data.up_sigma),
+                                                    gtsam.Unit3(np.asarray(up, dtype=float))))
+        return graph
 
-    def solve(self, choice: list[int]):
-        """Return scipy's least-squares result from ``self.x0`` with the candidates ``choice``."""
-        result = least_squares(self.residuals, self.x0, jac_sparsity=self.sparsity(), method='trf',
-                               loss='huber', f_scale=ROBUST_SCALE, x_scale='jac', tr_solver='lsmr',
-                               xtol=1e-10, ftol=1e-10, max_nfev=200, args=(choice,))
-        self.x0 = result.x
-        return result
+    def sighting_errors(self, choice: list[int]) -> tuple[np.ndarray, list[Pose]]:
+        """(S, 6) errors of the chosen candidates (position in the lamp frame, rotation vector), and them."""
+        errors, measured = [], []
+        for index, sighting in self.sightings:
+            relative = sighting.candidates[choice[index]]
+            position, angle = self.lamps[sighting.lamp_id]
+            camera = self.cameras[sighting.frame]
+            turn = _rz(np.array(angle))
+            predicted = Pose(turn.T @ camera.rotation, turn.T @ (camera.position - position))
+            errors.append(predicted.error_vector(relative))
+            measured.append(relative)
+        return np.array(errors).reshape(-1, 6), measured
 
-    def estimate(self, solution, choice: list[int], undetermined: dict[int, str],
-                 frames_seen: Counter) -> SurveyEstimate:
-        x = solution.x
-        rotations, positions = self.cameras_at(x)
-        cameras = {f: Pose(rotations[i], positions[i]) for i, f in enumerate(self.frames)}
-        errors, measured = self.sighting_errors(x, choice, rotations, positions)
+    def nearest_candidate(self, index: int) -> int:
+        """Index of sighting ``index``'s candidate the estimate agrees with best (Mahalanobis)."""
+        sighting = self.data.sightings[index]
+        if len(sighting.candidates) == 1 or sighting.frame not in self.cameras or sighting.lamp_id not in self.lamps:
+            return 0
+        position, angle = self.lamps[sighting.lamp_id]
+        camera = self.cameras[sighting.frame]
+        turn = _rz(np.array(angle))
+        predicted = Pose(turn.T @ camera.rotation, turn.T @ (camera.position - position))
+        scores = []
+        for candidate in sighting.candidates:
+            error = predicted.error_vector(candidate)
+            scores.append(float(error @ np.linalg.solve(candidate.covariance, error)))
+        return int(np.argmin(scores))
+
+    def estimate(self, choice: list[int], undetermined: dict[int, str], frames_seen: Counter) -> SurveyEstimate:
+        errors, measured = self.sighting_errors(choice)
         whitened = np.einsum('sij,sj->si', _whitening(measured), errors)
         chi_squares = np.sum(whitened ** 2, axis=1)
         factor = max(1.0, float(np.median(whitened ** 2)) / CHI2_1_MEDIAN) if len(whitened) else 1.0
-        jacobian = solution.jac
-        information = (jacobian.T @ jacobian).toarray()
-        covariance = factor * np.linalg.pinv(information)
         residuals = [SightingResidual(s.frame, s.lamp_id, float(c), float(np.linalg.norm(e[:3])))
                      for (_, s), c, e in zip(self.sightings, chi_squares, errors)]
-        lamps = {}
-        undetermined = dict(undetermined)
-        for lamp_id, (start, angle_column) in self.lamp_columns.items():
-            position, angle = self.lamp_at(x, lamp_id)
-            if start is None:
+        marginals = gtsam.Marginals(self.graph, self.values)
+        lamps, undetermined = {}, dict(undetermined)
+        free = [i for i in self.lamps if i not in self.data.anchors or self.data.anchors[i].marker_angle is None]
+        for lamp_id in free:
+            position, angle = self.lamps[lamp_id]
+            covariance = factor * marginals.marginalCovariance(L(lamp_id))
+            heading = _rz(np.array(angle))
+            position_covariance = heading @ covariance[3:, 3:] @ heading.T
+            if lamp_id in self.data.anchors:
                 position_covariance = np.zeros((3, 3))
-            else:
-                position_covariance = covariance[start:start + 3, start:start + 3]
-            angle_sigma = float(np.sqrt(max(covariance[angle_column, angle_column], 0.0)))
+            angle_sigma = float(np.sqrt(max(covariance[2, 2], 0.0)))
             position_sigma = np.sqrt(np.maximum(np.diag(position_covariance), 0.0))
             if not (np.all(position_sigma < MAX_POSITION_SIGMA) and angle_sigma < MAX_ANGLE_SIGMA):
                 undetermined[lamp_id] = (f'too loosely determined (sigma {1e2 * position_sigma.max():.1f} cm, '
                                          f'marker {np.degrees(angle_sigma):.1f} deg)')
                 continue
-            lamps[lamp_id] = SurveyedLamp(np.array(position), float(np.arctan2(np.sin(angle), np.cos(angle))),
-                                          position_covariance, angle_sigma)
-        odometry = self._odometry_residuals(rotations, positions) if self.steps else np.zeros((0, 6))
-        return SurveyEstimate(lamps, cameras, undetermined, frames_seen, residuals,
-                              float(np.sum(odometry ** 2)), factor)
-
-
-def _nearest_candidate(sighting: Sighting, problem: _Problem, x: np.ndarray) -> int:
-    """Index of the sighting's candidate the estimate agrees with best (Mahalanobis), where it was solved."""
-    if len(sighting.candidates) == 1 or sighting.frame not in problem.frame_column:
-        return 0
-    if sighting.lamp_id not in problem.fixed:
-        return 0
-    rotations, positions = problem.cameras_at(x)
-    index = problem.frames.index(sighting.frame)
-    position, angle = problem.lamp_at(x, sighting.lamp_id)
-    turn = _rz(np.array(angle))
-    rotation, centre = turn.T @ rotations[index], turn.T @ (positions[index] - position)
-    scores = []
-    for candidate in sighting.candidates:
-        error = np.concatenate([centre - candidate.position,
-                                Rotation.from_matrix(rotation @ candidate.rotation.T).as_rotvec()])
-        scores.append(float(error @ np.linalg.solve(candidate.covariance, error)))
-    return int(np.argmin(scores))
+            lamps[lamp_id] = SurveyedLamp(np.array(position), angle, position_covariance, angle_sigma)
+        return SurveyEstimate(lamps, dict(self.cameras), undetermined, frames_seen, residuals,
+                              float(self.graph.error(self.values)), factor)
 
 
 def _whitening(measured: list[Pose]) -> np.ndarray:

@@ -20,9 +20,10 @@ from vlp_ros.pipeline.config import ConfigError, LocatorSettings, parameters_tre
 
 NODE = 'vlp_locator'
 MIN_ANCHORS = 2
-# Decimals written: 0.01 mm and 1 microradian, far below what any survey achieves.
+# Decimals written: 0.01 mm, 1 microradian and sigmas to 0.1 micrometre, below what any survey achieves.
 POSITION_DECIMALS = 5
 ANGLE_DECIMALS = 6
+SIGMA_DECIMALS = 7
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,7 @@ def surveyed_document(partial: PartialMap, lamps: dict[str, SurveyedLamp]) -> di
         entry = leds[name]
         if name not in partial.anchors:
             entry['position'] = [round(float(v), POSITION_DECIMALS) for v in lamp.position]
-            entry['position_sigma'] = [round(float(v), POSITION_DECIMALS) for v in lamp.position_sigma]
+            entry['position_sigma'] = [round(float(v), SIGMA_DECIMALS) for v in lamp.position_sigma]
         entry['marker_angle'] = round(float(lamp.marker_angle), ANGLE_DECIMALS)
     return document
 

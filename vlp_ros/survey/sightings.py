@@ -62,7 +62,8 @@ def relative_candidates(observation: LampObservation, lamp: Lamp, camera: Camera
         candidates = solve_lamp(seen, local, view)
     except ValueError:
         return ()
-    return tuple(c.pose for c in candidates if c.pose.covariance is not None)
+    return tuple(Pose(c.pose.rotation, c.pose.position, c.separating_covariance) for c in candidates
+                 if c.pose.covariance is not None)
 
 
 def frame_sightings(pipeline: Pipeline, index: int, image: np.ndarray, camera: CameraModel,
