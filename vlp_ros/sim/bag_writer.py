@@ -1,5 +1,5 @@
 """
-rosbag2 recordings of simulated frames: image, camera info, IMU and ground-truth pose.
+rosbag2 recordings of simulated frames: image, camera info, IMU, ground-truth pose and wheel odometry.
 
 Every message of a frame carries the frame's stamp (when its row 0 started
 exposing) in its header and as its log time.
@@ -29,6 +29,9 @@ JPEG_FORMAT = 'bgr8; jpeg compressed bgr8'
 CAMERA_INFO_TOPIC = '/camera_info'
 IMU_TOPIC = '/imu'
 GROUND_TRUTH_TOPIC = '/ground_truth/pose'
+ODOMETRY_TOPIC = '/odom'
+ODOMETRY_FRAME = 'odom'
+BASE_FRAME = 'base_link'
 
 
 def _qos(reliability: QosReliability, depth: int) -> Qos:
@@ -44,6 +47,7 @@ TOPICS = {
     CAMERA_INFO_TOPIC: ('sensor_msgs/msg/CameraInfo', _qos(QosReliability.RELIABLE, 10)),
     IMU_TOPIC: ('sensor_msgs/msg/Imu', _qos(QosReliability.BEST_EFFORT, 50)),
     GROUND_TRUTH_TOPIC: ('geometry_msgs/msg/PoseStamped', _qos(QosReliability.RELIABLE, 10)),
+    ODOMETRY_TOPIC: ('nav_msgs/msg/Odometry', _qos(QosReliability.RELIABLE, 10)),
 }
 
 
@@ -54,11 +58,12 @@ class SimBagWriter:
     Use as a context manager.
 
     With ``jpeg_quality`` the images go as JPEG on /image_raw/compressed (for
-    ``image_transport: compressed``) instead of raw on /image_raw.
+    ``image_transport: compressed``) instead of raw on /image_raw. With ``odometry`` the bag has
+    /odom (``write_odometry``).
     """
 
     def __init__(self, path: Path | str, storage: str = 'sqlite3', imu: bool = False,
-                 jpeg_quality: int | None = None) -> None:
+                 jpeg_quality: int | None = None, odometry: bool = False) -> None:
         if storage not in STORAGES:
             raise ValueError(f'storage must be one of {", ".join(STORAGES)}, got {storage!r}')
         path = Path(path)
@@ -69,6 +74,7 @@ class SimBagWriter:
         self._connections = {}
         self._jpeg_quality = jpeg_quality
         skipped = {IMAGE_TOPIC if jpeg_quality is not None else COMPRESSED_TOPIC} | (set() if imu else {IMU_TOPIC})
+        skipped |= set() if odometry else {ODOMETRY_TOPIC}
         for topic, (msgtype, qos) in TOPICS.items():
             if topic in skipped:
                 continue
@@ -96,6 +102,17 @@ class SimBagWriter:
             self._write(COMPRESSED_TOPIC, stamp_ns, compressed_image_message(
                 encode_jpeg(frame.image, self._jpeg_quality), header))
         self.frames += 1
+
+    def write_odometry(self, stamp_ns: int, base: Pose) -> None:
+        """nav_msgs/Odometry of the base in the odometry frame (pose only; twist zero, covariances unknown)."""
+        types = TYPESTORE.types
+        pose = pose_message(base, _header(stamp_ns, ODOMETRY_FRAME)).pose
+        twist = types['geometry_msgs/msg/Twist'](linear=types['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0),
+                                                 angular=types['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0))
+        self._write(ODOMETRY_TOPIC, stamp_ns, types['nav_msgs/msg/Odometry'](
+            header=_header(stamp_ns, ODOMETRY_FRAME), child_frame_id=BASE_FRAME,
+            pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=pose, covariance=np.zeros(36)),
+            twist=types['geometry_msgs/msg/TwistWithCovariance'](twist=twist, covariance=np.zeros(36))))
 
     def _write(self, topic: str, stamp_ns: int, message: object) -> None:
         self._writer.write(self._connections[topic], stamp_ns,

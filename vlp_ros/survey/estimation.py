@@ -38,6 +38,12 @@ from vlp_ros.survey.sightings import Sighting
 ODOMETRY_SCALE_SIGMA = 0.03
 ODOMETRY_TRANSLATION_FLOOR = 0.005
 ODOMETRY_HEADING_PER_METRE = 0.02
+# Once its scale and heading drift are calibrated against the images (``calibrated_odometry``), what remains
+# of them: the wheels' random slip.
+CALIBRATED_SCALE_SIGMA = 0.01
+CALIBRATED_HEADING_PER_METRE = 0.005
+# Steps shorter than this (m) say little about the odometry's scale and drift.
+CALIBRATION_MIN_STEP = 0.05
 ODOMETRY_TURN_SIGMA = 0.03
 ODOMETRY_ROTATION_FLOOR = 0.003
 # Huber loss threshold on whitened residuals (sigmas): beyond it a residual counts linearly.
@@ -71,7 +77,8 @@ class SurveyData:
     ``frame_count`` frames, indexed as in ``sightings``; ``free_lamps`` the IDs of lamps without a
     position; ``anchors`` by ID; ``up`` measured map up in the camera per frame (IMU) with
     ``up_sigma`` (rad); ``expected_up`` where map up is in the camera for a level robot, to choose
-    between a sighting's mirror candidates before anything is estimated.
+    between a sighting's mirror candidates before anything is estimated, and with ``level_sigma`` (rad)
+    a measurement of every frame without an IMU's.
     """
 
     frame_count: int
@@ -83,6 +90,7 @@ class SurveyData:
     up: dict[int, np.ndarray] = field(default_factory=dict)
     up_sigma: float = 0.01
     expected_up: np.ndarray | None = None
+    level_sigma: float | None = None
 
 
 @dataclass(frozen=True)
@@ -126,11 +134,44 @@ def estimate_survey(data: SurveyData) -> SurveyEstimate:
         return SurveyEstimate({}, {}, undetermined, frames_seen, [])
     graph = _Graph(data, cameras, lamps)
     graph.solve(choice)
-    rechosen = [graph.nearest_candidate(i) for i in range(len(data.sightings))]
-    if rechosen != choice:
-        choice = rechosen
-        graph.solve(choice)
+    choice = [graph.nearest_candidate(i) for i in range(len(data.sightings))]
+    if graph.steps:
+        graph.steps = calibrated_odometry(graph.steps, graph.cameras, data.mounting)
+        graph.calibrated = True
+    graph.solve(choice)
     return graph.estimate(choice, undetermined, frames_seen)
+
+
+def calibrated_odometry(steps: list[OdometryStep], cameras: dict[int, Pose],
+                        mounting: Mounting | None) -> list[OdometryStep]:
+    """
+    Return ``steps`` corrected for the odometry's scale error and heading drift per metre.
+
+    Both are what the estimated camera poses show against the odometry (medians over the steps
+    of at least ``CALIBRATION_MIN_STEP``): wheel odometry errs systematically, by a few per cent of
+    its scale and a steady drift, so over the metres between lamps that are never in view together
+    the uncorrected error would be centimetres.
+    """
+    ratios, drifts = [], []
+    for step in steps:
+        a, b = _base_of(cameras[step.first], mounting), _base_of(cameras[step.second], mounting)
+        seen = a.rotation.T @ (b.position - a.position)
+        distance = float(np.linalg.norm(step.translation))
+        if distance < CALIBRATION_MIN_STEP:
+            continue
+        ratios.append(float(np.linalg.norm(seen)) / distance)
+        turn = a.rotation.T @ b.rotation
+        drifts.append((_yaw(step.rotation) - _yaw(turn) + np.pi) % (2.0 * np.pi) / distance - np.pi / distance)
+    if not ratios:
+        return steps
+    scale, drift = float(np.median(ratios)), float(np.median(drifts))
+    return [OdometryStep(s.first, s.second,
+                         _rz(np.array(-drift * np.linalg.norm(s.translation))) @ s.rotation, scale * s.translation)
+            for s in steps]
+
+
+def _yaw(rotation: np.ndarray) -> float:
+    return float(np.arctan2(rotation[1, 0], rotation[0, 0]))
 
 
 def _why_undetermined(lamp_id: int, frames_seen: Counter) -> str:
@@ -203,8 +244,8 @@ def _initial_guess(data: SurveyData, choice: list[int]) -> tuple[dict[int, Pose]
                     base = _base_of(cameras[known], data.mounting)
                     motion = Pose(step.rotation, step.translation)
                     if not forward:
-                        motion = Pose(step.rotation.T, -step.rotation.T @ step.translation)
-                    moved = Pose(base.rotation @ motion.rotation, base.position + base.rotation @ motion.translation)
+                        motion = Pose(step.rotation.T, -step.rotation.T @ motion.position)
+                    moved = Pose(base.rotation @ motion.rotation, base.position + base.rotation @ motion.position)
                     cameras[unknown] = _camera_of(moved, data.mounting)
                     bridged = True
         if not bridged:
@@ -246,6 +287,7 @@ class _Graph:
         self.lamps = dict(lamps)
         self.sightings = [(i, s) for i, s in enumerate(data.sightings) if s.frame in cameras and s.lamp_id in lamps]
         self.steps = [s for s in data.odometry if s.first in cameras and s.second in cameras]
+        self.calibrated = False
 
     def solve(self, choice: list[int]) -> None:
         """Optimise from the current poses with the sightings' candidates ``choice``; keep the result."""
@@ -293,17 +335,21 @@ class _Graph:
             motion = gtsam.Pose3(gtsam.Rot3(step.rotation), step.translation)
             distance = float(np.linalg.norm(step.translation))
             turn = float(np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(step.rotation))))
-            rotation_sigma = ODOMETRY_HEADING_PER_METRE * distance + ODOMETRY_TURN_SIGMA * turn + \
-                ODOMETRY_ROTATION_FLOOR
-            translation_sigma = ODOMETRY_SCALE_SIGMA * distance + ODOMETRY_TRANSLATION_FLOOR
+            per_metre = CALIBRATED_HEADING_PER_METRE if self.calibrated else ODOMETRY_HEADING_PER_METRE
+            rotation_sigma = per_metre * distance + ODOMETRY_TURN_SIGMA * turn + ODOMETRY_ROTATION_FLOOR
+            scale = CALIBRATED_SCALE_SIGMA if self.calibrated else ODOMETRY_SCALE_SIGMA
+            translation_sigma = scale * distance + ODOMETRY_TRANSLATION_FLOOR
             covariance = np.diag([rotation_sigma ** 2] * 3 + [translation_sigma ** 2] * 3)
             graph.add(gtsam.BetweenFactorPose3(X(step.first), X(step.second),
                                                on_base.inverse().compose(motion).compose(on_base),
                                                _robust(to_camera @ covariance @ to_camera.T)))
-        for frame, up in sorted(self.data.up.items()):
-            if frame in self.cameras:
+        for frame in self.cameras:
+            up, sigma = self.data.up.get(frame), self.data.up_sigma
+            if up is None:
+                up, sigma = self.data.expected_up, self.data.level_sigma
+            if up is not None and sigma is not None:
                 graph.add(gtsam.AttitudeFactorPose3(X(frame), gtsam.Unit3(np.array([0.0, 0.0, 1.0])),
-                                                    gtsam.noiseModel.Isotropic.Sigma(2, self.data.up_sigma),
+                                                    _robust(np.eye(2) * sigma ** 2),
                                                     gtsam.Unit3(np.asarray(up, dtype=float))))
         return graph
 

@@ -25,6 +25,9 @@ from vlp_ros.survey.sightings import frame_sightings, FrameSightings
 
 # Odometry is interpolated only between samples this close in time (s).
 MAX_ODOMETRY_GAP = 0.5
+# How far (rad) a robot's camera strays from its level mounting: floors, wheels and suspension rock it by
+# tenths of a degree (the simulator's robots: 0.7 deg). It holds the tilt that one lamp alone leaves loose.
+LEVEL_SIGMA = np.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -89,7 +92,7 @@ def read_survey(bag: Path | str, partial: PartialMap, topics: SurveyTopics,
                       anchors={ids[name]: anchor for name, anchor in partial.anchors.items()},
                       odometry=odometry, mounting=settings.mounting,
                       up={k: u for k, u in ups.items()}, up_sigma=settings.imu_sigma or 0.01,
-                      expected_up=_expected_up(partial))
+                      expected_up=_expected_up(partial), level_sigma=_level_sigma(partial))
     return SurveyRecording(frames, data, duration, bool(odometry), bool(ups))
 
 
@@ -99,6 +102,14 @@ def _expected_up(partial: PartialMap) -> np.ndarray | None:
     if settings.mounting is not None:
         return settings.mounting.up_in_camera()
     return settings.prior_up
+
+
+def _level_sigma(partial: PartialMap) -> float | None:
+    """How well the expected up is known: a level robot's mounting, or the params' prior sigma (None: not at all)."""
+    settings = partial.settings
+    if settings.mounting is not None:
+        return LEVEL_SIGMA
+    return settings.prior_sigma if settings.prior_up is not None else None
 
 
 def odometry_poses(bag: Path | str, topic: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
