@@ -48,6 +48,9 @@ ODOMETRY_TURN_SIGMA = 0.03
 ODOMETRY_ROTATION_FLOOR = 0.003
 # Huber loss threshold on whitened residuals (sigmas): beyond it a residual counts linearly.
 ROBUST_SCALE = 3.0
+# A sighting this far from the robust estimate (chi-square, 6 DoF; 1e-6 for a right one) is a wrong
+# association or a broken frame: it is left out, since even linearly weighted it pulls its lamp by sigmas.
+GROSS_OUTLIER_CHI2 = 40.0
 # Median of chi-square with one degree of freedom: the sightings' residuals' median square over it
 # says how far their stated noise falls short.
 CHI2_1_MEDIAN = 0.4549
@@ -139,6 +142,9 @@ def estimate_survey(data: SurveyData) -> SurveyEstimate:
         graph.steps = calibrated_odometry(graph.steps, graph.cameras, data.mounting)
         graph.calibrated = True
     graph.solve(choice)
+    graph.excluded = graph.gross_outliers(choice)
+    if graph.excluded:
+        graph.solve(choice)
     return graph.estimate(choice, undetermined, frames_seen)
 
 
@@ -288,31 +294,37 @@ class _Graph:
         self.sightings = [(i, s) for i, s in enumerate(data.sightings) if s.frame in cameras and s.lamp_id in lamps]
         self.steps = [s for s in data.odometry if s.first in cameras and s.second in cameras]
         self.calibrated = False
+        # Sightings (by index) left out as gross outliers.
+        self.excluded: set[int] = set()
 
     def solve(self, choice: list[int]) -> None:
         """Optimise from the current poses with the sightings' candidates ``choice``; keep the result."""
+        kept = [s for index, s in self.sightings if index not in self.excluded]
+        self.used_frames = {s.frame for s in kept} | {f for step in self.steps for f in (step.first, step.second)}
+        self.used_lamps = {s.lamp_id for s in kept} | (set(self.data.anchors) & set(self.lamps))
         self.graph = self._factors(choice)
         values = gtsam.Values()
-        for frame, pose in self.cameras.items():
-            values.insert(X(frame), _pose3(pose))
-        for lamp_id, (position, angle) in self.lamps.items():
-            values.insert(L(lamp_id), _lamp_pose3(position, angle))
+        for frame in self.used_frames:
+            values.insert(X(frame), _pose3(self.cameras[frame]))
+        for lamp_id in self.used_lamps:
+            values.insert(L(lamp_id), _lamp_pose3(*self.lamps[lamp_id]))
         parameters = gtsam.LevenbergMarquardtParams()
         parameters.setMaxIterations(100)
         parameters.setRelativeErrorTol(1e-10)
         parameters.setAbsoluteErrorTol(1e-10)
         self.values = gtsam.LevenbergMarquardtOptimizer(self.graph, values, parameters).optimize()
-        for frame in self.cameras:
+        for frame in self.used_frames:
             pose = self.values.atPose3(X(frame))
             self.cameras[frame] = Pose(pose.rotation().matrix(), pose.translation())
-        for lamp_id in self.lamps:
+        for lamp_id in self.used_lamps:
             pose = self.values.atPose3(L(lamp_id))
             heading = pose.rotation().matrix()
             self.lamps[lamp_id] = (np.array(pose.translation()), float(np.arctan2(heading[1, 0], heading[0, 0])))
 
     def _factors(self, choice: list[int]) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
-        for lamp_id, (position, angle) in self.lamps.items():
+        for lamp_id in self.used_lamps:
+            angle = self.lamps[lamp_id][1]
             anchor = self.data.anchors.get(lamp_id)
             if anchor is not None:
                 yaw = ANCHOR_SIGMA if anchor.marker_angle is not None else FREE_SIGMA
@@ -324,6 +336,8 @@ class _Graph:
                 graph.add(gtsam.PoseRotationPrior3D(L(lamp_id), gtsam.Rot3.Rz(angle), gtsam.noiseModel.Diagonal.Sigmas(
                     np.array([ANCHOR_SIGMA, ANCHOR_SIGMA, FREE_SIGMA]))))
         for index, sighting in self.sightings:
+            if index in self.excluded:
+                continue
             relative = sighting.candidates[choice[index]]
             graph.add(gtsam.BetweenFactorPose3(L(sighting.lamp_id), X(sighting.frame), _pose3(relative),
                                                _robust(_in_gtsam_order(relative))))
@@ -343,7 +357,7 @@ class _Graph:
             graph.add(gtsam.BetweenFactorPose3(X(step.first), X(step.second),
                                                on_base.inverse().compose(motion).compose(on_base),
                                                _robust(to_camera @ covariance @ to_camera.T)))
-        for frame in self.cameras:
+        for frame in self.used_frames:
             up, sigma = self.data.up.get(frame), self.data.up_sigma
             if up is None:
                 up, sigma = self.data.expected_up, self.data.level_sigma
@@ -365,6 +379,12 @@ class _Graph:
             errors.append(predicted.error_vector(relative))
             measured.append(relative)
         return np.array(errors).reshape(-1, 6), measured
+
+    def gross_outliers(self, choice: list[int]) -> set[int]:
+        """Indices of the sightings whose chi-square at the estimate exceeds ``GROSS_OUTLIER_CHI2``."""
+        errors, measured = self.sighting_errors(choice)
+        chi_squares = np.sum(np.einsum('sij,sj->si', _whitening(measured), errors) ** 2, axis=1)
+        return {index for (index, _), chi in zip(self.sightings, chi_squares) if chi > GROSS_OUTLIER_CHI2}
 
     def nearest_candidate(self, index: int) -> int:
         """Index of sighting ``index``'s candidate the estimate agrees with best (Mahalanobis)."""
@@ -392,6 +412,9 @@ class _Graph:
         lamps, undetermined = {}, dict(undetermined)
         free = [i for i in self.lamps if i not in self.data.anchors or self.data.anchors[i].marker_angle is None]
         for lamp_id in free:
+            if lamp_id not in self.used_lamps:
+                undetermined[lamp_id] = 'every sighting of it disagrees with the rest of the survey'
+                continue
             position, angle = self.lamps[lamp_id]
             covariance = factor * marginals.marginalCovariance(L(lamp_id))
             heading = _rz(np.array(angle))
@@ -405,7 +428,7 @@ class _Graph:
                                          f'marker {np.degrees(angle_sigma):.1f} deg)')
                 continue
             lamps[lamp_id] = SurveyedLamp(np.array(position), angle, position_covariance, angle_sigma)
-        return SurveyEstimate(lamps, dict(self.cameras), undetermined, frames_seen, residuals,
+        return SurveyEstimate(lamps, {f: self.cameras[f] for f in self.used_frames}, undetermined, frames_seen, residuals,
                               float(self.graph.error(self.values)), factor)
 
 
