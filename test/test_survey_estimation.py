@@ -32,8 +32,8 @@ def data(drive: SurveyDrive) -> SurveyData:
     return exact_survey_data(drive, np.random.default_rng(7))
 
 
-def errors(drive: SurveyDrive, estimate: SurveyEstimate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Position errors (N, 3), marker angle errors (N,) and position NEES (N,) of the surveyed lamps."""
+def lamp_errors(drive: SurveyDrive, estimate: SurveyEstimate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the surveyed lamps' position errors (N, 3), marker angle errors (N,) and position NEES (N,)."""
     truth = {lamp.id: lamp for lamp in drive.lamps}
     position = np.array([lamp.position - truth[i].position for i, lamp in estimate.lamps.items()])
     angle = np.array([np.angle(np.exp(1j * (lamp.marker_angle - truth[i].marker_angle)))
@@ -44,7 +44,7 @@ def errors(drive: SurveyDrive, estimate: SurveyEstimate) -> tuple[np.ndarray, np
 
 
 def assert_within(drive: SurveyDrive, estimate: SurveyEstimate, factor: float = 1.0) -> None:
-    position, angle, nees = errors(drive, estimate)
+    position, angle, nees = lamp_errors(drive, estimate)
     distance = np.linalg.norm(position, axis=1)
     assert np.sqrt(np.mean(distance ** 2)) <= factor * RMS_TARGET, distance
     assert distance.max() <= factor * MAX_TARGET, distance

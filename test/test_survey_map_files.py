@@ -5,10 +5,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_params_file, settings_from_parameters
+from vlp_ros.pipeline.config import ConfigError, default_parameters, settings_from_parameters, settings_from_params_file
 from vlp_ros.survey.partial_map import load_partial_map, SurveyedLamp, write_surveyed
+
+import yaml
 
 
 def partial_file(tmp_path: Path, anchors: int = 2) -> Path:

@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-import yaml
 
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.mounting import Mounting
@@ -23,13 +22,15 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.exact_observations import synthetic_observation
 from vlp_ros.sim.recording import EPOCH_NS, LOCATOR_NODE
-from vlp_ros.sim.scenarios import (BeaconDesign, make_lamp, ROBOT_CAMERA_HEIGHT, ROBOT_EXPOSURE, ROBOT_LAMP_RADIUS,
-                                   ROBOT_ROW_TIME, robot_1080p_camera, Scenario)
+from vlp_ros.sim.scenarios import (BeaconDesign, make_lamp, robot_1080p_camera, ROBOT_CAMERA_HEIGHT, ROBOT_EXPOSURE,
+                                   ROBOT_LAMP_RADIUS, ROBOT_ROW_TIME, Scenario)
 from vlp_ros.sim.sensor import SensorModel
 from vlp_ros.survey.estimation import OdometryStep, SurveyData
-from vlp_ros.survey.recording import LEVEL_SIGMA
 from vlp_ros.survey.partial_map import Anchor
+from vlp_ros.survey.recording import LEVEL_SIGMA
 from vlp_ros.survey.sightings import relative_candidates, Sighting
+
+import yaml
 
 # The camera looks straight up from the base, the top of its image toward the front.
 CAMERA_IN_BASE = Mounting(Rotation.from_euler('z', 90, degrees=True).as_matrix(), np.array([0.1, 0.0,
@@ -45,8 +46,10 @@ ODOMETRY_HEADING_DRIFT = 0.01
 @dataclass(frozen=True)
 class SurveyDrive:
     """
-    The scene and the drive: ``scenario`` (camera poses and lamps, for rendering), the base's true poses and
-    its odometry (base poses in the odometry frame) per frame, the mounting and the anchors' names.
+    The scene and the drive.
+
+    ``scenario`` holds the camera poses and lamps (for rendering); per frame the base's true poses and its
+    odometry (base poses in the odometry frame); the mounting and the anchors' names.
     """
 
     scenario: Scenario
@@ -54,6 +57,8 @@ class SurveyDrive:
     odometry: list[Pose]
     mounting: Mounting
     anchors: tuple[str, ...]
+    # The lamp grid's column x and row y (m) before jitter.
+    grid: tuple[np.ndarray, np.ndarray]
 
     @property
     def lamps(self) -> list[Lamp]:
@@ -93,7 +98,21 @@ def survey_drive(seed: int = 0, columns: int = 4, rows: int = 3, spacing: tuple[
                         beacon, frame_rate=frame_rate)
     anchors = (lamps[0].lamp.name, lamps[columns * rows // 2].lamp.name, lamps[-1].lamp.name)
     return SurveyDrive(scenario, base_poses, wheel_odometry(base_poses, scale_error, heading_drift),
-                       CAMERA_IN_BASE, anchors)
+                       CAMERA_IN_BASE, anchors, (xs, ys))
+
+
+def crossing_drive(drive: SurveyDrive, seed: int = 1, frame_rate: float = FRAME_RATE) -> SurveyDrive:
+    """Return another drive under the same lamps: passes along y, under each column, for judging a surveyed map."""
+    xs, ys = drive.grid
+    swapped, _ = _lawn_mower(ys, xs, SPEED / frame_rate, np.random.default_rng(seed))
+    path = swapped[:, ::-1]
+    direction = np.gradient(path, axis=0)
+    heading = np.arctan2(direction[:, 1], direction[:, 0])
+    base_poses = [Pose(Rotation.from_euler('z', psi).as_matrix(), [x, y, 0.0]) for (x, y), psi in zip(path, heading)]
+    scenario = replace(drive.scenario, poses=[drive.mounting.camera_pose(pose) for pose in base_poses],
+                       accelerations=[np.zeros(3)] * len(base_poses), frame_rate=frame_rate)
+    return replace(drive, scenario=scenario, base_poses=base_poses,
+                   odometry=wheel_odometry(base_poses, ODOMETRY_SCALE_ERROR, ODOMETRY_HEADING_DRIFT))
 
 
 def _lawn_mower(xs: np.ndarray, ys: np.ndarray, step: float, rng: np.random.Generator
@@ -127,7 +146,7 @@ def _segment(start: np.ndarray, end: np.ndarray, step: float) -> np.ndarray:
 
 
 def wheel_odometry(base_poses: list[Pose], scale_error: float, heading_drift: float) -> list[Pose]:
-    """The base's poses as its odometry reports them: each step's distance scaled, its heading drifting."""
+    """Return the base's poses as its odometry reports them: each step's distance scaled, its heading drifting."""
     odometry = [Pose(np.eye(3), np.zeros(3))]
     heading = 0.0
     position = np.zeros(3)
@@ -142,7 +161,7 @@ def wheel_odometry(base_poses: list[Pose], scale_error: float, heading_drift: fl
 
 
 def partial_parameters(drive: SurveyDrive, anchors: tuple[str, ...] | None = None) -> dict[str, Any]:
-    """The survey's params (``ros__parameters``): every lamp, positions and marker angles of the anchors only."""
+    """Return the survey's params (``ros__parameters``): every lamp, positions and marker angles of anchors only."""
     anchors = drive.anchors if anchors is None else anchors
     params = truth_parameters(drive)
     for name in params['leds']['names']:
@@ -152,7 +171,7 @@ def partial_parameters(drive: SurveyDrive, anchors: tuple[str, ...] | None = Non
 
 
 def truth_parameters(drive: SurveyDrive) -> dict[str, Any]:
-    """The locator's params for the drive's true map, with the base frame and the camera's mounting."""
+    """Return the locator's params for the drive's true map, with the base frame and the camera's mounting."""
     params = drive.scenario.locator_parameters(imu=False)
     quaternion = Rotation.from_matrix(drive.mounting.rotation).as_quat()
     params['base_frame'] = 'base_link'
@@ -184,7 +203,7 @@ def record_survey_drive(drive: SurveyDrive, folder: Path | str, rng: np.random.G
 def exact_survey_data(drive: SurveyDrive, rng: np.random.Generator, rim_sigma: float = 0.3,
                       marker_sigma: float = 0.3, odometry: bool = True, rim_count: int = 120) -> SurveyData:
     """
-    The estimation's input from exactly projected lamp observations with Gaussian pixel noise (no image).
+    Return the estimation's input from exactly projected lamp observations with Gaussian pixel noise (no image).
 
     Every lamp wholly in view is identified; anchors are the drive's.
     """
@@ -204,7 +223,8 @@ def exact_survey_data(drive: SurveyDrive, rng: np.random.Generator, rim_sigma: f
     if odometry:
         for first, second in zip(seen, seen[1:]):
             a, b = drive.odometry[first], drive.odometry[second]
-            steps.append(OdometryStep(first, second, a.rotation.T @ b.rotation, a.rotation.T @ (b.position - a.position)))
+            steps.append(OdometryStep(first, second, a.rotation.T @ b.rotation,
+                                      a.rotation.T @ (b.position - a.position)))
     by_name = {lamp.name: lamp for lamp in drive.lamps}
     return SurveyData(frame_count=len(drive.scenario.poses), sightings=sightings,
                       free_lamps=[lamp.id for lamp in drive.lamps if lamp.name not in drive.anchors],
@@ -215,5 +235,5 @@ def exact_survey_data(drive: SurveyDrive, rng: np.random.Generator, rim_sigma: f
 
 
 def without_lamp_sightings(data: SurveyData, lamp_id: int) -> SurveyData:
-    """``data`` as if ``lamp_id`` had never been identified."""
+    """Return ``data`` as if ``lamp_id`` had never been identified."""
     return replace(data, sightings=[s for s in data.sightings if s.lamp_id != lamp_id])

@@ -23,9 +23,9 @@ from __future__ import annotations
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 
-import numpy as np
 import gtsam
 from gtsam.symbol_shorthand import L, X
+import numpy as np
 
 from vlp_ros.core.mounting import Mounting
 from vlp_ros.core.pose import Pose
@@ -381,7 +381,7 @@ class _Graph:
         return np.array(errors).reshape(-1, 6), measured
 
     def gross_outliers(self, choice: list[int]) -> set[int]:
-        """Indices of the sightings whose chi-square at the estimate exceeds ``GROSS_OUTLIER_CHI2``."""
+        """Return the indices of the sightings whose chi-square at the estimate exceeds ``GROSS_OUTLIER_CHI2``."""
         errors, measured = self.sighting_errors(choice)
         chi_squares = np.sum(np.einsum('sij,sj->si', _whitening(measured), errors) ** 2, axis=1)
         return {index for (index, _), chi in zip(self.sightings, chi_squares) if chi > GROSS_OUTLIER_CHI2}
@@ -428,7 +428,8 @@ class _Graph:
                                          f'marker {np.degrees(angle_sigma):.1f} deg)')
                 continue
             lamps[lamp_id] = SurveyedLamp(np.array(position), angle, position_covariance, angle_sigma)
-        return SurveyEstimate(lamps, {f: self.cameras[f] for f in self.used_frames}, undetermined, frames_seen, residuals,
+        cameras = {f: self.cameras[f] for f in self.used_frames}
+        return SurveyEstimate(lamps, cameras, undetermined, frames_seen, residuals,
                               float(self.graph.error(self.values)), factor)
 
 
@@ -444,9 +445,9 @@ def lamps_by_name(estimate: SurveyEstimate, names: dict[int, str]) -> dict[str, 
 
 
 def per_lamp_residuals(estimate: SurveyEstimate) -> dict[int, tuple[float, float]]:
-    """Per lamp: RMS position residual (m) in its sightings' lamp frames and mean chi-square (6 dof)."""
+    """Return per lamp the RMS position residual (m) in its sightings' lamp frames and mean chi-square (6 dof)."""
     grouped = defaultdict(list)
     for r in estimate.residuals:
         grouped[r.lamp_id].append(r)
-    return {i: (float(np.sqrt(np.mean([r.position_error ** 2 for r in rs]))), float(np.mean([r.chi_square for r in rs])))
-            for i, rs in grouped.items()}
+    return {i: (float(np.sqrt(np.mean([r.position_error ** 2 for r in rs]))),
+                float(np.mean([r.chi_square for r in rs]))) for i, rs in grouped.items()}

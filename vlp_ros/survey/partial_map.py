@@ -13,10 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.pipeline.config import ConfigError, LocatorSettings, parameters_tree, settings_from_tree
+
+import yaml
 
 NODE = 'vlp_locator'
 MIN_ANCHORS = 2

@@ -91,7 +91,7 @@ def read_survey(bag: Path | str, partial: PartialMap, topics: SurveyTopics,
                       free_lamps=[ids[name] for name in partial.surveyed],
                       anchors={ids[name]: anchor for name, anchor in partial.anchors.items()},
                       odometry=odometry, mounting=settings.mounting,
-                      up={k: u for k, u in ups.items()}, up_sigma=settings.imu_sigma or 0.01,
+                      up=dict(ups), up_sigma=settings.imu_sigma or 0.01,
                       expected_up=_expected_up(partial), level_sigma=_level_sigma(partial))
     return SurveyRecording(frames, data, duration, bool(odometry), bool(ups))
 
@@ -128,7 +128,7 @@ def odometry_poses(bag: Path | str, topic: str) -> tuple[np.ndarray, np.ndarray,
 
 def odometry_steps(bag: Path | str, topic: str, frames: list[FrameSightings], partial: PartialMap
                    ) -> list[OdometryStep]:
-    """The base's odometry motion between consecutive frames that have sightings, where odometry spans both."""
+    """Return the base's odometry motion between consecutive frames with sightings, where odometry spans both."""
     stamps, positions, quaternions = odometry_poses(bag, topic)
     if len(stamps) < 2:
         return []
@@ -152,5 +152,3 @@ def odometry_steps(bag: Path | str, topic: str, frames: list[FrameSightings], pa
         (ra, pa), (rb, pb) = poses[first], poses[second]
         steps.append(OdometryStep(first, second, ra.T @ rb, ra.T @ (pb - pa)))
     return steps
-
-

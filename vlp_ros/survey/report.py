@@ -13,14 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
-import numpy as np
 
-from vlp_ros.survey.estimation import per_lamp_residuals, SurveyEstimate
-from vlp_ros.survey.partial_map import PartialMap
-
-matplotlib.use('Agg')
-import matplotlib.pyplot as plt  # noqa: E402 the backend is chosen first, for machines without a display
+matplotlib.use('Agg')  # files only; no display on robots or CI
 from matplotlib.patches import Ellipse  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from vlp_ros.survey.estimation import per_lamp_residuals, SurveyEstimate  # noqa: E402
+from vlp_ros.survey.partial_map import PartialMap  # noqa: E402
 
 # The enlarged ellipses' largest 3-sigma semi-axis is this share of the smallest lamp spacing.
 ELLIPSE_SHARE = 0.25
@@ -83,7 +83,7 @@ def write_report(partial: PartialMap, estimate: SurveyEstimate, folder: Path | s
 
 
 def lamps_markdown(rows: list[LampRow], estimate: SurveyEstimate) -> str:
-    """The lamp table as markdown, with how the residuals and sigmas are to be read."""
+    """Return the lamp table as markdown, with how the residuals and sigmas are to be read."""
     lines = ['| lamp | ID | role | x (m) | y (m) | z (m) | sigma x, y, z (mm) | marker (deg) | marker sigma (deg) '
              '| frames | residual RMS (mm) | mean chi-square (6 dof) |',
              '| --- | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |']
@@ -98,7 +98,8 @@ def lamps_markdown(rows: list[LampRow], estimate: SurveyEstimate) -> str:
                   f'Sigmas include a variance factor of {estimate.variance_factor:.2f} from the residuals '
                   '(never below 1).']
     if estimate.undetermined:
-        lines += ['', 'Undetermined: ' + '; '.join(f'ID {i}: {why}' for i, why in sorted(estimate.undetermined.items()))]
+        why = sorted(estimate.undetermined.items())
+        lines += ['', 'Undetermined: ' + '; '.join(f'ID {i}: {reason}' for i, reason in why)]
     return '\n'.join(lines) + '\n'
 
 

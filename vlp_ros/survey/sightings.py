@@ -85,7 +85,7 @@ def frame_sightings(pipeline: Pipeline, index: int, image: np.ndarray, camera: C
 
 
 def _unlisted_id(evidence: BeaconReading) -> int | None:
-    """The ID a lamp surely carries that the map does not list (None: not certain, or a tone off the map)."""
+    """Return the ID a lamp surely carries that the map does not list (None: not certain, or a tone off the map)."""
     if not evidence.unknown:
         return None
     best = int(evidence.candidates[np.argmax(evidence.log_likelihoods + evidence.log_prior)])
@@ -93,5 +93,5 @@ def _unlisted_id(evidence: BeaconReading) -> int | None:
 
 
 def unlisted_counts(frames: list[FrameSightings]) -> Counter:
-    """How many frames saw each unlisted ID."""
+    """Return how many frames saw each unlisted ID."""
     return Counter(i for frame in frames for i in set(frame.unlisted_ids))
