@@ -36,7 +36,7 @@ from vlp_ros.survey.recording import image_topic_of, read_survey, SurveyTopics
 import yaml
 
 FOREIGN = Path(__file__).resolve().parents[2].parent / 'shared' / 'data' / 'foreign_frames' / 'survey_drive_clean'
-HEADER = ('drive', 'mode', 'lamps', 'RMS cm', 'max cm', 'marker RMS deg', 'NEES', 'undetermined', 'CPU s',
+HEADER = ('drive / mode', 'lamps', 'RMS cm', 'max cm', 'marker RMS deg', 'NEES', 'undetermined', 'CPU s',
           'CPU / duration')
 LOCATOR_HEADER = ('drive', 'frames', 'poses true map', 'mean cm true map', 'poses surveyed', 'mean cm surveyed',
                   'ratio', 'NEES surveyed')
@@ -51,7 +51,7 @@ def accuracy_row(label: str, mode: str, truth: dict[int, tuple[np.ndarray, float
     nees = [e @ np.linalg.solve(estimate.lamps[i].position_covariance, e)
             for e, i in zip(errors, [i for i in truth if i in estimate.lamps])]
     distance = np.linalg.norm(errors, axis=1) if errors else np.array([np.nan])
-    return [label, mode, f'{len(errors)}/{len(truth)}', f'{100 * np.sqrt(np.mean(distance ** 2)):.2f}',
+    return [f'{label} / {mode}', f'{len(errors)}/{len(truth)}', f'{100 * np.sqrt(np.mean(distance ** 2)):.2f}',
             f'{100 * distance.max():.2f}', f'{np.degrees(np.sqrt(np.mean(np.square(angles)))):.3f}',
             f'{np.mean(nees):.2f}', str(len(estimate.undetermined)), f'{cpu:.1f}', f'{cpu / duration:.2f}']
 

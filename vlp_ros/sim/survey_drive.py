@@ -237,3 +237,25 @@ def exact_survey_data(drive: SurveyDrive, rng: np.random.Generator, rim_sigma: f
 def without_lamp_sightings(data: SurveyData, lamp_id: int) -> SurveyData:
     """Return ``data`` as if ``lamp_id`` had never been identified."""
     return replace(data, sightings=[s for s in data.sightings if s.lamp_id != lamp_id])
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Render a survey drive into a folder: bag/ (with /odom), partial.yaml (the anchors) and truth.yaml."""
+    import argparse
+    parser = argparse.ArgumentParser(prog='python -m vlp_ros.sim.survey_drive', description=main.__doc__)
+    parser.add_argument('--out', type=Path, required=True, help='folder to create')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--columns', type=int, default=4)
+    parser.add_argument('--rows', type=int, default=3)
+    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    parser.add_argument('--no-odometry', action='store_true', help='leave /odom out')
+    args = parser.parse_args(argv)
+    drive = survey_drive(args.seed, args.columns, args.rows)
+    record_survey_drive(drive, args.out, np.random.default_rng(args.seed), args.storage, not args.no_odometry)
+    print(f'{len(drive.base_poses)} frames under {len(drive.lamps)} lamps (anchors {", ".join(drive.anchors)}): '
+          f'{args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
