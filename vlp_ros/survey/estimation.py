@@ -36,7 +36,7 @@ from vlp_ros.survey.sightings import Sighting
 # the turn's error; and a floor per step (slip, timing). Rough but on the honest side: the images
 # carry the map wherever lamps are in view, odometry only bridges between them.
 ODOMETRY_SCALE_SIGMA = 0.03
-ODOMETRY_TRANSLATION_FLOOR = 0.005
+ODOMETRY_TRANSLATION_FLOOR = 0.001
 ODOMETRY_HEADING_PER_METRE = 0.02
 # Once its scale and heading drift are calibrated against the images (``calibrated_odometry``), what remains
 # of them: the wheels' random slip.
@@ -45,7 +45,7 @@ CALIBRATED_HEADING_PER_METRE = 0.005
 # Steps shorter than this (m) say little about the odometry's scale and drift.
 CALIBRATION_MIN_STEP = 0.05
 ODOMETRY_TURN_SIGMA = 0.03
-ODOMETRY_ROTATION_FLOOR = 0.003
+ODOMETRY_ROTATION_FLOOR = 0.001
 # Huber loss threshold on whitened residuals (sigmas): beyond it a residual counts linearly.
 ROBUST_SCALE = 3.0
 # A sighting this far from the robust estimate (chi-square, 6 DoF; 1e-6 for a right one) is a wrong
