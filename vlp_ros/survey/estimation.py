@@ -14,7 +14,8 @@ lamp's frame is its centre and a turn about map z). Measurements, each whitened 
 Anchors (lamps with a given position) are held by tight priors. gtsam's Levenberg-Marquardt solves
 the factor graph, every measurement under a Huber loss, so a wrong association or a glare-bitten
 frame is down-weighted instead of pulling the map; the lamps' covariance is gtsam's marginal at the
-solution, scaled up when the sightings' residuals say their stated noise is too small. Each sighting
+solution, scaled up when the sightings' residuals say their stated noise is too small (the a posteriori
+variance factor). Each sighting
 has two candidates at most: the one nearest the expected up direction starts, and after one solve each
 sighting takes the candidate the estimate agrees with and the graph is solved again.
 """
@@ -51,8 +52,7 @@ ROBUST_SCALE = 3.0
 # A sighting this far from the robust estimate (chi-square, 6 DoF; 1e-6 for a right one) is a wrong
 # association or a broken frame: it is left out, since even linearly weighted it pulls its lamp by sigmas.
 GROSS_OUTLIER_CHI2 = 40.0
-# Median of chi-square with one degree of freedom: the sightings' residuals' median square over it
-# says how far their stated noise falls short.
+# Median of chi-square with one degree of freedom (the robust variance factor's reference).
 CHI2_1_MEDIAN = 0.4549
 # A lamp whose estimate is looser than this is not determined by the recording.
 MAX_POSITION_SIGMA = 0.1
@@ -143,7 +143,8 @@ def estimate_survey(data: SurveyData) -> SurveyEstimate:
         graph.calibrated = True
     graph.solve(choice)
     graph.excluded = graph.gross_outliers(choice)
-    if graph.excluded:
+    graph.odometry_variance = graph.odometry_variance_factor()
+    if graph.excluded or graph.odometry_variance > 1.0:
         graph.solve(choice)
     return graph.estimate(choice, undetermined, frames_seen)
 
@@ -294,6 +295,10 @@ class _Graph:
         self.sightings = [(i, s) for i, s in enumerate(data.sightings) if s.frame in cameras and s.lamp_id in lamps]
         self.steps = [s for s in data.odometry if s.first in cameras and s.second in cameras]
         self.calibrated = False
+        # How much the odometry's stated variances are scaled (``odometry_variance_factor``), and where its
+        # factors are in the graph.
+        self.odometry_variance = 1.0
+        self.odometry_factors: list[int] = []
         # Sightings (by index) left out as gross outliers.
         self.excluded: set[int] = set()
 
@@ -323,6 +328,7 @@ class _Graph:
 
     def _factors(self, choice: list[int]) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
+        self.odometry_factors = []
         for lamp_id in self.used_lamps:
             angle = self.lamps[lamp_id][1]
             anchor = self.data.anchors.get(lamp_id)
@@ -353,7 +359,8 @@ class _Graph:
             rotation_sigma = per_metre * distance + ODOMETRY_TURN_SIGMA * turn + ODOMETRY_ROTATION_FLOOR
             scale = CALIBRATED_SCALE_SIGMA if self.calibrated else ODOMETRY_SCALE_SIGMA
             translation_sigma = scale * distance + ODOMETRY_TRANSLATION_FLOOR
-            covariance = np.diag([rotation_sigma ** 2] * 3 + [translation_sigma ** 2] * 3)
+            covariance = self.odometry_variance * np.diag([rotation_sigma ** 2] * 3 + [translation_sigma ** 2] * 3)
+            self.odometry_factors.append(graph.size())
             graph.add(gtsam.BetweenFactorPose3(X(step.first), X(step.second),
                                                on_base.inverse().compose(motion).compose(on_base),
                                                _robust(to_camera @ covariance @ to_camera.T)))
@@ -380,6 +387,35 @@ class _Graph:
             measured.append(relative)
         return np.array(errors).reshape(-1, 6), measured
 
+    def variance_factor(self, whitened: np.ndarray) -> float:
+        """
+        Return the sightings' a posteriori variance factor, never below 1: how far their stated noise falls short.
+
+        Robust, as the fit is: the median of the squared whitened residuals ``whitened`` (S, 6) of the sightings
+        kept, over that of chi-square with one degree of freedom, times residuals over redundancy (the residuals
+        less the unknowns they determine: six per camera, four per free lamp), which the fit's own share of the
+        residuals takes away.
+        """
+        kept = np.array([w for (index, _), w in zip(self.sightings, whitened) if index not in self.excluded])
+        free = sum(4 if i not in self.data.anchors else 1 for i in self.used_lamps
+                   if i not in self.data.anchors or self.data.anchors[i].marker_angle is None)
+        redundancy = kept.size - 6 * len(self.used_frames) - free
+        if redundancy <= 0:
+            return 1.0
+        return max(1.0, float(np.median(kept ** 2)) / CHI2_1_MEDIAN * kept.size / redundancy)
+
+    def odometry_variance_factor(self) -> float:
+        """
+        Return how much the odometry's variances must grow for its residuals to match them (at least 1).
+
+        Its chi-square per residual at the solution: a robot's odometry may be noisier than the model of its
+        errors says, and the images, which carry the map, must then not be held to it.
+        """
+        if not self.odometry_factors:
+            return self.odometry_variance
+        chi_square = sum(2.0 * self.graph.at(i).error(self.values) for i in self.odometry_factors)
+        return max(1.0, self.odometry_variance * chi_square / (6 * len(self.odometry_factors)))
+
     def gross_outliers(self, choice: list[int]) -> set[int]:
         """Return the indices of the sightings whose chi-square at the estimate exceeds ``GROSS_OUTLIER_CHI2``."""
         errors, measured = self.sighting_errors(choice)
@@ -405,7 +441,7 @@ class _Graph:
         errors, measured = self.sighting_errors(choice)
         whitened = np.einsum('sij,sj->si', _whitening(measured), errors)
         chi_squares = np.sum(whitened ** 2, axis=1)
-        factor = max(1.0, float(np.median(whitened ** 2)) / CHI2_1_MEDIAN) if len(whitened) else 1.0
+        factor = self.variance_factor(whitened)
         residuals = [SightingResidual(s.frame, s.lamp_id, float(c), float(np.linalg.norm(e[:3])))
                      for (_, s), c, e in zip(self.sightings, chi_squares, errors)]
         marginals = gtsam.Marginals(self.graph, self.values)
