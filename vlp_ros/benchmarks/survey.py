@@ -1,12 +1,13 @@
 """
-Surveying the lamps: python -m vlp_ros.benchmarks.survey [--seeds S ...] [--exact-only] [--foreign DIR].
+Surveying the lamps: python -m vlp_ros.benchmarks.survey [--seeds S ...] [--looks L ...] [--exact-only].
 
 Three kinds of drive, each surveyed with its odometry and from images alone:
 
 - ``foreign``: the independent renderer's survey drive (foreign_frames/README.md), through the whole
   ``survey`` path (bag, pipeline, estimation);
 - ``sim``: the simulator's survey drives (``sim.survey_drive``: 12 lamps 1.2-2.4 m apart, 3 anchors,
-  wheel odometry 2 % off in scale and drifting in heading), rendered (clean look) and surveyed the same way;
+  wheel odometry 2 % off in scale and drifting in heading), rendered in each of ``--looks`` (clean and
+  realistic by default) and surveyed the same way;
 - ``exact``: the same drives from exactly projected lamps with 0.3 px noise (no image): the estimation alone.
 
 Per row: lamp position error RMS and max against the truth, marker angle RMS, mean NEES of the positions
@@ -27,6 +28,7 @@ import numpy as np
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.pipeline.config import settings_from_params_file, settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.survey_drive import (crossing_drive, exact_survey_data, record_survey_drive, survey_drive,
                                       SurveyDrive, truth_parameters)
 from vlp_ros.survey.estimation import estimate_survey, SurveyData, SurveyEstimate
@@ -119,8 +121,10 @@ def locator_row(label: str, drive: SurveyDrive, surveyed: Path, seed: int) -> li
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog='python -m vlp_ros.benchmarks.survey', description=__doc__.splitlines()[1])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1], help='simulator drives to render and survey')
-    parser.add_argument('--exact-seeds', type=int, nargs='+', default=[1, 2, 3],
+    parser.add_argument('--exact-seeds', type=int, nargs='*', default=[1, 2, 3],
                         help='simulator drives surveyed from exact observations')
+    parser.add_argument('--looks', nargs='+', default=['clean', 'realistic'], choices=sorted(LOOKS),
+                        help="the simulator's looks to render the drives in (docs/simulator.md)")
     parser.add_argument('--exact-only', action='store_true', help='no rendering: the exact rows only')
     parser.add_argument('--foreign', type=Path, default=FOREIGN, help='the foreign survey drive folder')
     return parser.parse_args(argv)
@@ -141,12 +145,15 @@ def main(argv: list[str] | None = None) -> int:
         if (args.foreign / 'bag').exists():
             rows += survey_bag(args.foreign, args.foreign / 'truth.yaml', 'foreign survey_drive_clean')[0]
         for seed in args.seeds:
-            drive = survey_drive(seed)
-            with tempfile.TemporaryDirectory() as scratch:
-                folder = record_survey_drive(drive, Path(scratch) / 'drive', np.random.default_rng(seed))
-                bag_rows, surveyed, _ = survey_bag(folder, folder / 'truth.yaml', f'sim seed {seed}')
-                rows += bag_rows
-                locator_rows.append(locator_row(f'sim seed {seed}', drive, surveyed, seed + 1))
+            for look in args.looks:
+                drive = survey_drive(seed)
+                drive = replace(drive, scenario=apply_look(drive.scenario, LOOKS[look], seed))
+                label = f'sim seed {seed} {look}'
+                with tempfile.TemporaryDirectory() as scratch:
+                    folder = record_survey_drive(drive, Path(scratch) / 'drive', np.random.default_rng(seed))
+                    bag_rows, surveyed, _ = survey_bag(folder, folder / 'truth.yaml', label)
+                    rows += bag_rows
+                    locator_rows.append(locator_row(label, drive, surveyed, seed + 1))
     print('Surveyed lamps against the truth (targets: RMS <= 1.0 cm, max <= 2.5 cm, marker RMS <= 0.5 deg, '
           'NEES 1.5-6, CPU <= 2 x duration; images only: x2)')
     print(format_table(rows, HEADER))

@@ -70,11 +70,15 @@ def main(argv: list[str] | None = None) -> int:
     cpu = time.process_time() - started
     _print_summary(partial, recording, estimate, cpu)
     names = {lamp.id: lamp.name for lamp in partial.lamps}
-    write_surveyed(partial, {names[i]: lamp for i, lamp in estimate.lamps.items()}, args.out)
-    print(f'{PROGRAM}: wrote {args.out}')
-    if args.report is not None:
-        from vlp_ros.survey.report import write_report
-        print(f'{PROGRAM}: report: {write_report(partial, estimate, args.report)}')
+    try:
+        write_surveyed(partial, {names[i]: lamp for i, lamp in estimate.lamps.items()}, args.out)
+        print(f'{PROGRAM}: wrote {args.out}')
+        if args.report is not None:
+            from vlp_ros.survey.report import write_report
+            print(f'{PROGRAM}: report: {write_report(partial, estimate, args.report)}')
+    except OSError as err:
+        print(f'{PROGRAM}: error: {err}', file=sys.stderr)
+        return 1
     undetermined = {i: why for i, why in estimate.undetermined.items() if i in names}
     if undetermined:
         print(f'{PROGRAM}: error: the recording cannot determine ' + '; '.join(

@@ -190,7 +190,7 @@ def record_survey_drive(drive: SurveyDrive, folder: Path | str, rng: np.random.G
     """Render the drive into ``folder``/bag (with ``/odom`` unless told not) beside partial.yaml and truth.yaml."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    with SimBagWriter(folder / 'bag', storage, odometry=odometry) as writer:
+    with SimBagWriter(folder / 'bag', storage, jpeg_quality=drive.scenario.jpeg_quality, odometry=odometry) as writer:
         for index, stamp in enumerate(drive.frame_stamps_ns()):
             if odometry:
                 writer.write_odometry(stamp, drive.odometry[index])
