@@ -199,6 +199,8 @@ def test_compressed_transport_follows_image_raw_remapping(start_process, test_no
                'lamp_2': {'id': 2, 'position': [1, 0, 2], 'radius': 0.1}}}, 'leds.lamp_2.id'),
     ({'leds': {'names': ['lamp_1'], 'lamp_1': {'id': 1, 'position': [0, 2], 'radius': 0.1}}},
      'leds.lamp_1.position'),
+    ({'leds': {'names': ['lamp_1'], 'lamp_1': {'id': 1, 'position': [0, 0, 2], 'radius': 0.1,
+                                               'position_sigma': [0.01, -0.01, 0.0]}}}, 'leds.lamp_1.position_sigma'),
     ({'beacon': {'mode': 'morse'}}, 'beacon.mode'),
     ({'solvr': 'paper'}, 'solvr'),
 ])
