@@ -35,6 +35,7 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints
 from vlp_ros.solvers.candidates import Choice, distinct, explains_the_image, PoseCandidate, Reason
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
+from vlp_ros.solvers.floor import Floor, on_floor, yaw_from_continuity
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp, widened_where_up_disagrees
 from vlp_ros.solvers.point_lamps import point_starts, PointLampMeasurement, pose_from_opencv, seen_from_below
@@ -59,8 +60,13 @@ _PNP_MIN_LAMPS = 4
 
 
 def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
-                hints: DisambiguationHints) -> Choice:
-    """Return the camera pose from all identified lamps of one frame, or no pose and why."""
+                hints: DisambiguationHints, floor: Floor | None = None) -> Choice:
+    """
+    Return the camera pose from all identified lamps of one frame, or no pose and why.
+
+    ``floor``: the robot's base moves on a horizontal floor, a measurement of every candidate
+    (``solvers.floor``).
+    """
     if not pairs:
         return Choice(None, Reason.NO_CANDIDATES, 'no identified lamp')
     ids = [lamp.id for _, lamp in pairs]
@@ -68,20 +74,23 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
         return Choice(None, Reason.INCONSISTENT_LAMPS, f'one lamp identified twice in the frame: {sorted(ids)}')
     up = hints.up_measurements()
     points = sum(lamp.is_point for _, lamp in pairs)
+    # Point lamps alone that leave the pose free: the floor's tilt joins their fit.
+    floor_in_fit = floor is not None and points == len(pairs) and 2 * points + 2 * len(up) < 6
+    if floor_in_fit:
+        up = [*up, floor.up_measurement()]
     if points == len(pairs) and 2 * points + 2 * len(up) < 6:
         return Choice(None, Reason.NO_CANDIDATES, f'{points} point lamp(s) leave the pose free: it takes three, '
                                                   'or two and an up direction with a sigma')
     if len(pairs) == 1:
         observation, lamp = pairs[0]
         if observation.marker is None:
-            return Choice(None, Reason.NO_CANDIDATES,
-                          f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+            return _headed_by_continuity(observation, lamp, camera, hints, floor)
         candidates = solve_lamp(observation, lamp, camera, up)
         explaining = [c for c in candidates if explains_the_image(c)]
         if candidates and not explaining:
             return Choice(None, Reason.POOR_FIT, f'best single-lamp chi-square {candidates[0].cost:.0f} for '
                                                  f'{candidates[0].residual_count - 6} degrees of freedom')
-        return choose_candidate(explaining, hints)
+        return _chosen(explaining, hints, floor)
     directions = [hint.vector for hint in hints.up_in_camera]
     candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing, directions), up)
     candidates = widened_where_up_disagrees(candidates, up, np.mean([lamp.position for _, lamp in pairs], axis=0))
@@ -91,9 +100,31 @@ def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
     if not explains_the_image(best):
         return Choice(None, Reason.INCONSISTENT_LAMPS,
                       f'best joint chi-square {best.cost:.0f} for {best.residual_count - 6} degrees of freedom')
-    choice = choose_candidate(candidates, hints, cost_reason=Reason.MULTI_LAMP)
+    choice = _chosen(candidates, hints, floor, tilt=not floor_in_fit, cost_reason=Reason.MULTI_LAMP)
     # A single joint minimum is the other lamps' doing: each lamp alone has two.
     return replace(choice, reason=Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice
+
+
+def _chosen(candidates: list[PoseCandidate], hints: DisambiguationHints, floor: Floor | None, tilt: bool = True,
+            cost_reason: Reason = Reason.COST) -> Choice:
+    """``choose_candidate`` among the candidates, first fused with the floor (its tilt too unless not ``tilt``)."""
+    if floor is not None and candidates:
+        candidates, contradicting = on_floor(candidates, floor, tilt)
+        if not candidates:
+            return Choice(None, Reason.OFF_THE_FLOOR, f'{contradicting} candidate(s), each plainly off the floor')
+    return choose_candidate(candidates, hints, cost_reason=cost_reason)
+
+
+def _headed_by_continuity(observation: LampObservation, lamp: Lamp, camera: CameraModel,
+                          hints: DisambiguationHints, floor: Floor | None) -> Choice:
+    """One disc lamp without its marker: on the floor, headed as the recent pose; else no pose."""
+    if floor is None or not hints.continuity_counts:
+        return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+    candidates, contradicting = yaw_from_continuity(observation, lamp, camera, floor, hints.recent_pose,
+                                                    hints.recent_age)
+    if not candidates and contradicting:
+        return Choice(None, Reason.OFF_THE_FLOOR, f'{contradicting} candidate(s), each plainly off the floor')
+    return choose_candidate(candidates, hints)
 
 
 def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
