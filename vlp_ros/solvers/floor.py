@@ -22,14 +22,16 @@ A candidate whose floor residuals the image plainly contradicts (the innovation'
 chi-square, 3 dof, beyond a tail of 1e-6: a ramp, a lifted robot) is not one the robot
 can be at, and is dropped; when every candidate goes, the frame has no pose
 (``Reason.OFF_THE_FLOOR``). A disagreement beyond the 95 % point but short of that widens
-the covariance by the update's step (the frame cannot tell whether the floor or the image
-is off). The floor thereby also tells the two poses of one circle apart: the mirror pose's
+the image's covariance by the disagreement before the update: a rim off the model (glare,
+falloff) claims more than it knows, and the floor then counts for correspondingly more. The floor thereby also tells the two poses of one circle apart: the mirror pose's
 tilt is off by twice the lamp's angle from the optical axis.
 
-Where the image alone leaves a direction free, the floor joins the fit itself: one disc
-lamp without its marker (the yaw is then the recent pose's, widened by how far the robot
-may have turned since, ``TURN_RATE``), and two point lamps (the floor's tilt as an up
-measurement).
+Where the image leaves a direction loose, the floor joins the fit itself. Several lamps'
+fit takes the floor's tilt as an up measurement (two small lamps a metre apart leave the turn
+about the line through them so loose that the fit slid 5 m from the truth to their mirror
+pose; two point lamps leave it free), their model error estimated from their disagreement;
+the height is fused after it. One disc lamp without its marker is fitted with the floor and
+the recent pose's yaw, widened by how far the robot may have turned since (``TURN_RATE``).
 """
 from __future__ import annotations
 
@@ -114,14 +116,15 @@ def on_floor(candidates: list[PoseCandidate], floor: Floor, tilt: bool = True) -
     """
     Return the candidates fused with the floor, cheapest first, and how many contradicted it.
 
-    Without ``tilt`` only the height is fused (the tilt is already in the fit). A candidate
-    whose floor chi-square exceeds ``OFF_THE_FLOOR_CHI2`` is left out; the chi-square is added
-    to each kept candidate's cost, so the fit's cost rule weighs the floor too.
+    Without ``tilt`` only the height is fused: the tilt is already in the fit, and a fit that
+    the image pulled off the floor's tilt by that chi-square contradicts it. A candidate whose
+    floor chi-square exceeds ``OFF_THE_FLOOR_CHI2`` is left out; the chi-square is added to each
+    kept candidate's cost, so the fit's cost rule weighs the floor too.
     """
     kept, contradicting = [], 0
     for candidate in candidates:
         fused, chi_square = _fused(candidate, floor, tilt)
-        if chi_square > OFF_THE_FLOOR_CHI2:
+        if chi_square > OFF_THE_FLOOR_CHI2 or (not tilt and tilted_off_the_floor(candidate, floor)):
             contradicting += 1
         else:
             kept.append(fused)
@@ -129,29 +132,38 @@ def on_floor(candidates: list[PoseCandidate], floor: Floor, tilt: bool = True) -
 
 
 def _fused(candidate: PoseCandidate, floor: Floor, tilt: bool) -> tuple[PoseCandidate, float]:
-    """Return the candidate updated by the floor (iterated linear update) and the innovation chi-square."""
-    prior = candidate.pose
-    covariance = np.asarray(prior.covariance, dtype=float)
+    """
+    Return the candidate updated by the floor (iterated linear update) and the innovation chi-square.
+
+    Beyond ``FLOOR_DOUBT_CHI2`` the image's covariance is taken to understate its error by the
+    disagreement (a rim off the model claims more than it knows) and is scaled by the chi-square over
+    its degrees of freedom before the update.
+    """
+    covariance = np.asarray(candidate.pose.covariance, dtype=float)
+    pose, jacobian, chi_square = _updated(candidate.pose, covariance, floor, tilt)
+    if chi_square > FLOOR_DOUBT_CHI2:
+        covariance = covariance * (chi_square / len(jacobian))
+        pose, jacobian, _ = _updated(candidate.pose, covariance, floor, tilt)
+    pose.covariance = _updated_covariance(covariance, jacobian)
+    fit_covariance = None if candidate.fit_covariance is None else _updated_covariance(
+        np.asarray(candidate.fit_covariance, dtype=float), jacobian)
+    fused = PoseCandidate(pose=pose, cost=candidate.cost + chi_square,
+                          residual_count=candidate.residual_count + len(jacobian), fit_covariance=fit_covariance)
+    return fused, chi_square
+
+
+def _updated(prior: Pose, covariance: np.ndarray, floor: Floor, tilt: bool) -> tuple[Pose, np.ndarray, float]:
+    """Return the pose the floor moves ``prior`` to, the floor's Jacobian there, and the innovation chi-square."""
     step = np.zeros(6)
     pose = prior
     for _ in range(_UPDATE_ITERATIONS):
         residuals, jacobian = floor.linearize(pose, tilt)
         innovation = jacobian @ step - residuals
-        gain = _gain(covariance, jacobian)
-        step = gain @ innovation
+        step = _gain(covariance, jacobian) @ innovation
         pose = Pose(*perturbed(prior, step))
     chi_square = float(innovation @ np.linalg.solve(jacobian @ covariance @ jacobian.T + np.eye(len(residuals)),
                                                     innovation))
-    posterior = _updated_covariance(covariance, jacobian)
-    if chi_square > FLOOR_DOUBT_CHI2:
-        # Only the disagreement beyond what noise explains (its mean, the dof) is in doubt.
-        posterior = posterior + (1.0 - len(residuals) / chi_square) * np.outer(step, step)
-    pose.covariance = posterior
-    fit_covariance = None if candidate.fit_covariance is None else _updated_covariance(
-        np.asarray(candidate.fit_covariance, dtype=float), jacobian)
-    fused = PoseCandidate(pose=pose, cost=candidate.cost + chi_square,
-                          residual_count=candidate.residual_count + len(residuals), fit_covariance=fit_covariance)
-    return fused, chi_square
+    return pose, jacobian, chi_square
 
 
 def _gain(covariance: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
@@ -164,6 +176,12 @@ def _gain(covariance: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
 def _updated_covariance(covariance: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
     updated = covariance - _gain(covariance, jacobian) @ jacobian @ covariance
     return 0.5 * (updated + updated.T)
+
+
+def tilted_off_the_floor(candidate: PoseCandidate, floor: Floor) -> bool:
+    """Whether a fit with the floor's tilt among its measurements was pulled off it by ``OFF_THE_FLOOR_CHI2``."""
+    tilt_residuals = floor.linearize(candidate.pose)[0][:2]
+    return float(tilt_residuals @ tilt_residuals) > OFF_THE_FLOOR_CHI2
 
 
 def contradicts_floor(candidate: PoseCandidate, floor: Floor) -> bool:
