@@ -26,7 +26,7 @@ OTHER = Lamp('b', 2, np.array([1.8, 0.5, 2.6]), 0.075, marker_angle=1.4, marker_
 
 def _base(rng: np.random.Generator, height: float = 0.0, max_tilt_deg: float = 0.3, ramp_deg: float = 0.0,
           lamps: tuple[Lamp, ...] = (LAMP,)) -> Pose:
-    """A base whose camera sees ``lamps`` (within 0.3 m of below their middle), on the floor unless told."""
+    """Return a base whose camera sees ``lamps`` (within 0.3 m of below their middle), on the floor unless told."""
     tilt = rng.uniform(-1.0, 1.0, 2) * np.radians(max_tilt_deg) / np.sqrt(2.0)
     yaw = rng.uniform(-np.pi, np.pi)
     rotation = Rotation.from_euler('ZYX', [yaw, tilt[0] + np.radians(ramp_deg), tilt[1]]).as_matrix()
@@ -36,7 +36,7 @@ def _base(rng: np.random.Generator, height: float = 0.0, max_tilt_deg: float = 0
 
 
 def _hints(truth: Pose | None = None) -> DisambiguationHints:
-    """A recent pose 5 cm and 1 deg off the truth, 0.1 s ago (None: no recent pose)."""
+    """Return hints with a recent pose 5 cm and 1 deg off the truth, 0.1 s ago (None: no recent pose)."""
     if truth is None:
         return DisambiguationHints()
     recent = Pose(Rotation.from_euler('z', 1.0, degrees=True).as_matrix() @ truth.rotation,

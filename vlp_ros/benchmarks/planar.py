@@ -26,7 +26,7 @@ from vlp_ros.evaluation.metrics import format_table, WRONG_FIX_M
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
-from vlp_ros.sim.planar_drive import FLOORS, mounting_parameters, MOUNTING, planar_drive_scenario, planar_parameters
+from vlp_ros.sim.planar_drive import FLOORS, MOUNTING, mounting_parameters, planar_drive_scenario, planar_parameters
 from vlp_ros.solvers.candidates import Reason
 from vlp_ros.solvers.covariance import nees
 
@@ -51,6 +51,9 @@ ROWS = (Row('flat', 0.0026, 'clean', 0.008), Row('flat', 0.0026, 'falloff', 0.01
 MIN_AVAILABILITY = 0.95
 # rad: the 6-DoF solve's static prior, a gate only (no sigma), as for the simulator's robots.
 PRIOR_TOLERANCE = 0.1
+# m/s and s: both solves' continuity, set for the robot (0.8 m/s, gaps of up to 2-3 s between lamps).
+CONTINUITY_MAX_SPEED = 1.0
+CONTINUITY_MAX_AGE = 3.0
 NEES_RANGE = (3.0, 10.0)
 
 
@@ -102,6 +105,8 @@ def run_row(row: Row, frames: int, seed: int) -> tuple[Scores, Scores]:
     scenario = replace(scenario, poses=scenario.poses[:frames])
     parameters = scenario.locator_parameters(imu=False)
     parameters.update(mounting_parameters())
+    # A robot's own top speed and longest gap between lamps (README, "IDs settled by continuity").
+    parameters['continuity'] = {'max_speed': CONTINUITY_MAX_SPEED, 'max_age': CONTINUITY_MAX_AGE}
     # Today's level robot: the mount's up direction as a gate between the two circle poses.
     six_dof = Pipeline(settings_from_tree({**parameters, 'prior': {
         'up_in_camera': [float(v) for v in MOUNTING.up_in_camera()], 'tolerance': PRIOR_TOLERANCE}}))

@@ -90,7 +90,7 @@ PARAMETERS = (
                   'unit quaternion (x, y, z, w) of the camera optical frame (z forward, x right, y down) '
                   'in base_frame'),
     ParameterSpec('planar.enabled', 'bool', False,
-                  'base_frame moves on a horizontal floor: the floor is a measurement of every pose (needs base_frame)'),
+                  'base_frame moves on a horizontal floor, a measurement of every pose (needs base_frame)'),
     ParameterSpec('planar.height', 'number', 0.0, "the z of base_frame's origin in map_frame (m)"),
     ParameterSpec('planar.sigma_height', 'number', 0.01,
                   "how far bumps, suspension and an uneven floor move base_frame's origin off that height (m)"),
@@ -316,7 +316,7 @@ def mounting_from_parameters(values: Mapping[str, Any], map_frame: str) -> tuple
 
 def floor_from_parameters(values: Mapping[str, Any], base_frame: str | None, mounting: Mounting,
                           solver: str) -> Floor | None:
-    """The floor of ``planar.*`` (None unless ``planar.enabled``); its values are validated even when unused."""
+    """Return the floor of ``planar.*`` (None unless ``planar.enabled``), its values validated even when unused."""
     enabled = values.get('planar.enabled')
     if not isinstance(enabled, bool):
         raise ConfigError('planar.enabled', f'expected true or false, got {enabled!r}')

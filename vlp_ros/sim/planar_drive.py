@@ -40,7 +40,7 @@ class FloorKind:
 
     @property
     def sigma_tilt(self) -> float:
-        """Standard deviation (rad) of the tilt about each horizontal axis: a sinusoid of amplitude max / sqrt 2."""
+        """Return the standard deviation (rad) of the tilt about each horizontal axis (sinusoids of max / sqrt 2)."""
         return float(np.radians(self.max_tilt_deg) / 2.0)
 
     @property
@@ -118,4 +118,3 @@ def planar_parameters(floor: FloorKind, sigma_tilt: float | None = None) -> dict
     """``planar.*`` for ``floor`` (``sigma_tilt`` in rad, None: the floor's own) as nested ``ros__parameters``."""
     return {'planar': {'enabled': True, 'height': 0.0, 'sigma_height': floor.sigma_height,
                        'sigma_tilt': floor.sigma_tilt if sigma_tilt is None else float(sigma_tilt)}}
-

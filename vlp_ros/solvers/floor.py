@@ -23,7 +23,8 @@ chi-square, 3 dof, beyond a tail of 1e-6: a ramp, a lifted robot) is not one the
 can be at, and is dropped; when every candidate goes, the frame has no pose
 (``Reason.OFF_THE_FLOOR``). A disagreement beyond the 95 % point but short of that widens
 the image's covariance by the disagreement before the update: a rim off the model (glare,
-falloff) claims more than it knows, and the floor then counts for correspondingly more. The floor thereby also tells the two poses of one circle apart: the mirror pose's
+falloff) claims more than it knows, and the floor then counts for correspondingly more.
+The floor thereby also tells the two poses of one circle apart: the mirror pose's
 tilt is off by twice the lamp's angle from the optical axis.
 
 Where the image leaves a direction loose, the floor joins the fit itself. Several lamps'
@@ -86,7 +87,7 @@ class Floor:
             raise ValueError(f'sigma_tilt must be positive and finite, got {self.sigma_tilt}')
 
     def up_measurement(self) -> UpMeasurement:
-        """The floor's tilt as a measured up direction in the camera frame (base +z is map +z)."""
+        """Return the floor's tilt as a measured up direction in the camera frame (base +z is map +z)."""
         return UpMeasurement(self.mounting.up_in_camera(), self.sigma_tilt)
 
     def linearize(self, pose: Pose, tilt: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +224,7 @@ def yaw_from_continuity(observation: LampObservation, lamp: Lamp, camera: Camera
 
 
 def _headed_as(circle: CirclePose, lamp: Lamp, recent: Pose) -> Pose:
-    """The camera pose whose up is the circle's normal, turned from ``recent`` by the least rotation."""
+    """Return the camera pose whose up is the circle's normal, turned from ``recent`` by the least rotation."""
     up_in_map = recent.rotation @ circle.normal
     axis = np.cross(up_in_map, [0.0, 0.0, 1.0])
     angle = math.atan2(float(np.linalg.norm(axis)), float(up_in_map[2]))
@@ -260,7 +261,7 @@ def _fit_headed(start: Pose, measurement: LampMeasurement, floor: Floor, recent:
 
 def _headed_residuals(pose: Pose, measurement: LampMeasurement, floor: Floor, recent: Pose,
                       sigma_yaw: float) -> tuple[np.ndarray, np.ndarray]:
-    """The rim's residuals, then the yaw's from ``recent``, then the floor's, with their Jacobian."""
+    """Return the rim's residuals, then the yaw's from ``recent``, then the floor's, with their Jacobian."""
     rim, rim_jacobian = measurement.linearize(pose.rotation, pose.position)
     yaw = _yaw_of(pose.rotation @ recent.rotation.T) / sigma_yaw
     floor_residuals, floor_jacobian = floor.linearize(pose)
@@ -270,5 +271,5 @@ def _headed_residuals(pose: Pose, measurement: LampMeasurement, floor: Floor, re
 
 
 def _yaw_of(rotation: np.ndarray) -> float:
-    """The turn about map +z of a rotation near a pure yaw: the angle of its image of a horizontal axis."""
+    """Return the turn about map +z of a rotation near a pure yaw: where it turns a horizontal axis."""
     return math.atan2(rotation[1, 0] - rotation[0, 1], rotation[0, 0] + rotation[1, 1])
