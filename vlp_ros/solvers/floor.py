@@ -136,25 +136,34 @@ def _fused(candidate: PoseCandidate, floor: Floor, tilt: bool) -> tuple[PoseCand
     """
     Return the candidate updated by the floor (iterated linear update) and the innovation chi-square.
 
-    Beyond ``FLOOR_DOUBT_CHI2`` the image's covariance is taken to understate its error by the
-    disagreement (a rim off the model claims more than it knows) and is scaled by the chi-square over
+    The update weighs the image by the fit's own covariance (``PoseCandidate.fit_covariance``: what the
+    rim's points show), and its published covariance is that update's error under the candidate's
+    covariance, which allows for the rim's model error (Joseph form). The floor moves the pose as far as
+    the rim's points say, while the covariance spans what a rim off the model may still hide. The
+    chi-square is taken under the candidate's covariance; beyond ``FLOOR_DOUBT_CHI2`` both covariances
+    are taken to understate the image's error by the disagreement and are scaled by the chi-square over
     its degrees of freedom before the update.
     """
     covariance = np.asarray(candidate.pose.covariance, dtype=float)
-    pose, jacobian, chi_square = _updated(candidate.pose, covariance, floor, tilt)
+    weighing = covariance if candidate.fit_covariance is None else np.asarray(candidate.fit_covariance, dtype=float)
+    pose, jacobian, innovation = _updated(candidate.pose, weighing, floor, tilt)
+    chi_square = _chi_square(innovation, jacobian, covariance)
     if chi_square > FLOOR_DOUBT_CHI2:
-        covariance = covariance * (chi_square / len(jacobian))
-        pose, jacobian, _ = _updated(candidate.pose, covariance, floor, tilt)
-    pose.covariance = _updated_covariance(covariance, jacobian)
+        covariance, weighing = (matrix * (chi_square / len(jacobian)) for matrix in (covariance, weighing))
+        pose, jacobian, _ = _updated(candidate.pose, weighing, floor, tilt)
+    gain = _gain(weighing, jacobian)
+    kept = np.eye(6) - gain @ jacobian
+    posterior = kept @ covariance @ kept.T + gain @ gain.T
     # Told apart by the fused covariance: a near-frontal lamp's two poses, each fused with the floor, end
     # a centimetre apart, the same pose within what the image knows, though the fit alone claims less.
+    pose.covariance = 0.5 * (posterior + posterior.T)
     fused = PoseCandidate(pose=pose, cost=candidate.cost + chi_square,
                           residual_count=candidate.residual_count + len(jacobian))
     return fused, chi_square
 
 
-def _updated(prior: Pose, covariance: np.ndarray, floor: Floor, tilt: bool) -> tuple[Pose, np.ndarray, float]:
-    """Return the pose the floor moves ``prior`` to, the floor's Jacobian there, and the innovation chi-square."""
+def _updated(prior: Pose, covariance: np.ndarray, floor: Floor, tilt: bool) -> tuple[Pose, np.ndarray, np.ndarray]:
+    """Return the pose the floor moves ``prior`` to, the floor's Jacobian there, and the innovation."""
     step = np.zeros(6)
     pose = prior
     for _ in range(_UPDATE_ITERATIONS):
@@ -162,9 +171,13 @@ def _updated(prior: Pose, covariance: np.ndarray, floor: Floor, tilt: bool) -> t
         innovation = jacobian @ step - residuals
         step = _gain(covariance, jacobian) @ innovation
         pose = Pose(*perturbed(prior, step))
-    chi_square = float(innovation @ np.linalg.solve(jacobian @ covariance @ jacobian.T + np.eye(len(residuals)),
-                                                    innovation))
-    return pose, jacobian, chi_square
+    return pose, jacobian, innovation
+
+
+def _chi_square(innovation: np.ndarray, jacobian: np.ndarray, covariance: np.ndarray) -> float:
+    """Return the innovation's chi-square under the image's ``covariance`` and the floor's unit noise."""
+    return float(innovation @ np.linalg.solve(jacobian @ covariance @ jacobian.T + np.eye(len(innovation)),
+                                              innovation))
 
 
 def _gain(covariance: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
@@ -172,11 +185,6 @@ def _gain(covariance: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
     projected = jacobian @ covariance
     innovation = projected @ jacobian.T + np.eye(len(jacobian))
     return np.linalg.solve(innovation, projected).T
-
-
-def _updated_covariance(covariance: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
-    updated = covariance - _gain(covariance, jacobian) @ jacobian @ covariance
-    return 0.5 * (updated + updated.T)
 
 
 def tilted_off_the_floor(candidate: PoseCandidate, floor: Floor) -> bool:
