@@ -137,19 +137,22 @@ def _fused(candidate: PoseCandidate, floor: Floor, tilt: bool) -> tuple[PoseCand
     Return the candidate updated by the floor (iterated linear update) and the innovation chi-square.
 
     The update weighs the image by the fit's own covariance (``PoseCandidate.fit_covariance``: what the
-    rim's points show), and its published covariance is that update's error under the candidate's
-    covariance, which allows for the rim's model error (Joseph form). The floor moves the pose as far as
-    the rim's points say, while the covariance spans what a rim off the model may still hide. The
-    chi-square is taken under the candidate's covariance; beyond ``FLOOR_DOUBT_CHI2`` both covariances
-    are taken to understate the image's error by the disagreement and are scaled by the chi-square over
-    its degrees of freedom before the update.
+    rim's points show) while the floor agrees with it within its 95 % point; beyond, the rim is off the
+    model (glare, falloff, blur bias its shape) and the image is weighed by the candidate's covariance,
+    which allows for that. The published covariance is the update's error under the candidate's
+    covariance (Joseph form). The chi-square is taken under the candidate's covariance; beyond
+    ``FLOOR_DOUBT_CHI2`` that covariance too is taken to understate the image's error by the
+    disagreement, and is scaled by the chi-square over its degrees of freedom before the update.
     """
     covariance = np.asarray(candidate.pose.covariance, dtype=float)
     weighing = covariance if candidate.fit_covariance is None else np.asarray(candidate.fit_covariance, dtype=float)
     pose, jacobian, innovation = _updated(candidate.pose, weighing, floor, tilt)
+    if _chi_square(innovation, jacobian, weighing) > FLOOR_DOUBT_CHI2:
+        weighing = covariance
+        pose, jacobian, innovation = _updated(candidate.pose, weighing, floor, tilt)
     chi_square = _chi_square(innovation, jacobian, covariance)
     if chi_square > FLOOR_DOUBT_CHI2:
-        covariance, weighing = (matrix * (chi_square / len(jacobian)) for matrix in (covariance, weighing))
+        covariance = weighing = covariance * (chi_square / len(jacobian))
         pose, jacobian, _ = _updated(candidate.pose, weighing, floor, tilt)
     gain = _gain(weighing, jacobian)
     kept = np.eye(6) - gain @ jacobian
