@@ -4,7 +4,7 @@ A ground robot driving under sparse lamps: its camera's height and tilt held by 
 The base (base_link) drives at 0.8 m/s, weaving, on a floor at height 0; the camera sits
 on it 20 cm ahead and 45 cm up, looking straight up with the top of its image toward the
 front (``MOUNTING``): 1080p, 100 deg field of view. Lamps of 10-20 cm hang 2-3 m above
-the floor on a jittered grid 3.2 m apart, so most frames show one lamp and some none. The
+the floor on a jittered grid 4 m apart, so most frames show one lamp and some none. The
 floor rocks the base about both horizontal axes (incommensurate sinusoids whose combined
 tilt stays within ``max_tilt``) and bumps its height: a flat floor (0.3 deg, 2 mm) or a
 rough one (1.5 deg, 7 mm). ``planar_parameters`` are the ``planar.*`` settings that describe
@@ -26,7 +26,7 @@ from vlp_ros.sim.scenarios import (BeaconDesign, DRIVE_SPEED, DRIVE_TURN_RATE, m
 from vlp_ros.sim.sensor import SensorModel
 
 MOUNTING = Mounting(ROBOT_CAMERA_MOUNT, np.array([0.2, 0.0, 0.45]))
-LAMP_SPACING = 3.2
+LAMP_SPACING = 4.0
 FRAME_RATE = 10.0
 
 
