@@ -22,8 +22,6 @@ from vlp_ros.sim.recording import LOCATOR_NODE, record, write_params
 
 import yaml
 
-from conftest import spin_until
-
 FRAMES = 80
 LIFT_M = 0.15
 
