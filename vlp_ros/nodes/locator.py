@@ -107,6 +107,11 @@ class Locator(Node):
             f'publishing {self.settings.base_frame} in {self.settings.map_frame}, the camera optical frame at '
             f'{[round(float(v), 4) for v in mounting.translation]} m, [{quaternion}] in it '
             f'(vlp/camera_pose carries the camera)')
+        floor = self.settings.floor
+        if floor is not None:
+            self.get_logger().info(
+                f'{self.settings.base_frame} on a horizontal floor at z = {floor.height:g} m: its height known to '
+                f'{floor.sigma_height:g} m and its tilt to {floor.sigma_tilt:g} rad (planar.*)')
 
     def _warm_up(self) -> None:
         """Load (or, without the build's cache, compile) the kernels a frame needs."""

@@ -16,12 +16,15 @@ import numpy as np
 from vlp_ros.beacon.tone import MAX_ROW_TIME_TOLERANCE, ROW_TIME_TOLERANCE
 from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.mounting import Mounting, unit_quaternion_problem
+from vlp_ros.solvers.floor import Floor
 
 import yaml
 
 BEACON_MODES = ('packet', 'tone')
 SOLVERS = ('perspective', 'paper')
 RELIABILITIES = ('best_effort', 'reliable')
+# A base that tilts this much (rad) about a horizontal axis is on no floor the planar model describes.
+MAX_SIGMA_TILT = 0.5
 IMAGE_TRANSPORTS = ('raw', 'compressed')
 
 
@@ -86,6 +89,13 @@ PARAMETERS = (
     ParameterSpec('camera_in_base.rotation', 'number_array', [0.0, 0.0, 0.0, 1.0],
                   'unit quaternion (x, y, z, w) of the camera optical frame (z forward, x right, y down) '
                   'in base_frame'),
+    ParameterSpec('planar.enabled', 'bool', False,
+                  'base_frame moves on a horizontal floor, a measurement of every pose (needs base_frame)'),
+    ParameterSpec('planar.height', 'number', 0.0, "the z of base_frame's origin in map_frame (m)"),
+    ParameterSpec('planar.sigma_height', 'number', 0.01,
+                  "how far bumps, suspension and an uneven floor move base_frame's origin off that height (m)"),
+    ParameterSpec('planar.sigma_tilt', 'number', 0.01,
+                  "how far they tilt base_frame's +z off vertical, about each horizontal axis (rad)"),
 )
 LAMP_PARAMETERS = (
     ParameterSpec('id', 'integer', None, 'beacon ID of the lamp'),
@@ -147,6 +157,8 @@ class LocatorSettings:
     # None when base_frame is empty: the camera optical frame is published.
     base_frame: str | None = None
     mounting: Mounting | None = None
+    # None unless planar.enabled: the floor base_frame moves on.
+    floor: Floor | None = None
 
 
 def _number(values: Mapping[str, Any], name: str, *, positive: bool = False,
@@ -315,6 +327,28 @@ def mounting_from_parameters(values: Mapping[str, Any], map_frame: str) -> tuple
     return base_frame or None, Mounting.from_quaternion(rotation / np.linalg.norm(rotation), translation)
 
 
+def floor_from_parameters(values: Mapping[str, Any], base_frame: str | None, mounting: Mounting,
+                          solver: str) -> Floor | None:
+    """Return the floor of ``planar.*`` (None unless ``planar.enabled``), its values validated even when unused."""
+    enabled = values.get('planar.enabled')
+    if not isinstance(enabled, bool):
+        raise ConfigError('planar.enabled', f'expected true or false, got {enabled!r}')
+    height = _number(values, 'planar.height')
+    sigma_height = _number(values, 'planar.sigma_height', positive=True)
+    sigma_tilt = _number(values, 'planar.sigma_tilt', positive=True)
+    if not sigma_tilt < MAX_SIGMA_TILT:
+        raise ConfigError('planar.sigma_tilt', f'must be below {MAX_SIGMA_TILT} rad (a floor, in radians), '
+                                               f'got {sigma_tilt}')
+    if not enabled:
+        return None
+    if base_frame is None:
+        raise ConfigError('planar.enabled', 'needs base_frame (and camera_in_base): the floor holds the robot '
+                                            'base, not the camera')
+    if solver != 'perspective':
+        raise ConfigError('planar.enabled', f'needs solver perspective, got {solver!r}')
+    return Floor(mounting, height, sigma_height, sigma_tilt)
+
+
 def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
     """Typed, validated settings; raises ConfigError naming the first bad parameter."""
     map_frame = values.get('map_frame')
@@ -324,11 +358,13 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
     prior_up = _vector(values, 'prior.up_in_camera', 3, allow_empty=True)
     rotation = _unit(_vector(values, 'imu.rotation', 4), 'imu.rotation')
     base_frame, mounting = mounting_from_parameters(values, map_frame)
+    solver = _choice(values, 'solver', SOLVERS)
+    floor = floor_from_parameters(values, base_frame, mounting, solver)
     return LocatorSettings(
         map_frame=map_frame,
         lamps=lamp_map_from_parameters(values, beacon),
         beacon=beacon,
-        solver=_choice(values, 'solver', SOLVERS),
+        solver=solver,
         prior_up=None if prior_up is None else _unit(prior_up, 'prior.up_in_camera'),
         prior_tolerance=_number(values, 'prior.tolerance', positive=True),
         prior_sigma=_number(values, 'prior.sigma', minimum=0.0) or None,
@@ -344,7 +380,8 @@ def settings_from_parameters(values: Mapping[str, Any]) -> LocatorSettings:
         qos_reliability=_choice(values, 'qos.reliability', RELIABILITIES),
         qos_depth=_integer(values, 'qos.depth', 1, 1000),
         base_frame=base_frame,
-        mounting=mounting if base_frame else None)
+        mounting=mounting if base_frame else None,
+        floor=floor)
 
 
 def flatten_parameters(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:

@@ -267,7 +267,7 @@ class Pipeline:
                     return Choice(None, Reason.POOR_FIT, "the paper's pose does not explain the image")
             # The paper's two mirror solutions are told apart by the same hints as ours (by default).
             return self.paper_choice(candidates, self._hints(stamp, gravity_up))
-        return solve_lamps(pairs, camera, self._hints(stamp, gravity_up))
+        return solve_lamps(pairs, camera, self._hints(stamp, gravity_up), self.settings.floor)
 
 
 def _key(pairs: list[tuple[LampObservation, Lamp]]) -> tuple:

@@ -52,6 +52,7 @@ class Reason(str, Enum):
     NO_CANDIDATES = 'no_candidates'            # the solver found no pose at all
     INCONSISTENT_LAMPS = 'inconsistent_lamps'  # the lamps of one frame admit no common pose
     POOR_FIT = 'poor_fit'                      # no candidate explains the image within its noise
+    OFF_THE_FLOOR = 'off_the_floor'            # every candidate plainly contradicts the floor (planar.*)
 
 
 @dataclass

@@ -36,9 +36,11 @@ from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints
 from vlp_ros.solvers.candidates import Choice, distinct, explains_the_image, PoseCandidate, Reason
 from vlp_ros.solvers.circle_pose import circle_poses, normalized_conic
 from vlp_ros.solvers.covariance import with_lamp_position_uncertainty
+from vlp_ros.solvers.floor import Floor, on_floor, tilted_off_the_floor, yaw_from_continuity
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import pose_from_circle, solve_lamp, widened_where_up_disagrees
-from vlp_ros.solvers.point_lamps import point_starts, PointLampMeasurement, pose_from_opencv, seen_from_below
+from vlp_ros.solvers.point_lamps import (point_starts, PointLampMeasurement, pose_from_opencv, seen_from_below,
+                                         two_points_with_up)
 from vlp_ros.solvers.refinement import descend, forecast_from, FORECAST_MARGIN, linearize, Measurement, refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement, with_agreeing_up
 
@@ -60,79 +62,114 @@ _PNP_MIN_LAMPS = 4
 
 
 def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
-                hints: DisambiguationHints) -> Choice:
+                hints: DisambiguationHints, floor: Floor | None = None) -> Choice:
     """
     Return the camera pose from all identified lamps of one frame, or no pose and why.
 
-    Its covariance includes the uncertainty of the lamps' map positions (``Lamp.position_sigma``).
+    ``floor``: the robot's base moves on a horizontal floor, a measurement of every candidate
+    (``solvers.floor``). The covariance includes the uncertainty of the lamps' map positions
+    (``Lamp.position_sigma``).
     """
-    choice = _chosen_pose(pairs, camera, hints)
+    choice = _chosen_pose(pairs, camera, hints, floor)
     if choice.pose is None or choice.pose.covariance is None or all(l.position_sigma is None for _, l in pairs):
         return choice
     return replace(choice, pose=Pose(choice.pose.rotation, choice.pose.position,
-                                     _with_map_uncertainty(choice.pose, pairs, camera, hints)))
+                                     _with_map_uncertainty(choice.pose, pairs, camera, hints, floor)))
 
 
 def _with_map_uncertainty(pose: Pose, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
-                          hints: DisambiguationHints) -> np.ndarray:
+                          hints: DisambiguationHints, floor: Floor | None) -> np.ndarray:
     measurements = [(PointLampMeasurement if lamp.is_point else LampMeasurement).from_observation(obs, lamp, camera)
                     for obs, lamp in pairs]
     jacobians = [m.linearize(pose.rotation, pose.position)[1] for m in measurements]
-    up = hints.up_measurements()
-    other = sum((j.T @ j for j in (m.linearize(pose.rotation, pose.position)[1] for m in up)), np.zeros((6, 6)))
+    other = sum((j.T @ j for j in (m.linearize(pose.rotation, pose.position)[1] for m in hints.up_measurements())),
+                np.zeros((6, 6)))
+    if floor is not None:
+        floor_jacobian = floor.linearize(pose)[1]
+        other = other + floor_jacobian.T @ floor_jacobian
     return with_lamp_position_uncertainty(pose.covariance, jacobians, other, [lamp.position_sigma for _, lamp in pairs])
 
 
 def _chosen_pose(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
-                 hints: DisambiguationHints) -> Choice:
+                 hints: DisambiguationHints, floor: Floor | None) -> Choice:
     if not pairs:
         return Choice(None, Reason.NO_CANDIDATES, 'no identified lamp')
     ids = [lamp.id for _, lamp in pairs]
     if len(set(ids)) != len(ids):
         return Choice(None, Reason.INCONSISTENT_LAMPS, f'one lamp identified twice in the frame: {sorted(ids)}')
     up = hints.up_measurements()
+    # Several lamps' fit takes the floor's tilt in: small lamps leave it loose, and the fit would slide off.
+    floor_up = [] if floor is None else [floor.up_measurement()]
     points = sum(lamp.is_point for _, lamp in pairs)
-    if points == len(pairs) and 2 * points + 2 * len(up) < 6:
+    if points == len(pairs) and 2 * points + 2 * len(up) + 2 * len(floor_up) < 6:
         return Choice(None, Reason.NO_CANDIDATES, f'{points} point lamp(s) leave the pose free: it takes three, '
                                                   'or two and an up direction with a sigma')
     if len(pairs) == 1:
         observation, lamp = pairs[0]
         if observation.marker is None:
-            return Choice(None, Reason.NO_CANDIDATES,
-                          f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+            return _headed_by_continuity(observation, lamp, camera, hints, floor)
         candidates = solve_lamp(observation, lamp, camera, up)
         explaining = [c for c in candidates if explains_the_image(c)]
         if candidates and not explaining:
             return Choice(None, Reason.POOR_FIT, f'best single-lamp chi-square {candidates[0].cost:.0f} for '
                                                  f'{candidates[0].residual_count - 6} degrees of freedom')
-        return choose_candidate(explaining, hints)
+        return _chosen(explaining, hints, floor)
     directions = [hint.vector for hint in hints.up_in_camera]
-    candidates = with_agreeing_up(lambda agreeing: joint_candidates(pairs, camera, agreeing, directions), up)
+    # The floor's up direction starts poses from the lamps' centres: the circle poses' mirror may mislead.
+    level = [] if floor is None else [floor.mounting.up_in_camera()]
+    candidates = with_agreeing_up(
+        lambda agreeing: joint_candidates(pairs, camera, [*agreeing, *floor_up], directions, level), up)
     candidates = widened_where_up_disagrees(candidates, up, np.mean([lamp.position for _, lamp in pairs], axis=0))
     if not candidates:
         return Choice(None, Reason.INCONSISTENT_LAMPS, 'no start led to a pose that explains all lamps')
     best = candidates[0]
+    if not explains_the_image(best) and floor is not None and tilted_off_the_floor(best, floor):
+        return Choice(None, Reason.OFF_THE_FLOOR, 'the lamps tilt the robot plainly off the floor')
     if not explains_the_image(best):
         return Choice(None, Reason.INCONSISTENT_LAMPS,
                       f'best joint chi-square {best.cost:.0f} for {best.residual_count - 6} degrees of freedom')
-    choice = choose_candidate(candidates, hints, cost_reason=Reason.MULTI_LAMP)
+    choice = _chosen(candidates, hints, floor, tilt=False, cost_reason=Reason.MULTI_LAMP)
     # A single joint minimum is the other lamps' doing: each lamp alone has two.
     return replace(choice, reason=Reason.MULTI_LAMP) if choice.reason is Reason.UNIQUE else choice
 
 
+def _chosen(candidates: list[PoseCandidate], hints: DisambiguationHints, floor: Floor | None, tilt: bool = True,
+            cost_reason: Reason = Reason.COST) -> Choice:
+    """``choose_candidate`` among the candidates, first fused with the floor (its tilt too unless not ``tilt``)."""
+    if floor is not None and candidates:
+        candidates, contradicting = on_floor(candidates, floor, tilt)
+        if not candidates:
+            return Choice(None, Reason.OFF_THE_FLOOR, f'{contradicting} candidate(s), each plainly off the floor')
+    return choose_candidate(candidates, hints, cost_reason=cost_reason)
+
+
+def _headed_by_continuity(observation: LampObservation, lamp: Lamp, camera: CameraModel,
+                          hints: DisambiguationHints, floor: Floor | None) -> Choice:
+    """One disc lamp without its marker: on the floor, headed as the recent pose; else no pose."""
+    if floor is None or not hints.continuity_counts:
+        return Choice(None, Reason.NO_CANDIDATES, f'lamp {lamp.name!r} alone, without its marker, leaves the yaw free')
+    candidates, contradicting = yaw_from_continuity(observation, lamp, camera, floor, hints.recent_pose,
+                                                    hints.recent_age)
+    if not candidates and contradicting:
+        return Choice(None, Reason.OFF_THE_FLOOR, f'{contradicting} candidate(s), each plainly off the floor')
+    return choose_candidate(candidates, hints)
+
+
 def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
-                     up: Sequence[UpMeasurement] = (), up_directions: Sequence[np.ndarray] = ()) -> list[PoseCandidate]:
+                     up: Sequence[UpMeasurement] = (), up_directions: Sequence[np.ndarray] = (),
+                     level_directions: Sequence[np.ndarray] = ()) -> list[PoseCandidate]:
     """
     Distinct refined joint poses (cheapest first, covariance set) for two or more lamps and any measured up directions.
 
-    ``up_directions`` (camera frame, measured or not) start poses from two point lamps.
+    ``up_directions`` (camera frame, measured or not) start poses from two point lamps;
+    ``level_directions`` (the floor's) from the two lamp centres, discs or points, farthest apart in the image.
     """
     discs = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if not lamp.is_point]
     points = [PointLampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if lamp.is_point]
     measurements = [*discs, *points]
     if sum(m.residual_count for m in (*measurements, *up)) < 6:
         return []
-    starts = _starts(discs, points) + point_starts(points, list(up_directions))
+    starts = _starts(discs, points, level_directions) + point_starts(points, list(up_directions))
     # Joined once: every start is scored and probed on it.
     coarse = [LampMeasurements((*(m.thinned(_PROBE_RIM_POINTS) for m in measurements), *up))]
     reached: list[tuple[Pose, float]] = []
@@ -153,11 +190,13 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
                      if candidate is not None and seen_from_below(candidate.pose, points)])
 
 
-def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement] = ()) -> list[Pose]:
+def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement] = (),
+            level_directions: Sequence[np.ndarray] = ()) -> list[Pose]:
     """
     Return each disc lamp's circle poses, and SQPnP on all lamp centres when there are enough of them.
 
-    The circle poses are headed by the lamp's marker or the farthest other lamp.
+    The circle poses are headed by the lamp's marker or the farthest other lamp. For each of
+    ``level_directions``, the pose with that up direction from the two centres farthest apart.
     """
     conics = [normalized_conic(m.rim_rays[:, :2]) for m in discs]
     centres = np.array([ellipse_from_conic(conic)[:2] for conic in conics] + [m.ray[:2] for m in points])
@@ -178,6 +217,12 @@ def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement]
                 starts.append(pose)
     if len(measurements) >= _PNP_MIN_LAMPS:
         starts.extend(pnp_starts(np.array([m.lamp.position for m in measurements]), centres))
+    if level_directions and len(measurements) >= 2:
+        i, j = max(((i, j) for i in range(len(rays)) for j in range(i)),
+                   key=lambda pair: np.linalg.norm(rays[pair[0]] - rays[pair[1]]))
+        positions = np.array([measurements[i].lamp.position, measurements[j].lamp.position])
+        for up in level_directions:
+            starts.extend(two_points_with_up(positions, rays[[i, j]], up))
     return starts
 
 
