@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from vlp_ros.beacon.chips import ChipLevels, interior_bounds
-from vlp_ros.beacon.encoding import packet_chips
+from vlp_ros.beacon.encoding import packet_chips, packet_length
 from vlp_ros.compiled import kernel
 from vlp_ros.compiled.linalg import lu_solve, OPENCV_PIVOT_FLOOR
 
@@ -36,6 +36,9 @@ _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _PARAMETERS = 5
 # Relative step of the periods the run middles are tried on (a 50-chip window drifts 0.025 chips a step).
 _PERIOD_STEP = 5e-4
+# Hypotheses whose bound lies this far (nats) below the best fit are not fitted: even all of them together
+# weigh less than 1e-4 of it (18432 of them at 8 bits: e^-20 x 18432 = 4e-5).
+PRUNE_MARGIN = 20.0
 
 
 @lru_cache(maxsize=4)
@@ -100,43 +103,192 @@ def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censor
     chip indices, and ``censored`` ones are lower bounds. The deviance is the weighted squared residuals
     of the measured chips plus -2 log P of the censored ones.
     """
-    fits = _censored_fits(np.asarray(x, dtype=float), np.asarray(v, dtype=float), np.asarray(k, dtype=np.int64),
-                          np.asarray(censored, dtype=np.bool_), _signs(id_bits), np.asarray(mixes, dtype=float))
+    x, v = np.asarray(x, dtype=float), np.asarray(v, dtype=float)
+    k, censored = np.asarray(k, dtype=np.int64), np.asarray(censored, dtype=np.bool_)
+    mixes = tuple(float(mix) for mix in mixes)
+    bounds = _closed_form_bounds(x, v, k, censored, id_bits, mixes)
+    fits = _fits_that_can_win(bounds, x, v, k, censored, _signs(id_bits), np.asarray(mixes, dtype=float),
+                              PRUNE_MARGIN)
     top = fits.max()
     # Mean over mixes and shifts, per ID.
     per_id = top + np.log(np.exp(fits - top).mean(axis=(0, 1)))
     return per_id, -2.0 * float(top)
 
 
-@kernel
-def _censored_fits(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, signs: np.ndarray,
-                   mixes: np.ndarray) -> np.ndarray:
+@lru_cache(maxsize=16)
+def _template_tables(id_bits: int, mix: float) -> tuple[np.ndarray, ...]:
     """
-    Return the maximised censored log-likelihood of every (mix, shift, ID), (mixes, L, ids).
+    Every ID's template at each packet position, and what the closed-form bound weighs with it, (L, ids) each.
+
+    The template t_p = s_p + mix (s_p-1 + s_p+1) and its square; the chip's own darkness d_p = (1 - s_p) / 2 and
+    d_p t_p, d_p t_p^2 (a censored chip counts in the bound only where the hypothesis makes it dark).
+    """
+    signs = np.ascontiguousarray(_signs(id_bits).T)
+    template = signs + mix * (np.roll(signs, 1, axis=0) + np.roll(signs, -1, axis=0))
+    dark = 0.5 * (1.0 - signs)
+    tables = (template, template * template, dark, dark * template, dark * template * template)
+    for table in tables:
+        table.flags.writeable = False
+    return tables
+
+
+def _closed_form_bounds(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
+                        mixes: tuple[float, ...]) -> np.ndarray:
+    """
+    Return an upper bound of every (mix, shift, ID)'s maximised censored log-likelihood, (mixes, L, ids).
+
+    Each is the least-squares fit of the measured chips and of the censored chips the hypothesis makes dark (at
+    their bound), the censored chips it makes bright left out, the contrast unconstrained: log Phi(u) <=
+    -u^2 / 2 for u <= 0 (Chernoff), and a term left out is <= 0. It is tight for the hypotheses that can win
+    (their dark chips are not lifted over the ceiling) and loose for the others, which is all that pruning needs.
+    All hypotheses at once: every sum over the chips is a fold of the chips by packet position for each shift
+    (``_folded``) times a table of every ID's template (``_template_tables``).
+    """
+    length = packet_length(id_bits)
+    middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
+    t = (k - middle) / half
+    powers = t[None, :] ** np.arange(5)[:, None]
+    measured = ~censored
+    vm, vc = v * measured, v * censored
+    # Hypothesis-free sums over the measured chips: sum v t^i (i < 5), sum v x t^i (i < 3), sum v x^2.
+    fixed = np.concatenate([powers @ vm, powers[:3] @ (vm * x), [vm @ (x * x)]])
+    # Per table, the chip weights folded with it: measured chips with the template (t) and its square, the censored
+    # ones with their darkness (d, d t, d t^2).
+    measured_t = np.vstack([powers[:4] * vm, powers[:2] * (vm * x)])
+    measured_t2 = powers[:3] * vm
+    censored_d = np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]])
+    censored_dt = np.vstack([powers[:4] * vc, powers[:2] * (vc * x)])
+    censored_dt2 = powers[:3] * vc
+    weights = (measured_t, measured_t2, censored_d, censored_dt, censored_dt2)
+    folds = [_folded(w, k, length) for w in weights]
+    bounds = np.empty((len(mixes), length, 2 ** id_bits))
+    for m, mix in enumerate(mixes):
+        sums = [(fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
+                for fold, table in zip(folds, _template_tables(id_bits, mix))]
+        bounds[m] = _bounds_from_sums(fixed, *sums)
+    return bounds
+
+
+@kernel
+def _folded(weights: np.ndarray, k: np.ndarray, length: int) -> np.ndarray:
+    """Each row of ``weights`` (one value per chip) summed by packet position for each shift, (rows, L, L)."""
+    rows = weights.shape[0]
+    out = np.zeros((rows, length, length))
+    for shift in range(length):
+        for j in range(len(k)):
+            position = (k[j] + shift) % length
+            for r in range(rows):
+                out[r, shift, position] += weights[r, j]
+    return out
+
+
+@kernel
+def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray, censored_d: np.ndarray,
+                      censored_dt: np.ndarray, censored_dt2: np.ndarray) -> np.ndarray:
+    """
+    Return every (shift, ID)'s bound from its weighted sums (``_closed_form_bounds``), (L, ids).
+
+    Columns 1, t, t^2 (envelope), T, t T (contrast) in the chip index t and the template T; a tiny ridge as in
+    ``_solve`` (a singular system bounds nothing: 0); the residual sum is kept from going negative by rounding.
+    """
+    length, ids = measured_t.shape[1], measured_t.shape[2]
+    out = np.empty((length, ids))
+    gram, target = np.empty((_PARAMETERS, _PARAMETERS)), np.empty(_PARAMETERS)
+    for shift in range(length):
+        for i in range(ids):
+            for a in range(3):
+                for b in range(3):
+                    gram[a, b] = fixed[a + b] + censored_d[a + b, shift, i]
+                target[a] = fixed[5 + a] + censored_d[5 + a, shift, i]
+                gram[a, 3] = gram[3, a] = measured_t[a, shift, i] + censored_dt[a, shift, i]
+                gram[a, 4] = gram[4, a] = measured_t[a + 1, shift, i] + censored_dt[a + 1, shift, i]
+            gram[3, 3] = measured_t2[0, shift, i] + censored_dt2[0, shift, i]
+            gram[3, 4] = gram[4, 3] = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
+            gram[4, 4] = measured_t2[2, shift, i] + censored_dt2[2, shift, i]
+            target[3] = measured_t[4, shift, i] + censored_dt[4, shift, i]
+            target[4] = measured_t[5, shift, i] + censored_dt[5, shift, i]
+            squares = fixed[8] + censored_d[8, shift, i]
+            explained = _explained(gram, target)
+            if explained < 0.0:
+                # A singular system bounds nothing: the hypothesis is fitted.
+                out[shift, i] = 0.0
+                continue
+            out[shift, i] = -0.5 * max(squares - explained, 0.0)
+    return out
+
+
+@kernel
+def _explained(gram: np.ndarray, target: np.ndarray) -> float:
+    """
+    Return target^T gram^-1 target for a small symmetric positive semi-definite ``gram`` (destroyed); -1 if singular.
+
+    Cholesky's method with the tiny ridge of ``_solve``: the squared norm of L^-1 target.
+    """
+    size = len(target)
+    total = 0.0
+    for a in range(size):
+        gram[a, a] += 1e-9 * gram[a, a] + 1e-12
+    for a in range(size):
+        pivot = gram[a, a]
+        for c in range(a):
+            pivot -= gram[a, c] * gram[a, c]
+        if not pivot > 1e-300:
+            return -1.0
+        pivot = math.sqrt(pivot)
+        gram[a, a] = pivot
+        for b in range(a + 1, size):
+            value = gram[b, a]
+            for c in range(a):
+                value -= gram[b, c] * gram[a, c]
+            gram[b, a] = value / pivot
+        solved = target[a]
+        for c in range(a):
+            solved -= gram[a, c] * target[c]
+        target[a] = solved / pivot
+        total += target[a] * target[a]
+    return total
+
+
+@kernel
+def _fits_that_can_win(bounds: np.ndarray, x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray,
+                       signs: np.ndarray, mixes: np.ndarray, margin: float) -> np.ndarray:
+    """
+    Return every (mix, shift, ID)'s maximised censored log-likelihood, (mixes, L, ids), where it can matter.
 
     Chip j's light is an envelope times (1 + contrast x its template s_p + mix (s_p-1 + s_p+1)), p = (k_j
     + shift) % L: the lamp's light (falloff, chords, glare) scales bright and dark chips alike, which is
     what decides where blur lifts a dark chip over the ceiling. Linear in its parameters: the envelope
     quadratic in the chip index, contrast-times-envelope linear in it and positive over the window (a
     bright chip is brighter).
+
+    Newton's method (``_fit``) runs on the hypotheses in the order of their ``bounds``, until a bound falls
+    ``margin`` below the best fit found: every later hypothesis is then that far below the best, and keeps its
+    bound (its share of the likelihood is below e^-margin of the best's).
     """
     n, ids, length = len(x), signs.shape[0], signs.shape[1]
-    out = np.empty((len(mixes), length, ids))
+    out = bounds.copy()
     design = np.empty((n, _PARAMETERS))
     middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
     for j in range(n):
         t = (k[j] - middle) / half
         design[j, 0], design[j, 1], design[j, 2] = 1.0, t, t * t
     root = np.sqrt(v)
-    for m in range(len(mixes)):
+    flat = bounds.ravel()
+    order = np.argsort(-flat)
+    best = -np.inf
+    for h in order:
+        if flat[h] < best - margin:
+            break
+        m, rest = h // (length * ids), h % (length * ids)
+        shift, i = rest // ids, rest % ids
         mix = mixes[m]
-        for shift in range(length):
-            for i in range(ids):
-                for j in range(n):
-                    p = (k[j] + shift) % length
-                    template = signs[i, p] + mix * (signs[i, (p - 1) % length] + signs[i, (p + 1) % length])
-                    design[j, 3], design[j, 4] = template, template * design[j, 1]
-                out[m, shift, i] = _fit(design, x, v, root, censored)
+        for j in range(n):
+            p = (k[j] + shift) % length
+            template = signs[i, p] + mix * (signs[i, (p - 1) % length] + signs[i, (p + 1) % length])
+            design[j, 3], design[j, 4] = template, template * design[j, 1]
+        value = _fit(design, x, v, root, censored)
+        out[m, shift, i] = value
+        best = max(best, value)
     return out
 
 
