@@ -121,12 +121,12 @@ def _template_tables(id_bits: int, mix: float) -> tuple[np.ndarray, ...]:
     Every ID's template at each packet position, and what the closed-form bound weighs with it, (L, ids) each.
 
     The template t_p = s_p + mix (s_p-1 + s_p+1) and its square; the chip's own darkness d_p = (1 - s_p) / 2 and
-    d_p t_p, d_p t_p^2 (a censored chip counts in the bound only where the hypothesis makes it dark).
+    d_p t_p, d_p t_p^2 (a censored chip counts in the bound's least squares only where the hypothesis makes it dark).
     """
     signs = np.ascontiguousarray(_signs(id_bits).T)
     template = signs + mix * (np.roll(signs, 1, axis=0) + np.roll(signs, -1, axis=0))
     dark = 0.5 * (1.0 - signs)
-    tables = (template, template * template, dark, dark * template, dark * template * template)
+    tables = (template, template * template, dark, dark * template, dark * template * template, template)
     for table in tables:
         table.flags.writeable = False
     return tables
@@ -137,10 +137,14 @@ def _closed_form_bounds(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: n
     """
     Return an upper bound of every (mix, shift, ID)'s maximised censored log-likelihood, (mixes, L, ids).
 
-    Each is the least-squares fit of the measured chips and of the censored chips the hypothesis makes dark (at
-    their bound), the censored chips it makes bright left out, the contrast unconstrained: log Phi(u) <=
-    -u^2 / 2 for u <= 0 (Chernoff), and a term left out is <= 0. It is tight for the hypotheses that can win
-    (their dark chips are not lifted over the ceiling) and loose for the others, which is all that pruning needs.
+    log Phi(u) <= -u^2 / 2 for u <= 0 (Chernoff) and <= 0: a censored chip costs at most its shortfall below
+    its bound squared. The bound is the least-squares fit of the measured chips and of the censored chips
+    the hypothesis makes dark (at their bound), with the censored chips it makes bright taken together: their
+    summed squared shortfalls are at least the square of their summed shortfall over their summed weight
+    (Jensen), one term that the fit can take in closed form (``_bounds_from_sums``). The contrast is left
+    unconstrained. Tight for the hypotheses that can win (their dark chips are not lifted over the ceiling),
+    loose for the others, which is all that pruning needs.
+
     All hypotheses at once: every sum over the chips is a fold of the chips by packet position for each shift
     (``_folded``) times a table of every ID's template (``_template_tables``).
     """
@@ -150,16 +154,14 @@ def _closed_form_bounds(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: n
     powers = t[None, :] ** np.arange(5)[:, None]
     measured = ~censored
     vm, vc = v * measured, v * censored
-    # Hypothesis-free sums over the measured chips: sum v t^i (i < 5), sum v x t^i (i < 3), sum v x^2.
-    fixed = np.concatenate([powers @ vm, powers[:3] @ (vm * x), [vm @ (x * x)]])
-    # Per table, the chip weights folded with it: measured chips with the template (t) and its square, the censored
-    # ones with their darkness (d, d t, d t^2).
-    measured_t = np.vstack([powers[:4] * vm, powers[:2] * (vm * x)])
-    measured_t2 = powers[:3] * vm
-    censored_d = np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]])
-    censored_dt = np.vstack([powers[:4] * vc, powers[:2] * (vc * x)])
-    censored_dt2 = powers[:3] * vc
-    weights = (measured_t, measured_t2, censored_d, censored_dt, censored_dt2)
+    # Hypothesis-free sums: over the measured chips sum v t^i (i < 5), sum v x t^i (i < 3), sum v x^2; over the
+    # censored ones sum v t^i (i < 3) and sum v x.
+    fixed = np.concatenate([powers @ vm, powers[:3] @ (vm * x), [vm @ (x * x)], powers[:3] @ vc, [vc @ x]])
+    # Per table, the chip weights folded with it: measured chips with the template T and its square, the censored
+    # ones with their darkness (d, d T, d T^2) and with T.
+    weights = (np.vstack([powers[:4] * vm, powers[:2] * (vm * x)]), powers[:3] * vm,
+               np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]]),
+               np.vstack([powers[:4] * vc, powers[:2] * (vc * x)]), powers[:3] * vc, powers[:2] * vc)
     folds = [_folded(w, k, length) for w in weights]
     bounds = np.empty((len(mixes), length, 2 ** id_bits))
     for m, mix in enumerate(mixes):
@@ -184,16 +186,20 @@ def _folded(weights: np.ndarray, k: np.ndarray, length: int) -> np.ndarray:
 
 @kernel
 def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray, censored_d: np.ndarray,
-                      censored_dt: np.ndarray, censored_dt2: np.ndarray) -> np.ndarray:
+                      censored_dt: np.ndarray, censored_dt2: np.ndarray, censored_t: np.ndarray) -> np.ndarray:
     """
     Return every (shift, ID)'s bound from its weighted sums (``_closed_form_bounds``), (L, ids).
 
-    Columns 1, t, t^2 (envelope), T, t T (contrast) in the chip index t and the template T; a tiny ridge as in
-    ``_solve`` (a singular system bounds nothing: 0); the residual sum is kept from going negative by rounding.
+    Columns 1, t, t^2 (envelope), T, t T (contrast) in the chip index t and the template T. The least-squares
+    fit of the measured and dark censored chips (Gram matrix G, right-hand side b), then the bright censored
+    chips' summed shortfall h = c - a'theta (a, c: their summed weighted columns and bounds over the root of
+    their summed weight), where positive, taken in: the fit with the term -h^2 / 2 loses h^2 / (2 (1 + a'G^-1 a))
+    (Sherman-Morrison), and its h stays positive, so the term is its own. A tiny ridge as in ``_solve``; a
+    singular system bounds nothing (0).
     """
     length, ids = measured_t.shape[1], measured_t.shape[2]
     out = np.empty((length, ids))
-    gram, target = np.empty((_PARAMETERS, _PARAMETERS)), np.empty(_PARAMETERS)
+    gram, target, bright = np.empty((_PARAMETERS, _PARAMETERS)), np.empty(_PARAMETERS), np.empty(_PARAMETERS)
     for shift in range(length):
         for i in range(ids):
             for a in range(3):
@@ -202,30 +208,44 @@ def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np
                 target[a] = fixed[5 + a] + censored_d[5 + a, shift, i]
                 gram[a, 3] = gram[3, a] = measured_t[a, shift, i] + censored_dt[a, shift, i]
                 gram[a, 4] = gram[4, a] = measured_t[a + 1, shift, i] + censored_dt[a + 1, shift, i]
+                bright[a] = fixed[9 + a] - censored_d[a, shift, i]
             gram[3, 3] = measured_t2[0, shift, i] + censored_dt2[0, shift, i]
             gram[3, 4] = gram[4, 3] = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
             gram[4, 4] = measured_t2[2, shift, i] + censored_dt2[2, shift, i]
             target[3] = measured_t[4, shift, i] + censored_dt[4, shift, i]
             target[4] = measured_t[5, shift, i] + censored_dt[5, shift, i]
+            bright[3] = censored_t[0, shift, i] - censored_dt[0, shift, i]
+            bright[4] = censored_t[1, shift, i] - censored_dt[1, shift, i]
             squares = fixed[8] + censored_d[8, shift, i]
-            explained = _explained(gram, target)
-            if explained < 0.0:
-                # A singular system bounds nothing: the hypothesis is fitted.
+            if not _cholesky(gram):
                 out[shift, i] = 0.0
                 continue
-            out[shift, i] = -0.5 * max(squares - explained, 0.0)
+            # y = L^-1 b (its squared norm is b'G^-1 b), z = L^-1 a.
+            _forward(gram, target)
+            _forward(gram, bright)
+            explained, along, spread = 0.0, 0.0, 0.0
+            for a in range(_PARAMETERS):
+                explained += target[a] * target[a]
+                along += bright[a] * target[a]
+                spread += bright[a] * bright[a]
+            value = -0.5 * max(squares - explained, 0.0)
+            weight = fixed[9] - censored_d[0, shift, i]
+            if weight > 0.0:
+                shortfall = (fixed[12] - censored_d[5, shift, i] - along) / math.sqrt(weight)
+                if shortfall > 0.0:
+                    value -= 0.5 * shortfall * shortfall / (1.0 + spread / weight)
+            out[shift, i] = value
     return out
 
 
 @kernel
-def _explained(gram: np.ndarray, target: np.ndarray) -> float:
+def _cholesky(gram: np.ndarray) -> bool:
     """
-    Return target^T gram^-1 target for a small symmetric positive semi-definite ``gram`` (destroyed); -1 if singular.
+    Factor a small symmetric positive semi-definite ``gram`` into its lower triangle, in place.
 
-    Cholesky's method with the tiny ridge of ``_solve``: the squared norm of L^-1 target.
+    With the tiny ridge of ``_solve``; False where it is singular even so.
     """
-    size = len(target)
-    total = 0.0
+    size = gram.shape[0]
     for a in range(size):
         gram[a, a] += 1e-9 * gram[a, a] + 1e-12
     for a in range(size):
@@ -233,7 +253,7 @@ def _explained(gram: np.ndarray, target: np.ndarray) -> float:
         for c in range(a):
             pivot -= gram[a, c] * gram[a, c]
         if not pivot > 1e-300:
-            return -1.0
+            return False
         pivot = math.sqrt(pivot)
         gram[a, a] = pivot
         for b in range(a + 1, size):
@@ -241,12 +261,17 @@ def _explained(gram: np.ndarray, target: np.ndarray) -> float:
             for c in range(a):
                 value -= gram[b, c] * gram[a, c]
             gram[b, a] = value / pivot
-        solved = target[a]
+    return True
+
+
+@kernel
+def _forward(factor: np.ndarray, vector: np.ndarray) -> None:
+    """Replaces ``vector`` by L^-1 ``vector``, L the lower triangle of ``factor``."""
+    for a in range(len(vector)):
+        value = vector[a]
         for c in range(a):
-            solved -= gram[a, c] * target[c]
-        target[a] = solved / pivot
-        total += target[a] * target[a]
-    return total
+            value -= factor[a, c] * vector[c]
+        vector[a] = value / factor[a, a]
 
 
 @kernel
