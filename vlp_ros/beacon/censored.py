@@ -6,9 +6,11 @@ mostly clipped is a lower bound on its light, not a measurement of it: the light
 the ceiling reads the same in a bright run and in a bright chip between dark ones, and blur can lift
 an isolated dark chip to the ceiling too. The Gaussian fit of ``packet.py`` then misfits (it predicts
 the bright run brighter) and is refused. Here such a chip is *censored* (a Tobit likelihood): its
-term is P(level >= observed) = Phi((mu - x) / sd) instead of a Gaussian around x, and every
-hypothesis (ID, where in the packet the window starts, blur's mix) is fitted by Newton's method on
-that concave log-likelihood. The chips below the ceiling (dark chips, the falloff's dimmer rows near
+term is P(level >= observed) = Phi((mu - x) / sd) instead of a Gaussian around x. Every hypothesis (ID,
+where in the packet the window starts, blur's mix) gets a closed-form upper bound of its maximised
+log-likelihood, all of them at once; Newton's method fits that concave log-likelihood only for the
+hypotheses whose bound comes within PRUNE_MARGIN of the best fit (at the median 127 of the 18432 of 8-bit
+IDs, clipped drive and hand-held discs). The chips below the ceiling (dark chips, the falloff's dimmer rows near
 the rim) decide; the clipped ones only rule out hypotheses that put a dark chip there that blur
 could not have lifted above the ceiling.
 """
@@ -266,7 +268,7 @@ def _cholesky(gram: np.ndarray) -> bool:
 
 @kernel
 def _forward(factor: np.ndarray, vector: np.ndarray) -> None:
-    """Replaces ``vector`` by L^-1 ``vector``, L the lower triangle of ``factor``."""
+    """Replace ``vector`` by L^-1 ``vector``, L the lower triangle of ``factor``."""
     for a in range(len(vector)):
         value = vector[a]
         for c in range(a):
