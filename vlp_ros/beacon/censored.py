@@ -118,16 +118,18 @@ def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censor
 
 
 @lru_cache(maxsize=16)
-def _template_tables(id_bits: int, mix: float) -> tuple[np.ndarray, ...]:
+def _template_tables(id_bits: int, mixes: tuple[float, ...]) -> tuple[np.ndarray, ...]:
     """
-    Every ID's template at each packet position, and what the closed-form bound weighs with it, (L, ids) each.
+    Every (mix, ID)'s template at each packet position, and what the closed-form bound weighs with it.
 
-    The template t_p = s_p + mix (s_p-1 + s_p+1) and its square; the chip's own darkness d_p = (1 - s_p) / 2 and
-    d_p t_p, d_p t_p^2 (a censored chip counts in the bound's least squares only where the hypothesis makes it dark).
+    The template T_p = s_p + mix (s_p-1 + s_p+1) and its square; the chip's own darkness d_p = (1 - s_p) / 2 and
+    d_p T_p, d_p T_p^2 (a censored chip counts in the bound's least squares only where the hypothesis makes it
+    dark); and T again. Each (L, mixes x ids), the mixes side by side.
     """
     signs = np.ascontiguousarray(_signs(id_bits).T)
-    template = signs + mix * (np.roll(signs, 1, axis=0) + np.roll(signs, -1, axis=0))
-    dark = 0.5 * (1.0 - signs)
+    neighbours = np.roll(signs, 1, axis=0) + np.roll(signs, -1, axis=0)
+    template = np.hstack([signs + mix * neighbours for mix in mixes])
+    dark = np.hstack([0.5 * (1.0 - signs)] * len(mixes))
     tables = (template, template * template, dark, dark * template, dark * template * template, template)
     for table in tables:
         table.flags.writeable = False
@@ -165,12 +167,10 @@ def _closed_form_bounds(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: n
                np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]]),
                np.vstack([powers[:4] * vc, powers[:2] * (vc * x)]), powers[:3] * vc, powers[:2] * vc)
     folds = [_folded(w, k, length) for w in weights]
-    bounds = np.empty((len(mixes), length, 2 ** id_bits))
-    for m, mix in enumerate(mixes):
-        sums = [(fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
-                for fold, table in zip(folds, _template_tables(id_bits, mix))]
-        bounds[m] = _bounds_from_sums(fixed, *sums)
-    return bounds
+    sums = [(fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
+            for fold, table in zip(folds, _template_tables(id_bits, mixes))]
+    bounds = _bounds_from_sums(fixed, *sums)
+    return np.ascontiguousarray(bounds.reshape(length, len(mixes), -1).transpose(1, 0, 2))
 
 
 @kernel
@@ -190,90 +190,77 @@ def _folded(weights: np.ndarray, k: np.ndarray, length: int) -> np.ndarray:
 def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray, censored_d: np.ndarray,
                       censored_dt: np.ndarray, censored_dt2: np.ndarray, censored_t: np.ndarray) -> np.ndarray:
     """
-    Return every (shift, ID)'s bound from its weighted sums (``_closed_form_bounds``), (L, ids).
+    Return every (shift, hypothesis)'s bound from its weighted sums (``_closed_form_bounds``), (L, mixes x ids).
 
     Columns 1, t, t^2 (envelope), T, t T (contrast) in the chip index t and the template T. The least-squares
-    fit of the measured and dark censored chips (Gram matrix G, right-hand side b), then the bright censored
-    chips' summed shortfall h = c - a'theta (a, c: their summed weighted columns and bounds over the root of
-    their summed weight), where positive, taken in: the fit with the term -h^2 / 2 loses h^2 / (2 (1 + a'G^-1 a))
-    (Sherman-Morrison), and its h stays positive, so the term is its own. A tiny ridge as in ``_solve``; a
-    singular system bounds nothing (0).
+    fit of the measured and dark censored chips (Gram matrix G = L L^T, right-hand side b), then the bright
+    censored chips' summed shortfall h = c - a'theta (a, c: their summed weighted columns and bounds over the
+    root of their summed weight), where positive, taken in: the fit with the term -h^2 / 2 loses
+    h^2 / (2 (1 + a'G^-1 a)) (Sherman-Morrison), and its h stays positive, so the term is its own. A tiny ridge
+    as in ``_solve``; a singular system bounds nothing (0). Written out without branches or inner loops, so
+    that the loop over the hypotheses runs several at once (SIMD).
     """
-    length, ids = measured_t.shape[1], measured_t.shape[2]
-    out = np.empty((length, ids))
-    gram, target, bright = np.empty((_PARAMETERS, _PARAMETERS)), np.empty(_PARAMETERS), np.empty(_PARAMETERS)
+    length, count = measured_t.shape[1], measured_t.shape[2]
+    out = np.empty((length, count))
+    ridge = 1.0 + 1e-9
     for shift in range(length):
-        for i in range(ids):
-            for a in range(3):
-                for b in range(3):
-                    gram[a, b] = fixed[a + b] + censored_d[a + b, shift, i]
-                target[a] = fixed[5 + a] + censored_d[5 + a, shift, i]
-                gram[a, 3] = gram[3, a] = measured_t[a, shift, i] + censored_dt[a, shift, i]
-                gram[a, 4] = gram[4, a] = measured_t[a + 1, shift, i] + censored_dt[a + 1, shift, i]
-                bright[a] = fixed[9 + a] - censored_d[a, shift, i]
-            gram[3, 3] = measured_t2[0, shift, i] + censored_dt2[0, shift, i]
-            gram[3, 4] = gram[4, 3] = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
-            gram[4, 4] = measured_t2[2, shift, i] + censored_dt2[2, shift, i]
-            target[3] = measured_t[4, shift, i] + censored_dt[4, shift, i]
-            target[4] = measured_t[5, shift, i] + censored_dt[5, shift, i]
-            bright[3] = censored_t[0, shift, i] - censored_dt[0, shift, i]
-            bright[4] = censored_t[1, shift, i] - censored_dt[1, shift, i]
+        for i in range(count):
+            cd0, cd1, cd2 = censored_d[0, shift, i], censored_d[1, shift, i], censored_d[2, shift, i]
+            g00 = (fixed[0] + cd0) * ridge + 1e-12
+            g01 = fixed[1] + cd1
+            g02 = fixed[2] + cd2
+            g11 = (fixed[2] + cd2) * ridge + 1e-12
+            g12 = fixed[3] + censored_d[3, shift, i]
+            g22 = (fixed[4] + censored_d[4, shift, i]) * ridge + 1e-12
+            g03 = measured_t[0, shift, i] + censored_dt[0, shift, i]
+            g13 = measured_t[1, shift, i] + censored_dt[1, shift, i]
+            g23 = measured_t[2, shift, i] + censored_dt[2, shift, i]
+            g04, g14 = g13, g23
+            g24 = measured_t[3, shift, i] + censored_dt[3, shift, i]
+            g33 = (measured_t2[0, shift, i] + censored_dt2[0, shift, i]) * ridge + 1e-12
+            g34 = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
+            g44 = (measured_t2[2, shift, i] + censored_dt2[2, shift, i]) * ridge + 1e-12
+            b0 = fixed[5] + censored_d[5, shift, i]
+            b1 = fixed[6] + censored_d[6, shift, i]
+            b2 = fixed[7] + censored_d[7, shift, i]
+            b3 = measured_t[4, shift, i] + censored_dt[4, shift, i]
+            b4 = measured_t[5, shift, i] + censored_dt[5, shift, i]
+            a0, a1, a2 = fixed[9] - cd0, fixed[10] - cd1, fixed[11] - cd2
+            a3 = censored_t[0, shift, i] - censored_dt[0, shift, i]
+            a4 = censored_t[1, shift, i] - censored_dt[1, shift, i]
             squares = fixed[8] + censored_d[8, shift, i]
-            if not _cholesky(gram):
-                out[shift, i] = 0.0
-                continue
-            # y = L^-1 b (its squared norm is b'G^-1 b), z = L^-1 a.
-            _forward(gram, target)
-            _forward(gram, bright)
-            explained, along, spread = 0.0, 0.0, 0.0
-            for a in range(_PARAMETERS):
-                explained += target[a] * target[a]
-                along += bright[a] * target[a]
-                spread += bright[a] * bright[a]
-            value = -0.5 * max(squares - explained, 0.0)
-            weight = fixed[9] - censored_d[0, shift, i]
-            if weight > 0.0:
-                shortfall = (fixed[12] - censored_d[5, shift, i] - along) / math.sqrt(weight)
-                if shortfall > 0.0:
-                    value -= 0.5 * shortfall * shortfall / (1.0 + spread / weight)
-            out[shift, i] = value
+            # Cholesky's factor L, then y = L^-1 b and z = L^-1 a.
+            l00 = math.sqrt(g00)
+            l10, l20, l30, l40 = g01 / l00, g02 / l00, g03 / l00, g04 / l00
+            l11 = math.sqrt(g11 - l10 * l10)
+            l21, l31, l41 = (g12 - l20 * l10) / l11, (g13 - l30 * l10) / l11, (g14 - l40 * l10) / l11
+            l22 = math.sqrt(g22 - l20 * l20 - l21 * l21)
+            l32, l42 = (g23 - l30 * l20 - l31 * l21) / l22, (g24 - l40 * l20 - l41 * l21) / l22
+            l33 = math.sqrt(g33 - l30 * l30 - l31 * l31 - l32 * l32)
+            l43 = (g34 - l40 * l30 - l41 * l31 - l42 * l32) / l33
+            l44 = math.sqrt(g44 - l40 * l40 - l41 * l41 - l42 * l42 - l43 * l43)
+            y0 = b0 / l00
+            y1 = (b1 - l10 * y0) / l11
+            y2 = (b2 - l20 * y0 - l21 * y1) / l22
+            y3 = (b3 - l30 * y0 - l31 * y1 - l32 * y2) / l33
+            y4 = (b4 - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) / l44
+            z0 = a0 / l00
+            z1 = (a1 - l10 * z0) / l11
+            z2 = (a2 - l20 * z0 - l21 * z1) / l22
+            z3 = (a3 - l30 * z0 - l31 * z1 - l32 * z2) / l33
+            z4 = (a4 - l40 * z0 - l41 * z1 - l42 * z2 - l43 * z3) / l44
+            explained = y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4
+            along = z0 * y0 + z1 * y1 + z2 * y2 + z3 * y3 + z4 * y4
+            spread = z0 * z0 + z1 * z1 + z2 * z2 + z3 * z3 + z4 * z4
+            # Without bright censored chips (their weight down to the rounding of the censored chips' total), the
+            # shortfall is rounding too, and no term.
+            weight = fixed[9] - cd0
+            bright = weight > 1e-9 * fixed[9]
+            shortfall = max(fixed[12] - censored_d[5, shift, i] - along, 0.0) if bright else 0.0
+            value = -0.5 * max(squares - explained, 0.0) - 0.5 * shortfall * shortfall / max(weight + spread, 1e-300)
+            # A singular system (a NaN from a negative pivot) bounds nothing.
+            out[shift, i] = value if value <= 0.0 else 0.0
     return out
-
-
-@kernel
-def _cholesky(gram: np.ndarray) -> bool:
-    """
-    Factor a small symmetric positive semi-definite ``gram`` into its lower triangle, in place.
-
-    With the tiny ridge of ``_solve``; False where it is singular even so.
-    """
-    size = gram.shape[0]
-    for a in range(size):
-        gram[a, a] += 1e-9 * gram[a, a] + 1e-12
-    for a in range(size):
-        pivot = gram[a, a]
-        for c in range(a):
-            pivot -= gram[a, c] * gram[a, c]
-        if not pivot > 1e-300:
-            return False
-        pivot = math.sqrt(pivot)
-        gram[a, a] = pivot
-        for b in range(a + 1, size):
-            value = gram[b, a]
-            for c in range(a):
-                value -= gram[b, c] * gram[a, c]
-            gram[b, a] = value / pivot
-    return True
-
-
-@kernel
-def _forward(factor: np.ndarray, vector: np.ndarray) -> None:
-    """Replace ``vector`` by L^-1 ``vector``, L the lower triangle of ``factor``."""
-    for a in range(len(vector)):
-        value = vector[a]
-        for c in range(a):
-            value -= factor[a, c] * vector[c]
-        vector[a] = value / factor[a, a]
 
 
 @kernel
