@@ -25,12 +25,15 @@ venv: $(STAMP)
 # Numba caches machine code beside each copy of the modules: the installed one, which
 # the nodes run, and the source tree, which tests started from the root import. Its cache
 # notices a change in a kernel's own file only, not in the kernels it calls from other
-# files: after any change, everything is compiled afresh.
+# files: after any change, everything is compiled afresh, once, for the installed copy.
+# The cache is keyed by the source's contents (a hash), not its path or time, so the
+# source tree's copies of the modules take the same cache files.
 $(BUILT): $(STAMP) $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
 	find vlp_ros install/vlp_ros -path '*/__pycache__/*.nb[ic]' -delete
 	$(RUN) cd build && python -m vlp_ros.compiled.warm_up
-	$(RUN) python -m vlp_ros.compiled.warm_up
+	site=$$(ls -d install/vlp_ros/lib/python3*/site-packages) && \
+		cd $$site && find vlp_ros -path '*/__pycache__/*.nb[ic]' -exec cp --parents -p {} $(CURDIR)/ \;
 	touch $@
 
 build: $(BUILT)
