@@ -22,8 +22,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.special import ndtr, ndtri
+from scipy.special import ndtri
 
 from vlp_ros.compiled import kernel
 from vlp_ros.compiled.small_arrays import median
@@ -148,9 +147,9 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
 
     A clipped row's plateau is not its brightness A, so its half level sits low on
     the blurred edge, outside the true edge. The rows' ramps, pooled in distance t
-    across the ellipse, show the unclipped foot of B + A Phi((-edge - t) / sigma)
-    averaged over the pixel's square; fitting A, sigma and the edge to it (clipped
-    pixels as censored: the model must reach the clip) places the edge. Only rows
+    across the ellipse, show the unclipped foot of B + A Phi((-edge - t) / sigma), the
+    pixel's square folded into sigma; fitting A, sigma and the edge to it (clipped
+    pixels as censored: the model must reach the clip; ``_censored_edge_fit``) places the edge. Only rows
     inside clipped stripes (clipped two rows up and down) are pooled, so that they
     share one A. None if the ramps do not tell.
     """
@@ -174,25 +173,97 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
     if np.count_nonzero(~censored) < 10:
         return None
     t = geometric_distances(ellipse, pixels)
-    v = values - background
-    # The pixel square seen across the edge: offsets of a 3 x 3 grid of its points along each normal.
-    grid = (np.arange(3) - 1.0) / 3.0
-    qx, qy = (g.ravel() for g in np.meshgrid(grid, grid))
-    normal = np.abs(np.broadcast_to(normals[:, None, :], cols.shape + (2,))[keep])
-    spread = normal[:, :1] * qx[None, :] + normal[:, 1:] * qy[None, :]
-
-    def residual(params: np.ndarray) -> np.ndarray:
-        amplitude, sigma, edge = params
-        difference = amplitude * ndtr((-edge - t[:, None] - spread) / sigma).mean(axis=1) - v
-        return np.where(censored, np.minimum(difference, 0.0), difference)
-
     clip = saturation_level - background
-    result = least_squares(residual, np.array([2.0 * clip, 0.5 * max_blur, 0.5]),
-                           bounds=([clip, 0.2, -1.0], [np.inf, 2.0 * max_blur, 4.0 * max_blur]))
-    if not result.success:
+    fitted, amplitude, edge = _censored_edge_fit(np.ascontiguousarray(t), values - background, censored, clip,
+                                                 float(max_blur))
+    if not fitted:
         return None
-    amplitude, _, edge = result.x
     return float(edge), float(amplitude / clip)
+
+
+# The pixel's square seen across an edge of any direction has the variance 1/12 (px^2) of a unit uniform
+# spread; the fit folds it into the blur as a Gaussian of that variance.
+_PIXEL_VARIANCE = 1.0 / 12.0
+_EDGE_FIT_ITERATIONS = 60
+# A lamp brighter than this over the clip level is too overexposed for any edge (the detector refuses 2.5):
+# the fit stops there instead of following the amplitude out.
+_MAX_FITTED_OVEREXPOSURE = 4.0
+
+
+@kernel
+def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip: float,
+                       max_blur: float) -> tuple[bool, float, float]:
+    """
+    Return (converged, amplitude, edge) of ``clipped_edge_offset``'s ramp model, fitted by Levenberg-Marquardt.
+
+    The model is v = A Phi((-edge - t) / S), S^2 = s^2 + ``_PIXEL_VARIANCE``, with its analytic
+    Jacobian; censored values count only where the model stays below them. Bounds: A in ``clip`` to
+    ``_MAX_FITTED_OVEREXPOSURE`` clips, s in [0.2, 2 max_blur], edge in [-1, 4 max_blur], kept by projecting
+    each step onto them.
+    """
+    lower = np.array([clip, 0.2, -1.0])
+    upper = np.array([_MAX_FITTED_OVEREXPOSURE * clip, 2.0 * max_blur, 4.0 * max_blur])
+    params = np.array([2.0 * clip, 0.5 * max_blur, 0.5])
+    n = t.size
+    residual, jacobian = np.empty(n), np.empty((n, 3))
+    cost = _edge_model(params, t, v, censored, residual, jacobian)
+    damping = 1e-3
+    converged = False
+    for _ in range(_EDGE_FIT_ITERATIONS):
+        normal = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+        trial = np.empty(3)
+        improved = False
+        while damping < 1e10:
+            damped = normal.copy()
+            for k in range(3):
+                damped[k, k] += damping * max(normal[k, k], 1e-12)
+            step = np.linalg.solve(damped, -gradient)
+            for k in range(3):
+                trial[k] = min(max(params[k] + step[k], lower[k]), upper[k])
+            trial_residual, trial_jacobian = np.empty(n), np.empty((n, 3))
+            trial_cost = _edge_model(trial, t, v, censored, trial_residual, trial_jacobian)
+            if trial_cost <= cost:
+                improved = True
+                break
+            damping *= 10.0
+        if not improved:
+            converged = True
+            break
+        change = 0.0
+        for k in range(3):
+            change = max(change, abs(trial[k] - params[k]) / (abs(params[k]) + 1e-3))
+        relative = (cost - trial_cost) / max(cost, 1e-300)
+        params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
+        damping = max(damping / 10.0, 1e-12)
+        if change < 1e-8 or relative < 1e-12:
+            converged = True
+            break
+    return converged, params[0], params[2]
+
+
+@kernel
+def _edge_model(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, residual: np.ndarray,
+                jacobian: np.ndarray) -> float:
+    """``_censored_edge_fit``'s residuals and Jacobian (into the arrays) at ``params``; returns half their squares."""
+    amplitude, blur, edge = params[0], params[1], params[2]
+    spread = math.sqrt(blur * blur + _PIXEL_VARIANCE)
+    cost = 0.0
+    for i in range(t.size):
+        z = (-edge - t[i]) / spread
+        below = 0.5 * math.erfc(-z / math.sqrt(2.0))
+        density = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+        difference = amplitude * below - v[i]
+        if censored[i] and difference > 0.0:
+            residual[i] = 0.0
+            jacobian[i, 0] = jacobian[i, 1] = jacobian[i, 2] = 0.0
+            continue
+        residual[i] = difference
+        jacobian[i, 0] = below
+        jacobian[i, 1] = -amplitude * density * z * blur / (spread * spread)
+        jacobian[i, 2] = -amplitude * density / spread
+        cost += 0.5 * difference * difference
+    return cost
 
 
 def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
