@@ -158,6 +158,8 @@ OFFSET_DETERMINED = 0.25
 MARKER_CONSISTENT = 2.0
 _REWEIGHTINGS = 2
 _MODE_REWEIGHTINGS = 1
+# The modes of ``measurement.rim_error_modes`` (first, past the last) that trade with the tilt: cos 2t, sin 2t.
+_TILT_MODES = (3, 5)
 # Candidate prior sigmas (px) of the rim modes: none, then 0.005 to 5 px a factor sqrt(2) apart
 # (a likelihood this flat near its maximum costs nothing at that spacing).
 _MODE_SIGMA_GRID_PX = np.concatenate([[1e-4], 0.005 * 2.0 ** (np.arange(21) / 2.0)])
@@ -286,6 +288,15 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
                 fit_covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
         inverse = _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp,
                                       mode_prior_sigma, offset_precision)
+        if count > rims + 2 * marker_count and mode_prior_sigma[0] > rim_sigma[0]:
+            # An up direction measures the tilt that the rim's harmonics trade with: the pose goes where
+            # both put it, each by what it knows (the rim under its modes' prior, the up by its sigma).
+            # Only where the edge's model error exceeds its points' scatter (a soft, clipped or glaring
+            # rim: 1.4-2 px against 0.2 px on the independent renderer's realistic frames); below it the
+            # rim's shape is as good as its points, and an up direction it disagrees with widens the
+            # covariance instead (``perspective.widened_where_up_disagrees``).
+            _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
+                            solution)
     if estimated:
         # The fit with each lamp's modes, from the weights the fit without them ended with (the
         # modes take up part of that scatter), their prior sigma estimated at each reweighting.
@@ -363,6 +374,43 @@ def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point,
             k = 7 + per_lamp * lamp + j
             information[k, k] += precision
     return np.linalg.inv(information)
+
+
+@kernel
+def _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma, solution):
+    """
+    Write into ``solution`` the Gauss-Newton step of the pose and each lamp's rim harmonics under their prior.
+
+    The second harmonic (modes ``_TILT_MODES``: the ellipse's elongation and its direction, which trade
+    with the tilt) is free under ``mode_prior_sigma``, so a rim whose shape the optics bend yields to what
+    an up direction says of the tilt. The offsets and the first harmonic stay at 0: they trade with the
+    range and the bearing, which no up direction measures, and freed they would only let the marker pull
+    the bearing and the yaw (3.6 deg on a frame of the independent renderer's hand-held set).
+    """
+    upper, gradient = np.zeros((width, width)), np.zeros(width)
+    _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
+    information = _symmetric(upper)
+    free = [k for k in range(6)]
+    for lamp in range(mode_prior_sigma.shape[0]):
+        sigma = mode_prior_sigma[lamp]
+        if not sigma > 0.0:
+            continue
+        for j in range(_TILT_MODES[0], _TILT_MODES[1]):
+            k = 7 + per_lamp * lamp + j
+            information[k, k] += 1.0 / (sigma * sigma)
+            free.append(k)
+    size = len(free)
+    reduced, right = np.empty((size, size)), np.empty(size)
+    for a in range(size):
+        right[a] = -gradient[free[a]]
+        for b in range(size):
+            reduced[a, b] = information[free[a], free[b]]
+    stepped = np.linalg.solve(reduced, right)
+    for k in range(solution.shape[0]):
+        solution[k] = 0.0
+    for a in range(size):
+        if free[a] < solution.shape[0]:
+            solution[free[a]] = stepped[a]
 
 
 @kernel
