@@ -390,7 +390,7 @@ def _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per
     upper, gradient = np.zeros((width, width)), np.zeros(width)
     _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
     information = _symmetric(upper)
-    free = [k for k in range(6)]
+    free = list(range(6))
     for lamp in range(mode_prior_sigma.shape[0]):
         sigma = mode_prior_sigma[lamp]
         if not sigma > 0.0:
