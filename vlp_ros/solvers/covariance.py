@@ -288,7 +288,7 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
                 fit_covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
         inverse = _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp,
                                       mode_prior_sigma, offset_precision)
-        if count > rims + 2 * marker_count and mode_prior_sigma[0] > rim_sigma[0]:
+        if count > rims + 2 * marker_count:
             # An up direction measures the tilt that the rim's harmonics trade with: the pose goes where
             # both put it, each by what it knows (the rim under its modes' prior, the up by its sigma).
             # Only where the edge's model error exceeds its points' scatter (a soft, clipped or glaring
