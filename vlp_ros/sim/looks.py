@@ -88,6 +88,16 @@ LOOKS = {
     'realistic': REALISTIC,
     'realistic_jpeg': replace(REALISTIC, jpeg_quality=90),
 }
+# The realistic look with its optics varied around the values it was measured at, and a falloff of another
+# functional form, as JPEG q90: what a camera and diffuser of the same kind may show.
+VARIED_LOOKS = {
+    'varied_wide_halo': replace(REALISTIC, glare=0.3, glare_width=0.5, jpeg_quality=90),
+    'varied_faint_halo': replace(REALISTIC, glare=0.1, glare_width=0.2, jpeg_quality=90),
+    'varied_soft': replace(REALISTIC, blur_sigma=2.2, jpeg_quality=90),
+    'varied_sharp': replace(REALISTIC, blur_sigma=1.1, jpeg_quality=90),
+    'varied_quartic_falloff': replace(REALISTIC, falloff=0.4, falloff_exponent=4.0, jpeg_quality=90),
+    'varied_linear_falloff': replace(REALISTIC, falloff=0.2, falloff_exponent=1.0, jpeg_quality=90),
+}
 
 
 def apply_look(scenario: Scenario, look: Look, seed: int = 0) -> Scenario:

@@ -154,6 +154,7 @@ def _add_rotation_curvature(covariance, lever):
 # widen their own information by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
 RIM_OFFSET_FLOOR_PX = 0.5
+MIN_OFFSET_SIGMA_PX = 1e-3
 OFFSET_DETERMINED = 0.25
 MARKER_CONSISTENT = 2.0
 _REWEIGHTINGS = 2
@@ -209,6 +210,11 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     estimated = lamp_count >= 2
     if estimated:
         offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
+    elif mode_prior_sigma is not None and len(mode_prior_sigma) and mode_prior_sigma.max() > 0.0:
+        # One lamp whose edge measured its modes: its own offset mode, marginalised with that prior, holds
+        # what its size may be off by (a rim put at the profile model's edge: 0.003-0.15 px where its points
+        # scatter by 0.03-0.2 px); the common offset adds no more.
+        offset_sigma = min(offset_sigma, max(float(mode_prior_sigma.max()), MIN_OFFSET_SIGMA_PX))
     step, covariance, fit_covariance = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
     fitted = _model_error_fit(
         np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float),
