@@ -207,6 +207,7 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
     cost = _edge_model(params, t, v, censored, residual, jacobian)
     damping = 1e-3
     converged = False
+    pinned = 0
     for _ in range(_EDGE_FIT_ITERATIONS):
         normal = jacobian.T @ jacobian
         gradient = jacobian.T @ residual
@@ -234,7 +235,9 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
         relative = (cost - trial_cost) / max(cost, 1e-300)
         params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
         damping = max(damping / 10.0, 1e-12)
-        if change < 1e-8 or relative < 1e-12:
+        pinned = pinned + 1 if params[0] >= upper[0] else 0
+        # An amplitude held at its bound is a lamp too overexposed for any edge: no need to refine the rest.
+        if change < 1e-8 or relative < 1e-12 or pinned >= 3:
             converged = True
             break
     return converged, params[0], params[2]
