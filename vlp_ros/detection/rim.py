@@ -352,9 +352,9 @@ def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: f
     one model of the optics (``_edge_profile_fit``): the disc's own level falling linearly toward
     its edge, the ceiling's (lifted by any halo) falling linearly away from it, joined by a
     Gaussian-blurred step at the edge. Falloff and halo are round about the lamp, so both
-    levels are lines in the squared normalised radius of the row's chord middle, where the
-    plateau was read. The model's value at its fitted edge is the level each row's crossing
-    takes; with hundreds of rows its noise is a few thousandths of the rise.
+    levels are one value each over the row's plateau, which the falloff lowers with the squared
+    normalised radius of the row's chord middle, where it was read. The model's value at its fitted
+    edge is the level each row's crossing takes; its noise is a few thousandths of the rise.
     """
     ellipse = np.asarray(ellipse, dtype=float)
     has_marker = marker is not None
@@ -367,21 +367,20 @@ def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: f
     fitted, params, rms, covariance = _edge_profile_fit(t, value, rho, float(blur))
     if not fitted:
         return None
-    intercept, slope = _edge_level_line(params)
     row_radius = _chord_middle_radius(levels.rows, conic_of(ellipse), ellipse)
-    if not _departs_from_uniform(params, covariance, intercept, slope):
-        return EdgeLevel(np.full(levels.rows.size, 0.5), 0.0, _CROSSING_PER_LEVEL * params[7] * rms, True)
-    fraction = intercept + slope * row_radius
+    crossing_per_level = _CROSSING_PER_LEVEL * params[6]
+    if not _departs_from_uniform(params, covariance, median(row_radius)):
+        return EdgeLevel(np.full(levels.rows.size, 0.5), 0.0, crossing_per_level * rms, True)
+    fraction = _edge_level(params, row_radius)
     if fraction.min() < _FRACTION_BOUNDS[0] or fraction.max() > _FRACTION_BOUNDS[1]:
         return None
-    level = intercept + slope * median(row_radius)
-    crossing_per_level = _CROSSING_PER_LEVEL * params[7]
+    level = median(fraction)
     return EdgeLevel(fraction, crossing_per_level * abs(level - 0.5), crossing_per_level * rms, True)
 
 
 # Each row's pixels within this many blurs of the edge (on both sides) are fitted by the profile model.
 _PROFILE_BLURS = 4.5
-_PROFILE_PARAMETERS = 8
+_PROFILE_PARAMETERS = 7
 _PROFILE_ITERATIONS = 40
 # Samples further than this many robust sigmas off the model (a neighbouring lamp, a stripe the blur
 # mixed unevenly) are left out of the second round.
@@ -468,13 +467,14 @@ def _edge_profile_fit(t: np.ndarray, value: np.ndarray, rho: np.ndarray,
 
     The model, at distance t across the edge (outward positive) of a row whose chord middle lies at
     squared normalised radius rho: the disc's level alpha + beta t inside the edge at -e and the
-    ceiling's gamma + delta t outside it, blurred by a Gaussian of sigma S; alpha = a0 + a1 rho,
-    gamma = g0 + g1 rho. A blurred step between two straight lines is exactly
-    (alpha + beta t) Phi(z) + (gamma + delta t) (1 - Phi(z)) + (delta - beta) S phi(z), z = (-e - t) / S.
-    Parameters (a0, a1, beta, g0, g1, delta, e, S). The second round leaves out samples further
+    ceiling's gamma + delta t outside it, blurred by a Gaussian of sigma S. Both levels are over the
+    row's plateau, which a falloff of a share f lowers to 1 - f rho: alpha = a0 / (1 + k rho),
+    gamma = g0 / (1 + k rho), k = -f to first order. A blurred step between two straight lines is
+    exactly (alpha + beta t) Phi(z) + (gamma + delta t) (1 - Phi(z)) + (delta - beta) S phi(z),
+    z = (-e - t) / S. Parameters (a0, k, beta, g0, delta, e, S). The second round leaves out samples further
     than ``_PROFILE_OUTLIER_SIGMAS`` robust sigmas from the first.
     """
-    params = np.array([0.9, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0, max(blur, 0.3)])
+    params = np.array([0.9, 0.0, 0.0, 0.05, 0.0, 0.0, max(blur, 0.3)])
     kept = np.ones(t.size, np.bool_)
     residual = np.empty(t.size)
     jacobian = np.empty((t.size, _PROFILE_PARAMETERS))
@@ -541,9 +541,10 @@ def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.
                 damped[k, k] += damping * max(normal[k, k], 1e-12)
             step = np.linalg.solve(damped, -gradient)
             trial = params + step
-            trial[7] = max(trial[7], 0.2)
+            trial[1] = max(trial[1], -0.9)
+            trial[6] = max(trial[6], 0.2)
             trial_cost = _profile_model(trial, t, value, rho, kept, trial_residual, trial_jacobian)
-            if trial_cost <= cost:
+            if trial_cost < cost:
                 improved = True
                 break
             damping *= 10.0
@@ -561,15 +562,16 @@ def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.
 def _profile_model(params: np.ndarray, t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.ndarray,
                    residual: np.ndarray, jacobian: np.ndarray) -> float:
     """``_edge_profile_fit``'s residuals and Jacobian (into the arrays; 0 for samples not kept); half their squares."""
-    a0, a1, beta, g0, g1, delta, edge, spread = params
+    a0, k, beta, g0, delta, edge, spread = params
     cost = 0.0
     for i in range(t.size):
         if not kept[i]:
             residual[i] = 0.0
-            for k in range(_PROFILE_PARAMETERS):
-                jacobian[i, k] = 0.0
+            for column in range(_PROFILE_PARAMETERS):
+                jacobian[i, column] = 0.0
             continue
-        alpha, gamma = a0 + a1 * rho[i], g0 + g1 * rho[i]
+        scale = 1.0 / (1.0 + k * rho[i])
+        alpha, gamma = a0 * scale, g0 * scale
         z = (-edge - t[i]) / spread
         below = 0.5 * math.erfc(-z / math.sqrt(2.0))
         density = math.exp(-0.5 * z * z) * _INVERSE_SQRT_2PI
@@ -578,49 +580,48 @@ def _profile_model(params: np.ndarray, t: np.ndarray, value: np.ndarray, rho: np
         # d model / dz = phi ((alpha - gamma) - (beta - delta) e), as t + S z = -e.
         along = density * ((alpha - gamma) - (beta - delta) * edge)
         residual[i] = difference
-        jacobian[i, 0] = below
-        jacobian[i, 1] = rho[i] * below
+        jacobian[i, 0] = scale * below
+        jacobian[i, 1] = -rho[i] * scale * (alpha * below + gamma * (1.0 - below))
         jacobian[i, 2] = t[i] * below - spread * density
-        jacobian[i, 3] = 1.0 - below
-        jacobian[i, 4] = rho[i] * (1.0 - below)
-        jacobian[i, 5] = t[i] * (1.0 - below) + spread * density
-        jacobian[i, 6] = -along / spread
-        jacobian[i, 7] = -along * z / spread + (delta - beta) * density
+        jacobian[i, 3] = scale * (1.0 - below)
+        jacobian[i, 4] = t[i] * (1.0 - below) + spread * density
+        jacobian[i, 5] = -along / spread
+        jacobian[i, 6] = -along * z / spread + (delta - beta) * density
         cost += 0.5 * difference * difference
     return cost
 
 
-def _departs_from_uniform(params: np.ndarray, covariance: np.ndarray, intercept: float, slope: float) -> bool:
+def _departs_from_uniform(params: np.ndarray, covariance: np.ndarray, rho: float) -> bool:
     """
-    Whether the edge's level line departs from a uniform disc's on a dark ceiling (0.5, 0) beyond its noise.
+    Whether the edge's level departs from a uniform disc's on a dark ceiling (a half, k = 0) beyond its noise.
 
-    A uniform disc has its edge at half of every row's rise: unless the profile tells otherwise beyond
-    doubt, that stays exact, as the line's own noise would move all rim points alike (a size error of
-    several of its standard deviations on a clean lamp).
+    The level is taken at the rows' median ``rho``. A uniform disc has its edge at half of every row's
+    rise: unless the profile tells otherwise beyond doubt, that stays exact, as the level's own noise
+    would move all rim points alike (a size error of several of its standard deviations on a clean lamp).
     """
-    a0, a1, beta, g0, g1, delta, edge, spread = (float(v) for v in params)
-    tail = spread * _INVERSE_SQRT_2PI
-    gradients = np.array([[0.5, 0.0, -0.5 * edge - tail, 0.5, 0.0, -0.5 * edge + tail, -0.5 * (beta + delta),
-                           (delta - beta) * _INVERSE_SQRT_2PI],
-                          [0.0, 0.5, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0]])
-    line_covariance = gradients @ covariance @ gradients.T
-    offset = np.array([intercept - 0.5, slope])
+    a0, k, beta, g0, delta, edge, spread = (float(v) for v in params)
+    scale, tail = 1.0 / (1.0 + k * rho), spread * _INVERSE_SQRT_2PI
+    # The gradients of the level at rho (``_edge_level``) and of k.
+    gradients = np.array([[0.5 * scale, -0.5 * (a0 + g0) * rho * scale * scale, -0.5 * edge - tail, 0.5 * scale,
+                           -0.5 * edge + tail, -0.5 * (beta + delta), (delta - beta) * _INVERSE_SQRT_2PI],
+                          [0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    offset = np.array([float(_edge_level(params, np.array([rho]))[0]) - 0.5, k])
     try:
-        chi_square = float(offset @ np.linalg.solve(line_covariance, offset))
+        chi_square = float(offset @ np.linalg.solve(gradients @ covariance @ gradients.T, offset))
     except np.linalg.LinAlgError:
         return True
     return not chi_square < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION
 
 
-def _edge_level_line(params: np.ndarray) -> tuple[float, float]:
+def _edge_level(params: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """
-    Return the model's level at its edge as a line in rho: (intercept, slope).
+    Return the model's level at its edge for rows whose chord middles lie at ``rho``.
 
     At the edge (z = 0) the model is the two levels' midpoint plus (delta - beta) S phi(0).
     """
-    a0, a1, beta, g0, g1, delta, edge, spread = (float(v) for v in params)
-    intercept = 0.5 * (a0 + g0) - 0.5 * edge * (beta + delta) + (delta - beta) * spread * _INVERSE_SQRT_2PI
-    return intercept, 0.5 * (a1 + g1)
+    a0, k, beta, g0, delta, edge, spread = (float(v) for v in params)
+    return (0.5 * (a0 + g0) / (1.0 + k * np.asarray(rho, dtype=float)) - 0.5 * edge * (beta + delta)
+            + (delta - beta) * spread * _INVERSE_SQRT_2PI)
 
 
 # A share q of the row's rise added to one side of a step blurred by s moves its half-level crossing by
