@@ -33,7 +33,7 @@ from vlp_ros.detection.rows import chords, RowLevels
 _MAD_TO_SIGMA = 1.4826
 _ELLIPSE_PARAMETERS = 5
 # Clipped rows pooled to measure how far their crossings lie outside the edge.
-_MAX_POOLED_ROWS = 200
+_MAX_POOLED_ROWS = 64
 # Ramp pixels within this (of the row's step) of background or plateau give probits
 # too noisy to measure the blur with.
 _PROBIT_MARGIN = 0.03
@@ -156,7 +156,9 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
     centre_col = int(np.clip(np.rint(ellipse[0]), 0, width - 1))
     interior = ((brightness[np.clip(rows + 2, 0, height - 1), centre_col] >= saturation_level)
                 & (brightness[np.clip(rows - 2, 0, height - 1), centre_col] >= saturation_level))
-    points = points[interior][:_MAX_POOLED_ROWS]
+    points = points[interior]
+    # Evenly spread over the rim (the points come left crossings first, in row order).
+    points = points[::-(-len(points) // _MAX_POOLED_ROWS)] if len(points) else points
     if len(points) < 3:
         return None
     normals = outward_normals(ellipse, points)
