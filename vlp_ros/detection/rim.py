@@ -391,6 +391,7 @@ _PROFILE_OUTLIER_SIGMAS = 4.0
 # milliseconds and add little (the level's noise is a few thousandths of the rise with a hundred).
 _PROFILE_MAX_ROWS = 100
 _INVERSE_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+_MISFIT_NOISE_SIGMAS = 3.0
 
 
 @kernel
@@ -519,7 +520,10 @@ def _smooth_misfit(t: np.ndarray, rho: np.ndarray, kept: np.ndarray, residual: n
             pairs += 1.0
     if pairs < _PROFILE_PARAMETERS:
         return math.sqrt(total)
-    return math.sqrt(max(total - 0.5 * differences / pairs, 0.0))
+    # The noise's variance is known to a share sqrt(2 / pairs) of itself: a misfit within
+    # ``_MISFIT_NOISE_SIGMAS`` of that is none (a clean disc's edge, which the model fits exactly).
+    noise = 0.5 * differences / pairs
+    return math.sqrt(max(total - noise - _MISFIT_NOISE_SIGMAS * noise * math.sqrt(2.0 / pairs), 0.0))
 
 
 @kernel
