@@ -149,9 +149,11 @@ def _add_rotation_curvature(covariance, lever):
 # scale, it moves the pose where the data determine it (its variance below ``OFFSET_DETERMINED``
 # of the prior's). One lamp's marker would fix the scale too, but too noisily and with a bias near
 # frontal views (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance
-# along range by ``RIM_OFFSET_PRIOR`` times the rim's scatter. The rim points' scatter beyond their
-# stated sigma, and a marker that the pose cannot place within ``MARKER_CONSISTENT`` sigmas,
-# widen their own information by what their residuals show.
+# along range by ``RIM_OFFSET_PRIOR`` times the rim's scatter, or by the lamp's own measured prior
+# if that is less. With an up direction, one lamp's second harmonic is free under that prior in
+# the step (``_harmonics_step``): its tilt and the up direction's are weighed by what each knows.
+# The rim points' scatter beyond their stated sigma, and a marker that the pose cannot place within
+# ``MARKER_CONSISTENT`` sigmas, widen their own information by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
 RIM_OFFSET_FLOOR_PX = 0.5
 MIN_OFFSET_SIGMA_PX = 1e-3
@@ -200,8 +202,9 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     their lamp) and the residuals' own scatter; ValueError if the pose is not fully observed.
     ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows of its modes
     (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate the modes' sigma (one
-    lamp), the modes are marginalised with it, widening the covariance along what they trade with and
-    leaving the pose where the fit put it; with several lamps, a lamp's prior over the estimated sigma
+    lamp), the modes are marginalised with it, widening the covariance along what they trade with; the
+    pose stays where the fit put it unless an up direction was fitted too, when the second harmonic is
+    free under the prior in the step; with several lamps, a lamp's prior over the estimated sigma
     widens the covariance alike, the pose left in place.
     """
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
