@@ -524,3 +524,22 @@ def test_the_rim_model_prior_covers_the_patterns_the_edge_shows(optics):
         assert min(priors) > 0.04
     else:
         assert max(priors) < 0.05
+
+
+@pytest.mark.parametrize('falloff, exponent', [(0.4, 4.0), (0.2, 1.0), (0.3, 2.0)])
+def test_a_diffuser_of_any_falloff_under_a_wide_halo_keeps_its_rim_on_the_edge(falloff, exponent):
+    # The edge's profile model takes the disc's falloff and the halo as straight lines beside the edge,
+    # whatever their functional form further in or out: a falloff flat in the middle and steep at the
+    # rim, a linear one, under a halo of 0.3 of the disc's level spread over half its diameter, where
+    # half of the plateau lies inside the edge: the rim stays within 0.1 px of the edge, and its prior
+    # covers what is left.
+    cam, pose = camera(), tilted_pose()
+    lamp = replace(sim_lamp(cam, pose, (300.0, 250.0), 120.0), falloff=falloff, falloff_exponent=exponent)
+    for seed in range(2):
+        sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=1.2, glare=0.3, glare_width=0.5)
+        frame = render_frame(cam, pose, [lamp], sensor, 0.0, np.random.default_rng(seed))
+        observation = only(detect_lamps(frame.image))
+        patterns = _rim_patterns(frame.truth(lamp.lamp.id).ellipse, observation.rim_points)
+        noise = 2.0 * observation.rim_sigma / np.sqrt(len(observation.rim_points))
+        assert abs(patterns[0]) < 0.1
+        assert np.all(np.abs(patterns) <= 3.0 * observation.rim_model_sigma + 3.0 * noise)
