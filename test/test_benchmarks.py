@@ -17,7 +17,13 @@ def test_accuracy_locates_every_quick_frame_within_the_targets_and_never_wrongly
     frames = 2
     assert accuracy.main(['--quick', '--frames', str(frames)]) == 0
     out = capsys.readouterr().out
-    results, *_, availability, issue_targets, _ = printed_tables(out)
+    tables = printed_tables(out)
+    results = tables[0]
+
+    def table_with(column: str) -> dict:
+        return next((t for t in tables if t and column in next(iter(t.values()))), {})
+
+    availability, issue_targets, optics = table_with('NEES > 99.9 %'), table_with('issue'), table_with('hold')
     assert {f'{setup} {solver}' for setup in ACCURACY_BOUNDS for solver in accuracy.SOLVERS} <= set(results)
     for setup, (mean_cm, orientation_deg) in ACCURACY_BOUNDS.items():
         row = results[f'{setup} perspective']
@@ -29,6 +35,13 @@ def test_accuracy_locates_every_quick_frame_within_the_targets_and_never_wrongly
     assert availability and all(int(row['wrong']) == 0 and int(row['NEES > 99.9 %']) == 0
                                 for row in availability.values()), availability
     assert 'published (Zhang et al. 2017)' in out and issue_targets
+    # Every look row states its mean error, p95, NEES and share beyond the bound, its targets and whether they
+    # hold, which follows from what it measured.
+    looks = {label for label in availability if ' look ' in label}
+    assert looks and set(optics) == looks, optics
+    for label, row in optics.items():
+        if row['mean NEES'] != '-' and not 3.0 <= float(row['mean NEES']) <= 10.0:
+            assert row['hold'].startswith('NO'), (label, row)
 
 
 def test_accuracy_rejects_zero_frames() -> None:

@@ -15,8 +15,14 @@ NEES_MEAN_RANGE = (0.6, 25.0)
 
 
 def _tables(out: str, look: str) -> tuple[dict, dict]:
-    detection, poses = printed_tables(out)
-    assert set(detection) == set(poses) == {f'{setup} {look}' for setup in SETUPS}, out
+    detection, poses, targets = printed_tables(out)
+    assert set(detection) == set(poses) == set(targets) == {f'{setup} {look}' for setup in SETUPS}, out
+    for label, row in targets.items():
+        # Each setup's targets are stated with whether they hold, which follows its NEES and share beyond the bound.
+        holds = (3.0 <= float(poses[label]['NEES mean']) <= 10.0 and float(poses[label]['% beyond 99.9 %']) <= 1.0
+                 and ('mean <=' not in row['targets'] or float(row['mean error cm']) <= float(
+                     row['targets'].split('mean <= ')[1].split(' cm')[0])))
+        assert (row['hold'] == 'yes') == holds, (label, row)
     return detection, poses
 
 

@@ -20,7 +20,7 @@ from vlp_ros.detection.blobs import Blob, find_blobs
 from vlp_ros.detection.marker import find_seed, fit_marker, MarkerFit, MarkerSeed, redness_and_peaks, shape_spread
 from vlp_ros.detection.point import fit_point
 from vlp_ros.detection.rim import (blur_shifts, blur_variance, clipped_edge_offset, edge_level_fraction,
-                                   edge_model_sigma, fit_rim, outward_normals, RimFit, row_crossings)
+                                   edge_model_sigma, fit_rim, MISFIT_SHARE, outward_normals, RimFit, row_crossings)
 from vlp_ros.detection.rows import chords, clear_levels, row_levels, row_profile, RowLevels
 
 # A lamp's rim must have this many kept points on each side of its centre.
@@ -385,26 +385,31 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
     """
     Return the rim again, free of the blur.
 
-    Crossings at the half of plateaus measured where blur does not dim the disc (three blurs inside
-    the edge), moved out by the blur's pull on the curved edge, at the level of the disc's edge
-    (``edge_level_fraction``). ``rim`` as it is when the ramps do not tell the blur; None when the
-    light is no disc on a ceiling.
+    Crossings of each row at the level of the disc's edge (``edge_level_fraction``'s profile model)
+    over its plateau measured where blur does not dim the disc (three blurs inside the edge), moved
+    out by the blur's pull on the curved edge; their model sigma is what the profile model's misfit
+    shows. ``rim`` as it is (with a model sigma from its blur, its light's departure from a uniform
+    disc and its clipped rows) when the ramps do not tell the blur or clipped rows are needed; None
+    when the light is no disc on a ceiling.
     """
     variance = blur_variance(box.brightness, points, plateaus, box.background, rim.ellipse)
     if variance is None:
         return rim
     marker = None if box.seed is None else (box.seed.center, box.seed.radius + options.blur_margin + 1.0)
     levels = clear_levels(box.brightness, box.levels, rim.ellipse, _CLEAR_BLURS * math.sqrt(variance), marker)
-    level = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance))
+    level = edge_level_fraction(box.brightness, levels, box.background, rim.ellipse, math.sqrt(variance), marker,
+                                options.saturation_level)
     if level is None:
         return None
     points, _, clipped = _rim_points(box, levels, options, level.fraction)
-    model_sigma = math.hypot(edge_model_sigma(variance, level.departure),
-                             clipped_edge_model_sigma(clipped_row_share(box, options), math.sqrt(variance)))
     if len(points) < options.min_rim_points or clipped.any():
+        model_sigma = math.hypot(edge_model_sigma(variance, level.departure),
+                                 clipped_edge_model_sigma(clipped_row_share(box, options), math.sqrt(variance)))
         return replace(rim, model_sigma=model_sigma, blur=math.sqrt(variance))
     fit = fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
                   _MIN_RIM_SIGMA, near=rim.ellipse)
+    # Crossings at the level the profile model put the edge: what is left is the model's misfit.
+    model_sigma = MISFIT_SHARE * level.misfit if level.modelled else edge_model_sigma(variance)
     return replace(fit, model_sigma=model_sigma, blur=math.sqrt(variance))
 
 

@@ -22,8 +22,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.special import ndtr, ndtri
+from scipy.special import ndtri
 
 from vlp_ros.compiled import kernel
 from vlp_ros.compiled.small_arrays import median
@@ -34,22 +33,20 @@ from vlp_ros.detection.rows import chords, RowLevels
 _MAD_TO_SIGMA = 1.4826
 _ELLIPSE_PARAMETERS = 5
 # Clipped rows pooled to measure how far their crossings lie outside the edge.
-_MAX_POOLED_ROWS = 200
+_MAX_POOLED_ROWS = 64
 # Ramp pixels within this (of the row's step) of background or plateau give probits
 # too noisy to measure the blur with.
 _PROBIT_MARGIN = 0.03
 _MIN_BLUR_ROWS = 10
-# The bands (in blurs from the edge) whose levels are followed back to it; from 3 blurs on, blur
-# mixes in under 0.2 % of the other side.
-_EDGE_BANDS = (3.0, 4.0)
+# Fewer row sides than this leave the edge's level at a half.
 _MIN_EDGE_ROWS = 10
-# Rows meeting the edge at a grazing angle (|n_x| below this) reach too far along the row for the bands.
-_MIN_ACROSS = 0.3
-# The 99.9 % point of chi-square with 2 degrees of freedom, for the line against a uniform disc's
-# (0.5, 0); the per-side values of neighbouring rows are alike (stripes, blur), which counts each
-# of them as about this many.
+# The 99.9 % point of chi-square with 2 degrees of freedom, for the edge's level line against a uniform
+# disc's (0.5, 0); neighbouring pixels' residuals are alike (stripes, blur, the model's misfit), which
+# counts each of them as about this many.
 _UNIFORM_CHI_SQUARE = 13.8
 _EDGE_CORRELATION = 4.0
+# Rows meeting the edge at a grazing angle (|n_x| below this) reach too far along the row for its profile.
+_MIN_ACROSS = 0.3
 # A fraction outside these says the ramps are not an edge between two levels (discs under the
 # simulator's looks, glare and falloff included: 0.33-0.55; bare LEDs with glow reach 0.25 and 0.75).
 _FRACTION_BOUNDS = (0.25, 0.75)
@@ -148,9 +145,9 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
 
     A clipped row's plateau is not its brightness A, so its half level sits low on
     the blurred edge, outside the true edge. The rows' ramps, pooled in distance t
-    across the ellipse, show the unclipped foot of B + A Phi((-edge - t) / sigma)
-    averaged over the pixel's square; fitting A, sigma and the edge to it (clipped
-    pixels as censored: the model must reach the clip) places the edge. Only rows
+    across the ellipse, show the unclipped foot of B + A Phi((-edge - t) / sigma), the
+    pixel's square folded into sigma; fitting A, sigma and the edge to it (clipped
+    pixels as censored: the model must reach the clip; ``_censored_edge_fit``) places the edge. Only rows
     inside clipped stripes (clipped two rows up and down) are pooled, so that they
     share one A. None if the ramps do not tell.
     """
@@ -159,7 +156,9 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
     centre_col = int(np.clip(np.rint(ellipse[0]), 0, width - 1))
     interior = ((brightness[np.clip(rows + 2, 0, height - 1), centre_col] >= saturation_level)
                 & (brightness[np.clip(rows - 2, 0, height - 1), centre_col] >= saturation_level))
-    points = points[interior][:_MAX_POOLED_ROWS]
+    points = points[interior]
+    # Evenly spread over the rim (the points come left crossings first, in row order).
+    points = points[::-(-len(points) // _MAX_POOLED_ROWS)] if len(points) else points
     if len(points) < 3:
         return None
     normals = outward_normals(ellipse, points)
@@ -174,25 +173,100 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
     if np.count_nonzero(~censored) < 10:
         return None
     t = geometric_distances(ellipse, pixels)
-    v = values - background
-    # The pixel square seen across the edge: offsets of a 3 x 3 grid of its points along each normal.
-    grid = (np.arange(3) - 1.0) / 3.0
-    qx, qy = (g.ravel() for g in np.meshgrid(grid, grid))
-    normal = np.abs(np.broadcast_to(normals[:, None, :], cols.shape + (2,))[keep])
-    spread = normal[:, :1] * qx[None, :] + normal[:, 1:] * qy[None, :]
-
-    def residual(params: np.ndarray) -> np.ndarray:
-        amplitude, sigma, edge = params
-        difference = amplitude * ndtr((-edge - t[:, None] - spread) / sigma).mean(axis=1) - v
-        return np.where(censored, np.minimum(difference, 0.0), difference)
-
     clip = saturation_level - background
-    result = least_squares(residual, np.array([2.0 * clip, 0.5 * max_blur, 0.5]),
-                           bounds=([clip, 0.2, -1.0], [np.inf, 2.0 * max_blur, 4.0 * max_blur]))
-    if not result.success:
+    fitted, amplitude, edge = _censored_edge_fit(np.ascontiguousarray(t), values - background, censored, clip,
+                                                 float(max_blur))
+    if not fitted:
         return None
-    amplitude, _, edge = result.x
     return float(edge), float(amplitude / clip)
+
+
+# The pixel's square seen across an edge of any direction has the variance 1/12 (px^2) of a unit uniform
+# spread; the fit folds it into the blur as a Gaussian of that variance.
+_PIXEL_VARIANCE = 1.0 / 12.0
+_EDGE_FIT_ITERATIONS = 60
+# A lamp brighter than this over the clip level is too overexposed for any edge (the detector refuses 2.5):
+# the fit stops there instead of following the amplitude out.
+_MAX_FITTED_OVEREXPOSURE = 4.0
+
+
+@kernel
+def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip: float,
+                       max_blur: float) -> tuple[bool, float, float]:
+    """
+    Return (converged, amplitude, edge) of ``clipped_edge_offset``'s ramp model, fitted by Levenberg-Marquardt.
+
+    The model is v = A Phi((-edge - t) / S), S^2 = s^2 + ``_PIXEL_VARIANCE``, with its analytic
+    Jacobian; censored values count only where the model stays below them. Bounds: A in ``clip`` to
+    ``_MAX_FITTED_OVEREXPOSURE`` clips, s in [0.2, 2 max_blur], edge in [-1, 4 max_blur], kept by projecting
+    each step onto them.
+    """
+    lower = np.array([clip, 0.2, -1.0])
+    upper = np.array([_MAX_FITTED_OVEREXPOSURE * clip, 2.0 * max_blur, 4.0 * max_blur])
+    params = np.array([2.0 * clip, 0.5 * max_blur, 0.5])
+    n = t.size
+    residual, jacobian = np.empty(n), np.empty((n, 3))
+    cost = _edge_model(params, t, v, censored, residual, jacobian)
+    damping = 1e-3
+    converged = False
+    pinned = 0
+    for _ in range(_EDGE_FIT_ITERATIONS):
+        normal = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+        trial = np.empty(3)
+        improved = False
+        while damping < 1e10:
+            damped = normal.copy()
+            for k in range(3):
+                damped[k, k] += damping * max(normal[k, k], 1e-12)
+            step = np.linalg.solve(damped, -gradient)
+            for k in range(3):
+                trial[k] = min(max(params[k] + step[k], lower[k]), upper[k])
+            trial_residual, trial_jacobian = np.empty(n), np.empty((n, 3))
+            trial_cost = _edge_model(trial, t, v, censored, trial_residual, trial_jacobian)
+            if trial_cost <= cost:
+                improved = True
+                break
+            damping *= 10.0
+        if not improved:
+            converged = True
+            break
+        change = 0.0
+        for k in range(3):
+            change = max(change, abs(trial[k] - params[k]) / (abs(params[k]) + 1e-3))
+        relative = (cost - trial_cost) / max(cost, 1e-300)
+        params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
+        damping = max(damping / 10.0, 1e-12)
+        pinned = pinned + 1 if params[0] >= upper[0] else 0
+        # An amplitude held at its bound is a lamp too overexposed for any edge: no need to refine the rest.
+        if change < 1e-8 or relative < 1e-12 or pinned >= 3:
+            converged = True
+            break
+    return converged, params[0], params[2]
+
+
+@kernel
+def _edge_model(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, residual: np.ndarray,
+                jacobian: np.ndarray) -> float:
+    """``_censored_edge_fit``'s residuals and Jacobian (into the arrays) at ``params``; returns half their squares."""
+    amplitude, blur, edge = params[0], params[1], params[2]
+    spread = math.sqrt(blur * blur + _PIXEL_VARIANCE)
+    cost = 0.0
+    for i in range(t.size):
+        z = (-edge - t[i]) / spread
+        below = 0.5 * math.erfc(-z / math.sqrt(2.0))
+        density = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+        difference = amplitude * below - v[i]
+        if censored[i] and difference > 0.0:
+            residual[i] = 0.0
+            jacobian[i, 0] = jacobian[i, 1] = jacobian[i, 2] = 0.0
+            continue
+        residual[i] = difference
+        jacobian[i, 0] = below
+        jacobian[i, 1] = -amplitude * density * z * blur / (spread * spread)
+        jacobian[i, 2] = -amplitude * density / spread
+        cost += 0.5 * difference * difference
+    return cost
 
 
 def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
@@ -249,153 +323,320 @@ class EdgeLevel:
     """
     ``edge_level_fraction``'s answer.
 
-    The fraction per row, and ``departure`` (px): how far the rows' crossings may still lie off the
-    disc's edge for the light's departure from a uniform disc on a dark ceiling
-    (``edge_departure``).
+    The fraction per row; ``departure`` (px): how far a half-level crossing lies off the disc's edge for
+    the light's departure from a uniform disc on a dark ceiling; ``misfit`` (px): the profile model's
+    smooth misfit (``_smooth_misfit``) as a move of the crossings; ``modelled``: whether the profile
+    model was fitted (too few rows leave a half).
     """
 
     fraction: np.ndarray
     departure: float = 0.0
+    misfit: float = 0.0
+    modelled: bool = False
 
 
 def edge_level_fraction(brightness: np.ndarray, levels: RowLevels, background: float, ellipse: np.ndarray,
-                        blur: float) -> EdgeLevel | None:
+                        blur: float, marker: tuple[np.ndarray, float] | None = None,
+                        saturation_level: float = np.inf) -> EdgeLevel | None:
     """
     Where between background and each row's plateau the disc's edge lies.
 
-    The step's midpoint, as a fraction of the row's rise (0.5 for a uniform disc on a dark ceiling),
-    per row of ``levels``; None when it leaves ``_FRACTION_BOUNDS`` (the light is no disc on a
-    ceiling: a bare LED's glow).
+    The level of the disc's true edge, as a fraction of the row's rise (0.5 for a uniform disc on a dark
+    ceiling), per row of ``levels``; None when the profile model does not converge to a fraction inside
+    ``_FRACTION_BOUNDS`` (the light is no disc on a ceiling: a bare LED's glow). ``marker`` (centre,
+    radius) keeps its pixels out; pixels at ``saturation_level`` or above are left out.
 
     A diffuser brighter in the middle puts the plateau (read in the chord's middle)
     above the disc's level at its edge, and a glare halo lifts the ceiling next to it:
     half of the plateau then lies inside the edge, by 0.7 px at 2 px of blur for a 30 %
-    falloff with a 20 % halo. On each side of every row the levels inside and outside
-    the edge are read in two bands (``_EDGE_BANDS`` blurs from it, where blur no longer
-    mixes them) and followed in a straight line back to the edge; their midpoint over
-    the row's rise is that side's fraction. Falloff and halo are round about the lamp,
-    so the fraction depends on where the row's plateau was read: it is fitted (robustly)
-    as a straight line in the squared normalised radius of the chord's middle, which
-    averages the bands' noise over all rows instead of adding it to each rim point.
+    falloff with a 20 % halo. The profiles across the edge, all round the lamp (each row's
+    pixels within ``_PROFILE_BLURS`` blurs of it, over the row's rise), are fitted together by
+    one model of the optics (``_edge_profile_fit``): the disc's own level falling linearly toward
+    its edge, the ceiling's (lifted by any halo) falling linearly away from it, joined by a
+    Gaussian-blurred step at the edge. Falloff and halo are round about the lamp, so both
+    levels are one value each over the row's plateau, which the falloff lowers with the squared
+    normalised radius of the row's chord middle, where it was read. The model's value at its fitted
+    edge is the level each row's crossing takes; its noise is a few thousandths of the rise.
     """
     ellipse = np.asarray(ellipse, dtype=float)
-    plateau_of = np.full(brightness.shape[0], np.nan)
-    plateau_of[levels.rows] = levels.plateau
-    radius, fractions, lifts = _edge_fractions(brightness, levels.rows, plateau_of, float(background),
-                                               conic_of(ellipse), ellipse, float(blur))
-    if fractions.size < _MIN_EDGE_ROWS:
+    has_marker = marker is not None
+    centre, radius = (np.asarray(marker[0], dtype=float), float(marker[1])) if has_marker else (np.zeros(2), 0.0)
+    t, value, rho, count = _edge_samples(brightness, levels.rows, np.asarray(levels.plateau, dtype=float),
+                                         float(background), ellipse, float(blur), has_marker, centre, radius,
+                                         float(saturation_level))
+    if count < _MIN_EDGE_ROWS:
         return EdgeLevel(np.full(levels.rows.size, 0.5))
-    departs, intercept, slope = _fraction_line(radius, fractions)
-    departure = edge_departure(blur, median(fractions), median(lifts), departs)
-    if not departs:
-        return EdgeLevel(np.full(levels.rows.size, 0.5), departure)
+    fitted, params, rms, covariance = _edge_profile_fit(t, value, rho, float(blur))
+    if not fitted:
+        return None
     row_radius = _chord_middle_radius(levels.rows, conic_of(ellipse), ellipse)
-    fraction = intercept + slope * row_radius
+    crossing_per_level = _CROSSING_PER_LEVEL * params[6]
+    if not _departs_from_uniform(params, covariance, median(row_radius)):
+        return EdgeLevel(np.full(levels.rows.size, 0.5), 0.0, crossing_per_level * rms, True)
+    fraction = _edge_level(params, row_radius)
     if fraction.min() < _FRACTION_BOUNDS[0] or fraction.max() > _FRACTION_BOUNDS[1]:
         return None
-    return EdgeLevel(fraction, departure)
+    level = median(fraction)
+    return EdgeLevel(fraction, crossing_per_level * abs(level - 0.5), crossing_per_level * rms, True)
+
+
+# Each row's pixels within this many blurs of the edge (on both sides) are fitted by the profile model.
+_PROFILE_BLURS = 4.5
+_PROFILE_PARAMETERS = 7
+_PROFILE_ITERATIONS = 40
+# Samples further than this many robust sigmas off the model (a neighbouring lamp, a stripe the blur
+# mixed unevenly) are left out of the second round.
+_PROFILE_OUTLIER_SIGMAS = 4.0
+# At most about this many rows (evenly spread) give samples: a 4K lamp's few hundred rows would cost
+# milliseconds and add little (the level's noise is a few thousandths of the rise with a hundred).
+_PROFILE_MAX_ROWS = 100
+_INVERSE_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+_MISFIT_NOISE_SIGMAS = 3.0
+
+
+@kernel
+def _edge_samples(brightness: np.ndarray, rows: np.ndarray, plateau: np.ndarray, background: float,
+                  ellipse: np.ndarray, blur: float, has_marker: bool, centre: np.ndarray, radius: float,
+                  saturation_level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """
+    Return ``edge_level_fraction``'s samples: distance across the edge (px, outward positive), level over the rise.
+
+    Also each sample's row's squared normalised chord-middle radius, and how many row sides gave samples.
+    Rows meeting the edge at a grazing angle (|n_x| below ``_MIN_ACROSS``) and pixels near the marker
+    give none; of many rows, every k-th (``_PROFILE_MAX_ROWS``). The distance is measured along the ray
+    from the ellipse's centre in its normalised frame (exact for a circle, where a first-order distance
+    errs by 7 % ten pixels from a 75 px rim).
+    """
+    conic = conic_of(ellipse)
+    middle = _chord_middle_radius(rows, conic, ellipse)
+    left, right, crossed = chords(conic, rows.astype(np.float64))
+    cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
+    c, s = math.cos(theta), math.sin(theta)
+    width = brightness.shape[1]
+    reach = _PROFILE_BLURS * blur + 1.0
+    # Each side of a row gives at most 2 reach / |n_x| + 2 pixels, |n_x| >= _MIN_ACROSS.
+    capacity = 2 * rows.size * (int(2.0 * reach / _MIN_ACROSS) + 3)
+    t, value, rho = np.empty(capacity), np.empty(capacity), np.empty(capacity)
+    count = sides = 0
+    for i in range(0, rows.size, -(-rows.size // _PROFILE_MAX_ROWS)):
+        rise = plateau[i] - background
+        if not (crossed[i] and rise > 0.0 and plateau[i] < saturation_level):
+            continue
+        y = float(rows[i])
+        for side in range(2):
+            edge = left[i] if side == 0 else right[i]
+            gx = edge * conic[0, 0] + y * conic[1, 0] + conic[2, 0]
+            gy = edge * conic[0, 1] + y * conic[1, 1] + conic[2, 1]
+            across = abs(gx) / max(math.sqrt(gx * gx + gy * gy), 1e-12)
+            span = reach / max(across, 1e-12)
+            if across < _MIN_ACROSS or span > 0.5 * (right[i] - left[i]):
+                continue
+            first = int(math.floor(edge - span))
+            taken = 0
+            for col in range(first, first + int(2.0 * span) + 2):
+                if not (0 <= col < width and count < capacity):
+                    continue
+                level = float(brightness[rows[i], col])
+                if level >= saturation_level:
+                    continue
+                dx, dy = col - centre[0], y - centre[1]
+                if has_marker and dx * dx + dy * dy <= radius * radius:
+                    continue
+                ex, ey = col - cx, y - cy
+                u, v = (ex * c + ey * s) / a, (-ex * s + ey * c) / b
+                normalised = math.sqrt(u * u + v * v)
+                if not normalised > 0.0:
+                    continue
+                # The point on the ellipse along the same normalised ray, and the distance to it.
+                px, py = a * u / normalised, b * v / normalised
+                distance = math.sqrt((u * a - px) ** 2 + (v * b - py) ** 2) * (1.0 if normalised > 1.0 else -1.0)
+                if abs(distance) > reach:
+                    continue
+                t[count], value[count], rho[count] = distance, (level - background) / rise, middle[i]
+                count += 1
+                taken += 1
+            sides += 1 if taken > 0 else 0
+    return t[:count], value[:count], rho[:count], sides
+
+
+@kernel
+def _edge_profile_fit(t: np.ndarray, value: np.ndarray, rho: np.ndarray,
+                      blur: float) -> tuple[bool, np.ndarray, float, np.ndarray]:
+    """
+    Return the edge's profile model fitted by Levenberg-Marquardt in two rounds.
+
+    That is (converged, parameters, smooth misfit RMS ``_smooth_misfit``, parameter covariance at the
+    residuals' variance).
+
+    The model, at distance t across the edge (outward positive) of a row whose chord middle lies at
+    squared normalised radius rho: the disc's level alpha + beta t inside the edge at -e and the
+    ceiling's gamma + delta t outside it, blurred by a Gaussian of sigma S. Both levels are over the
+    row's plateau, which a falloff of a share f lowers to 1 - f rho: alpha = a0 / (1 + k rho),
+    gamma = g0 / (1 + k rho), k = -f to first order. A blurred step between two straight lines is
+    exactly (alpha + beta t) Phi(z) + (gamma + delta t) (1 - Phi(z)) + (delta - beta) S phi(z),
+    z = (-e - t) / S. Parameters (a0, k, beta, g0, delta, e, S). The second round leaves out samples further
+    than ``_PROFILE_OUTLIER_SIGMAS`` robust sigmas from the first.
+    """
+    params = np.array([0.9, 0.0, 0.0, 0.05, 0.0, 0.0, max(blur, 0.3)])
+    kept = np.ones(t.size, np.bool_)
+    residual = np.empty(t.size)
+    jacobian = np.empty((t.size, _PROFILE_PARAMETERS))
+    converged = False
+    covariance = np.zeros((_PROFILE_PARAMETERS, _PROFILE_PARAMETERS))
+    for round_ in range(2):
+        converged, params = _profile_rounds(t, value, rho, kept, params)
+        if not converged:
+            return False, params, 0.0, covariance
+        cost = _profile_model(params, t, value, rho, kept, residual, jacobian)
+        if round_ == 1:
+            variance = 2.0 * cost / max(np.count_nonzero(kept) - _PROFILE_PARAMETERS, 1)
+            normal = jacobian.T @ jacobian
+            for k in range(_PROFILE_PARAMETERS):
+                normal[k, k] += 1e-12
+            covariance = variance * np.linalg.inv(normal)
+            return True, params, _smooth_misfit(t, rho, kept, residual, cost), covariance
+        scale = _MAD_TO_SIGMA * median(np.abs(residual[kept]))
+        for i in range(t.size):
+            kept[i] = abs(residual[i]) <= _PROFILE_OUTLIER_SIGMAS * max(scale, 1e-6)
+    return converged, params, 0.0, covariance
+
+
+@kernel
+def _smooth_misfit(t: np.ndarray, rho: np.ndarray, kept: np.ndarray, residual: np.ndarray, cost: float) -> float:
+    """
+    Return the RMS of the profile model's residuals that is smooth across the edge: the model's misfit, not noise.
+
+    Pixel noise differs from one pixel to the next; a misfit of the model (a halo or a falloff of
+    another shape, blur that is no Gaussian) is alike in neighbouring pixels of a row. Half the mean
+    square difference of neighbouring residuals is the noise's variance; what the residuals' mean
+    square holds beyond it is the misfit's.
+    """
+    count = np.count_nonzero(kept)
+    total = 2.0 * cost / max(count - _PROFILE_PARAMETERS, 1)
+    differences = pairs = 0.0
+    for i in range(t.size - 1):
+        if kept[i] and kept[i + 1] and rho[i] == rho[i + 1] and abs(t[i + 1] - t[i]) < 1.5:
+            differences += (residual[i + 1] - residual[i]) ** 2
+            pairs += 1.0
+    if pairs < _PROFILE_PARAMETERS:
+        return math.sqrt(total)
+    # The noise's variance is known to a share sqrt(2 / pairs) of itself: a misfit within
+    # ``_MISFIT_NOISE_SIGMAS`` of that is none (a clean disc's edge, which the model fits exactly).
+    noise = 0.5 * differences / pairs
+    return math.sqrt(max(total - noise - _MISFIT_NOISE_SIGMAS * noise * math.sqrt(2.0 / pairs), 0.0))
+
+
+@kernel
+def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.ndarray,
+                    params: np.ndarray) -> tuple[bool, np.ndarray]:
+    """One Levenberg-Marquardt fit of ``_edge_profile_fit``'s model on the ``kept`` samples, from ``params``."""
+    n = t.size
+    residual, jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
+    cost = _profile_model(params, t, value, rho, kept, residual, jacobian)
+    damping = 1e-3
+    for _ in range(_PROFILE_ITERATIONS):
+        normal = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+        improved = False
+        trial = params.copy()
+        trial_residual, trial_jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
+        trial_cost = cost
+        while damping < 1e10:
+            damped = normal.copy()
+            for k in range(_PROFILE_PARAMETERS):
+                damped[k, k] += damping * max(normal[k, k], 1e-12)
+            step = np.linalg.solve(damped, -gradient)
+            trial = params + step
+            trial[1] = max(trial[1], -0.9)
+            trial[6] = max(trial[6], 0.2)
+            trial_cost = _profile_model(trial, t, value, rho, kept, trial_residual, trial_jacobian)
+            if trial_cost < cost:
+                improved = True
+                break
+            damping *= 10.0
+        if not improved:
+            return True, params
+        relative = (cost - trial_cost) / max(cost, 1e-300)
+        params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
+        damping = max(damping / 10.0, 1e-12)
+        if relative < 1e-10:
+            return True, params
+    return False, params
+
+
+@kernel
+def _profile_model(params: np.ndarray, t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.ndarray,
+                   residual: np.ndarray, jacobian: np.ndarray) -> float:
+    """``_edge_profile_fit``'s residuals and Jacobian (into the arrays; 0 for samples not kept); half their squares."""
+    a0, k, beta, g0, delta, edge, spread = params
+    cost = 0.0
+    for i in range(t.size):
+        if not kept[i]:
+            residual[i] = 0.0
+            for column in range(_PROFILE_PARAMETERS):
+                jacobian[i, column] = 0.0
+            continue
+        scale = 1.0 / (1.0 + k * rho[i])
+        alpha, gamma = a0 * scale, g0 * scale
+        z = (-edge - t[i]) / spread
+        below = 0.5 * math.erfc(-z / math.sqrt(2.0))
+        density = math.exp(-0.5 * z * z) * _INVERSE_SQRT_2PI
+        inside, outside = alpha + beta * t[i], gamma + delta * t[i]
+        difference = inside * below + outside * (1.0 - below) + (delta - beta) * spread * density - value[i]
+        # d model / dz = phi ((alpha - gamma) - (beta - delta) e), as t + S z = -e.
+        along = density * ((alpha - gamma) - (beta - delta) * edge)
+        residual[i] = difference
+        jacobian[i, 0] = scale * below
+        jacobian[i, 1] = -rho[i] * scale * (alpha * below + gamma * (1.0 - below))
+        jacobian[i, 2] = t[i] * below - spread * density
+        jacobian[i, 3] = scale * (1.0 - below)
+        jacobian[i, 4] = t[i] * (1.0 - below) + spread * density
+        jacobian[i, 5] = -along / spread
+        jacobian[i, 6] = -along * z / spread + (delta - beta) * density
+        cost += 0.5 * difference * difference
+    return cost
+
+
+def _departs_from_uniform(params: np.ndarray, covariance: np.ndarray, rho: float) -> bool:
+    """
+    Whether the edge's level departs from a uniform disc's on a dark ceiling (a half, k = 0) beyond its noise.
+
+    The level is taken at the rows' median ``rho``. A uniform disc has its edge at half of every row's
+    rise: unless the profile tells otherwise beyond doubt, that stays exact, as the level's own noise
+    would move all rim points alike (a size error of several of its standard deviations on a clean lamp).
+    """
+    a0, k, beta, g0, delta, edge, spread = (float(v) for v in params)
+    scale, tail = 1.0 / (1.0 + k * rho), spread * _INVERSE_SQRT_2PI
+    # The gradients of the level at rho (``_edge_level``) and of k.
+    gradients = np.array([[0.5 * scale, -0.5 * (a0 + g0) * rho * scale * scale, -0.5 * edge - tail, 0.5 * scale,
+                           -0.5 * edge + tail, -0.5 * (beta + delta), (delta - beta) * _INVERSE_SQRT_2PI],
+                          [0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    offset = np.array([float(_edge_level(params, np.array([rho]))[0]) - 0.5, k])
+    try:
+        chi_square = float(offset @ np.linalg.solve(gradients @ covariance @ gradients.T, offset))
+    except np.linalg.LinAlgError:
+        return True
+    return not chi_square < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION
+
+
+def _edge_level(params: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """
+    Return the model's level at its edge for rows whose chord middles lie at ``rho``.
+
+    At the edge (z = 0) the model is the two levels' midpoint plus (delta - beta) S phi(0).
+    """
+    a0, k, beta, g0, delta, edge, spread = (float(v) for v in params)
+    return (0.5 * (a0 + g0) / (1.0 + k * np.asarray(rho, dtype=float)) - 0.5 * edge * (beta + delta)
+            + (delta - beta) * spread * _INVERSE_SQRT_2PI)
 
 
 # A share q of the row's rise added to one side of a step blurred by s moves its half-level crossing by
 # s Phi^-1(1/2 + q / 2), about sqrt(2 pi) s q / 2 for small q.
 _CROSSING_PER_LEVEL = math.sqrt(2.0 * math.pi)
-# Of a departure that ``edge_level_fraction`` corrects, the share left in smooth patterns round the rim:
-# on the simulator's sharp 4K discs under 30 % falloff (fraction 0.37-0.40, 0.25-0.38 px corrected),
-# 0.01-0.03 px of offset and 0.01-0.045 px of second harmonic at the true pose.
-CORRECTED_DEPARTURE_SHARE = 0.08
-UNCORRECTED_LIFT_SHARE = 0.35
-
-
-def edge_departure(blur: float, level: float, lift: float, corrected: bool) -> float:
-    """
-    Return how far a lamp's crossings may lie off its edge for what the light shows of its departure.
-
-    The distance is in px, one sigma per smooth pattern round the rim, for what the light shows of its
-    departure from a uniform disc on a dark ceiling, given the edge's ``blur`` (px), the median ``level``
-    of the edge's midpoint over the row's rise (0.5 uniform), the median ``lift`` of the ceiling next to
-    the edge over the rise (0 dark), and whether the crossings were ``corrected`` to the measured level.
-
-    A glare halo lifts the ceiling beside the edge and the disc inside it alike, which moves the step's
-    midpoint little but its level on either side, and the halo's slope and its stripes move each row's
-    crossing differently: on the simulator's sharp 4K discs under a 20 % halo (lift 0.04-0.08), 0.02-0.06 px
-    of offset and up to 0.06 px of second harmonic, with the level indistinguishable from a half (0.51-0.53
-    against 0.49-0.51 clean) and so left uncorrected. Uncorrected, half the lift counts whole; a
-    level the crossings were corrected to leaves ``CORRECTED_DEPARTURE_SHARE`` of its move. A uniform disc on
-    a dark ceiling (lift 0, the level not told from a half) gives 0.
-    """
-    moved = CORRECTED_DEPARTURE_SHARE * abs(level - 0.5) if corrected else 0.0
-    return _CROSSING_PER_LEVEL * blur * max(UNCORRECTED_LIFT_SHARE * max(lift, 0.0), moved)
-
-
-@kernel
-def _fraction_line(radius: np.ndarray, fractions: np.ndarray) -> tuple[bool, float, float]:
-    """
-    ``edge_level_fraction``'s robust line of the fractions in the radius.
-
-    (whether it departs from a uniform disc's (0.5, 0), intercept, slope), three rounds of least squares
-    each dropping the values over 3 robust sigmas off; no departure when fewer than ``_MIN_EDGE_ROWS``
-    values remain.
-
-    A uniform disc on a dark ceiling has its edge at half of every row's rise; unless the rows tell
-    otherwise beyond doubt, that stays exact: the line's own noise would move all rim points alike.
-    (Compiled: in numpy, np.linalg.lstsq and the rounds' small array calls cost 0.1-0.4 ms a lamp.)
-    """
-    n = fractions.size
-    kept = np.ones(n, np.bool_)
-    deviation = np.empty(n)
-    intercept = slope = 0.0
-    count = n
-    for _ in range(3):
-        intercept, slope = _least_squares_line(radius, fractions, kept)
-        for i in range(n):
-            deviation[i] = abs(fractions[i] - (intercept + slope * radius[i]))
-        scale = max(_MAD_TO_SIGMA * median(deviation[kept]), 1e-3)
-        count = 0
-        for i in range(n):
-            kept[i] = deviation[i] <= 3.0 * scale
-            count += kept[i]
-        if count < _MIN_EDGE_ROWS:
-            return False, 0.5, 0.0
-    # The line's deviation from (0.5, 0) weighed by the normal matrix [[n, sum x], [sum x, sum x^2]],
-    # against the residuals' variance.
-    squares = total_x = total_xx = 0.0
-    for i in range(n):
-        if kept[i]:
-            residual = fractions[i] - (intercept + slope * radius[i])
-            squares += residual * residual
-            total_x += radius[i]
-            total_xx += radius[i] * radius[i]
-    variance = squares / max(count - 2, 1)
-    offset = intercept - 0.5
-    chi_square = offset * offset * count + 2.0 * offset * slope * total_x + slope * slope * total_xx
-    return not chi_square < _UNIFORM_CHI_SQUARE * _EDGE_CORRELATION * variance, intercept, slope
-
-
-@kernel
-def _least_squares_line(x: np.ndarray, y: np.ndarray, kept: np.ndarray) -> tuple[float, float]:
-    """
-    Return (intercept, slope) of the least-squares line through the ``kept`` points (x, y).
-
-    It is np.linalg.lstsq's: when all their x are equal, as for a shape that is no disc, the smallest
-    such line.
-    """
-    count = centre_x = centre_y = 0.0
-    for i in range(x.size):
-        if kept[i]:
-            count += 1.0
-            centre_x += x[i]
-            centre_y += y[i]
-    centre_x, centre_y = centre_x / count, centre_y / count
-    spread = covariance = 0.0
-    for i in range(x.size):
-        if kept[i]:
-            spread += (x[i] - centre_x) * (x[i] - centre_x)
-            covariance += (x[i] - centre_x) * (y[i] - centre_y)
-    if not spread > 0.0:
-        scale = centre_y / (1.0 + centre_x * centre_x)
-        return scale, scale * centre_x
-    slope = covariance / spread
-    return centre_y - slope * centre_x, slope
+# The share of the profile model's smooth misfit taken as the prior sigma of the rim's smooth error patterns:
+# on the simulator's 4K lamp under every look (clean, blur, glare, falloff, saturated, overexposed, realistic,
+# as JPEG) the misfit was 0.002-0.10 px where the patterns at the true pose were 0.01-0.18 px.
+MISFIT_SHARE = 1.5
 
 
 @kernel
@@ -413,70 +654,6 @@ def _chord_middle_radius(rows: np.ndarray, conic: np.ndarray, ellipse: np.ndarra
     return radius
 
 
-@kernel
-def _edge_fractions(brightness: np.ndarray, rows: np.ndarray, plateau_of: np.ndarray, background: float,
-                    conic: np.ndarray, ellipse: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Return ``edge_level_fraction``'s per-side values, with their rows' ``_chord_middle_radius`` and the ceiling's level.
-
-    The ceiling's level is that next to the edge (its outer band traced back to it) over the row's rise.
-    """
-    middle = _chord_middle_radius(rows, conic, ellipse)
-    width = brightness.shape[1]
-    left, right, crossed = chords(conic, rows.astype(np.float64))
-    near, far = _EDGE_BANDS[0] * blur, _EDGE_BANDS[1] * blur
-    values, radius, lifts = np.empty(2 * rows.size), np.empty(2 * rows.size), np.empty(2 * rows.size)
-    count = 0
-    for i in range(rows.size):
-        rise = plateau_of[rows[i]] - background
-        if not (crossed[i] and rise > 0.0):
-            continue
-        for side in range(2):
-            edge = left[i] if side == 0 else right[i]
-            inward = 1.0 if side == 0 else -1.0
-            gx = edge * conic[0, 0] + rows[i] * conic[1, 0] + conic[2, 0]
-            gy = edge * conic[0, 1] + rows[i] * conic[1, 1] + conic[2, 1]
-            across = abs(gx) / max(math.sqrt(gx * gx + gy * gy), 1e-12)
-            # Both bands inside must lie in the near half of the chord.
-            if across < _MIN_ACROSS or (2.0 * far - near) / across > 0.5 * (right[i] - left[i]):
-                continue
-            found_1, inside_1, outside_1 = _band_levels(brightness, rows[i], edge, inward, near / across,
-                                                        far / across, width)
-            found_2, inside_2, outside_2 = _band_levels(brightness, rows[i], edge, inward, far / across,
-                                                        (2.0 * far - near) / across, width)
-            if not (found_1 and found_2):
-                continue
-            # Band centres at c and c + (far - near) blurs: a straight line back to the edge.
-            back = 0.5 * (near + far) / (far - near)
-            inside = inside_1 - (inside_2 - inside_1) * back
-            outside = outside_1 - (outside_2 - outside_1) * back
-            values[count] = (0.5 * (inside + outside) - background) / rise
-            lifts[count] = (outside - background) / rise
-            radius[count] = middle[i]
-            count += 1
-    return radius[:count], values[:count], lifts[:count]
-
-
-@kernel
-def _band_levels(brightness: np.ndarray, row: int, edge: float, inward: float, lo: float, hi: float,
-                 width: int) -> tuple[bool, float, float]:
-    """
-    Return (in the array, mean inside, mean outside) of the pixels ``lo`` to ``hi`` px along the row from ``edge``.
-
-    The pixels are taken inward and outward (at least one pixel each).
-    """
-    start, end = math.ceil(lo), max(math.floor(hi), math.ceil(lo))
-    inside = outside = 0.0
-    for k in range(start, end + 1):
-        inner, outer = int(round(edge + inward * k)), int(round(edge - inward * k))
-        if not (0 <= inner < width and 0 <= outer < width):
-            return False, 0.0, 0.0
-        inside += brightness[row, inner]
-        outside += brightness[row, outer]
-    count = end - start + 1
-    return True, inside / count, outside / count
-
-
 # A rim's smooth error patterns: none below a blur of ``SHARP_BLUR_PX`` (the simulator's clean 4K look
 # and the independent renderer's clean drive, 0.72-0.86 px with the pixel, fit within 0.01 px and
 # 0.13 px), then ``EDGE_MODEL_PER_BLUR_VARIANCE`` px per px^2 of blur variance beyond it (0.4-0.75 px for
@@ -491,17 +668,17 @@ def edge_model_sigma(blur_variance_px2: float, departure_px: float = 0.0) -> flo
     Return how far the half-level crossings of a blurred edge may depart from the disc's edge.
 
     The distance is in px, one sigma per mode, in smooth patterns round the rim (an offset and the first
-    two harmonics: ``measurement.rim_error_modes``), given the edge's blur variance and what the light
-    shows of its departure from a uniform disc (``edge_departure``): the larger of the two, as a sharp
-    edge's crossings, which the blur term leaves exact, still move with glare and falloff.
+    two harmonics: ``measurement.rim_error_modes``), given the edge's blur variance and how far the light's
+    departure from a uniform disc moves them (``EdgeLevel.departure``): the larger of the two, as a sharp
+    edge's crossings, which the blur term leaves exact, still move with glare and falloff. For rims whose
+    crossings were not put at the profile model's level (clipped rows needed, too few rows).
 
     Any departure of the light from a uniform disc with a step edge moves the crossing of a
     blurred edge by the blur variance times the light's relative change across it: a diffuser's
     falloff or a glare halo (its slope over the row's rise), the stripes of neighbouring rows
     that blur mixes into a row's ends differently than into its middle (the edge's slope times
-    the stripes' relative slope), a blur that is no Gaussian. The detector's corrections for
-    these (``blur_shifts``, ``edge_level_fraction``) hold while the blur stays within a pixel;
-    beyond it what they leave grows with the variance.
+    the stripes' relative slope), a blur that is no Gaussian: beyond a pixel of blur it grows with
+    the variance.
     """
     return max(EDGE_MODEL_PER_BLUR_VARIANCE * max(blur_variance_px2 - SHARP_BLUR_PX ** 2, 0.0), departure_px)
 

@@ -35,7 +35,7 @@ class Look:
     blur of the scene alone; ``depth`` (None keeps the scenario's) is the lamps'
     modulation depth; ``glare`` the halo's peak as a fraction of the disc's level and ``glare_width``
     its Gaussian sigma as a fraction of the lamp's image diameter; ``falloff`` = a
-    makes each diffuser emit 1 - a (r/R)^2; ``brightness`` scales the lamps' light
+    makes each diffuser emit 1 - a (r/R)^p, p = ``falloff_exponent``; ``brightness`` scales the lamps' light
     (> 1 saturates them) and ``bloom`` is the fraction of the charge beyond the full
     well that spills into the neighbours; ``clutter`` unmodulated lamps of the same size
     hang among the mapped ones; ``jpeg_quality`` sends the images as JPEG; the true
@@ -47,6 +47,7 @@ class Look:
     glare: float = 0.0
     glare_width: float = 0.35
     falloff: float = 0.0
+    falloff_exponent: float = 2.0
     brightness: float = 1.0
     bloom: float = 0.0
     clutter: int = 0
@@ -60,6 +61,8 @@ class Look:
             raise ValueError(f'modulation depth must be in (0, 1], got {self.depth}')
         if not 0.0 <= self.falloff < 1.0:
             raise ValueError(f'falloff must be in [0, 1), got {self.falloff}')
+        if not self.falloff_exponent > 0.0:
+            raise ValueError(f'falloff exponent must be positive, got {self.falloff_exponent}')
         if not self.brightness > 0.0 or self.clutter < 0:
             raise ValueError('brightness must be positive and clutter not negative')
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
@@ -85,6 +88,16 @@ LOOKS = {
     'realistic': REALISTIC,
     'realistic_jpeg': replace(REALISTIC, jpeg_quality=90),
 }
+# The realistic look with its optics varied around the values it was measured at, and a falloff of another
+# functional form, as JPEG q90: what a camera and diffuser of the same kind may show.
+VARIED_LOOKS = {
+    'varied_wide_halo': replace(REALISTIC, glare=0.3, glare_width=0.5, jpeg_quality=90),
+    'varied_faint_halo': replace(REALISTIC, glare=0.1, glare_width=0.2, jpeg_quality=90),
+    'varied_soft': replace(REALISTIC, blur_sigma=2.2, jpeg_quality=90),
+    'varied_sharp': replace(REALISTIC, blur_sigma=1.1, jpeg_quality=90),
+    'varied_quartic_falloff': replace(REALISTIC, falloff=0.4, falloff_exponent=4.0, jpeg_quality=90),
+    'varied_linear_falloff': replace(REALISTIC, falloff=0.2, falloff_exponent=1.0, jpeg_quality=90),
+}
 
 
 def apply_look(scenario: Scenario, look: Look, seed: int = 0) -> Scenario:
@@ -96,7 +109,8 @@ def apply_look(scenario: Scenario, look: Look, seed: int = 0) -> Scenario:
                'row_time': scenario.nominal_row_time * (1.0 + look.row_time_error)}
     if look.blur_sigma is not None:
         changes.update(blur_sigma=0.0, image_blur=look.blur_sigma)
-    lamps = [replace(sim, falloff=look.falloff, peak_dn=sim.peak_dn * look.brightness) for sim in scenario.lamps]
+    lamps = [replace(sim, falloff=look.falloff, falloff_exponent=look.falloff_exponent,
+                     peak_dn=sim.peak_dn * look.brightness) for sim in scenario.lamps]
     beacon = scenario.beacon
     if look.depth is not None:
         lamps = [replace(sim, waveform=replace(sim.waveform, depth=look.depth)) for sim in lamps]

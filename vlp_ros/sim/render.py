@@ -36,7 +36,8 @@ class SimLamp:
     ``lamp.marker_position()``, lit by the lamp through a red filter; its centre
     lies on the disc, and a marker that straddles the rim glows red beyond it too.
     ``marker_radius=0`` draws no marker (an ordinary lamp). ``falloff`` = a makes
-    the diffuser emit 1 - a (r/R)^2 of the centre's light at r from the centre.
+    the diffuser emit 1 - a (r/R)^p of the centre's light at r from the centre, p =
+    ``falloff_exponent`` (2: a quadratic falloff; larger: flatter in the middle, steeper at the rim).
     """
 
     lamp: Lamp
@@ -46,6 +47,7 @@ class SimLamp:
     marker_bgr: tuple[float, float, float] = (0.12, 0.16, 0.95)
     marker_radius: float | None = None
     falloff: float = 0.0
+    falloff_exponent: float = 2.0
 
     def __post_init__(self) -> None:
         if self.marker_radius is None:
@@ -60,6 +62,8 @@ class SimLamp:
             raise ValueError(f'lamp {self.lamp.name!r}: peak_dn must not be negative')
         if not 0.0 <= self.falloff < 1.0:
             raise ValueError(f'lamp {self.lamp.name!r}: falloff must be in [0, 1), got {self.falloff}')
+        if not self.falloff_exponent > 0.0:
+            raise ValueError(f'lamp {self.lamp.name!r}: falloff exponent must be positive, got {self.falloff_exponent}')
 
     @property
     def has_marker(self) -> bool:
@@ -431,10 +435,10 @@ def _lamp_layer(background: np.ndarray, layers: list, region: tuple[int, int, in
 
 
 def _diffuser_emission(camera: CameraModel, pose: Pose, sim: SimLamp, bbox: tuple[int, int, int, int]) -> np.ndarray:
-    """Relative emission 1 - falloff (r/R)^2 (h, w) at the plane point each pixel centre of ``bbox`` sees."""
+    """Relative emission 1 - falloff (r/R)^p (h, w) at the plane point each pixel centre of ``bbox`` sees."""
     x0, y0, x1, y1 = bbox
     gx, gy = np.meshgrid(np.arange(x0, x1, dtype=float), np.arange(y0, y1, dtype=float))
     points = plane_points(camera, pose, np.stack([gx.ravel(), gy.ravel()], axis=1), sim.lamp.position[2])
     r2 = np.sum((points - sim.lamp.position[:2]) ** 2, axis=1) / sim.lamp.radius ** 2
-    emission = np.clip(1.0 - sim.falloff * np.nan_to_num(r2, nan=1.0), 0.0, 1.0)
+    emission = np.clip(1.0 - sim.falloff * np.nan_to_num(r2, nan=1.0) ** (0.5 * sim.falloff_exponent), 0.0, 1.0)
     return emission.reshape(y1 - y0, x1 - x0).astype(np.float32)

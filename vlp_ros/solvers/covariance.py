@@ -176,15 +176,20 @@ def _add_rotation_curvature(covariance, lever):
 # scale, it moves the pose where the data determine it (its variance below ``OFFSET_DETERMINED``
 # of the prior's). One lamp's marker would fix the scale too, but too noisily and with a bias near
 # frontal views (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance
-# along range by ``RIM_OFFSET_PRIOR`` times the rim's scatter. The rim points' scatter beyond their
-# stated sigma, and a marker that the pose cannot place within ``MARKER_CONSISTENT`` sigmas,
-# widen their own information by what their residuals show.
+# along range by ``RIM_OFFSET_PRIOR`` times the rim's scatter, or by the lamp's own measured prior
+# if that is less. With an up direction, one lamp's second harmonic is free under that prior in
+# the step (``_harmonics_step``): its tilt and the up direction's are weighed by what each knows.
+# The rim points' scatter beyond their stated sigma, and a marker that the pose cannot place within
+# ``MARKER_CONSISTENT`` sigmas, widen their own information by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
 RIM_OFFSET_FLOOR_PX = 0.5
+MIN_OFFSET_SIGMA_PX = 1e-3
 OFFSET_DETERMINED = 0.25
 MARKER_CONSISTENT = 2.0
 _REWEIGHTINGS = 2
 _MODE_REWEIGHTINGS = 1
+# The modes of ``measurement.rim_error_modes`` (first, past the last) that trade with the tilt: cos 2t, sin 2t.
+_TILT_MODES = (3, 5)
 # Candidate prior sigmas (px) of the rim modes: none, then 0.005 to 5 px a factor sqrt(2) apart
 # (a likelihood this flat near its maximum costs nothing at that spacing).
 _MODE_SIGMA_GRID_PX = np.concatenate([[1e-4], 0.005 * 2.0 ** (np.arange(21) / 2.0)])
@@ -224,8 +229,9 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     their lamp) and the residuals' own scatter; ValueError if the pose is not fully observed.
     ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows of its modes
     (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate the modes' sigma (one
-    lamp), the modes are marginalised with it, widening the covariance along what they trade with and
-    leaving the pose where the fit put it; with several lamps, a lamp's prior over the estimated sigma
+    lamp), the modes are marginalised with it, widening the covariance along what they trade with; the
+    pose stays where the fit put it unless an up direction was fitted too, when the second harmonic is
+    free under the prior in the step; with several lamps, a lamp's prior over the estimated sigma
     widens the covariance alike, the pose left in place.
     """
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
@@ -234,6 +240,11 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     estimated = lamp_count >= 2
     if estimated:
         offset_sigma = max(offset_sigma, RIM_OFFSET_FLOOR_PX)
+    elif mode_prior_sigma is not None and len(mode_prior_sigma) and mode_prior_sigma.max() > 0.0:
+        # One lamp whose edge measured its modes: its own offset mode, marginalised with that prior, holds
+        # what its size may be off by (a rim put at the profile model's edge: 0.003-0.15 px where its points
+        # scatter by 0.03-0.2 px); the common offset adds no more.
+        offset_sigma = min(offset_sigma, max(float(mode_prior_sigma.max()), MIN_OFFSET_SIGMA_PX))
     step, covariance, fit_covariance = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
     fitted = _model_error_fit(
         np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float),
@@ -313,6 +324,15 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
                 fit_covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
         inverse = _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp,
                                       mode_prior_sigma, offset_precision)
+        if count > rims + 2 * marker_count:
+            # An up direction measures the tilt that the rim's harmonics trade with: the pose goes where
+            # both put it, each by what it knows (the rim under its modes' prior, the up by its sigma).
+            # Only where the edge's model error exceeds its points' scatter (a soft, clipped or glaring
+            # rim: 1.4-2 px against 0.2 px on the independent renderer's realistic frames); below it the
+            # rim's shape is as good as its points, and an up direction it disagrees with widens the
+            # covariance instead (``perspective.widened_where_up_disagrees``).
+            _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
+                            solution)
     if estimated:
         # The fit with each lamp's modes, from the weights the fit without them ended with (the
         # modes take up part of that scatter), their prior sigma estimated at each reweighting.
@@ -390,6 +410,43 @@ def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point,
             k = 7 + per_lamp * lamp + j
             information[k, k] += precision
     return np.linalg.inv(information)
+
+
+@kernel
+def _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma, solution):
+    """
+    Write into ``solution`` the Gauss-Newton step of the pose and each lamp's rim harmonics under their prior.
+
+    The second harmonic (modes ``_TILT_MODES``: the ellipse's elongation and its direction, which trade
+    with the tilt) is free under ``mode_prior_sigma``, so a rim whose shape the optics bend yields to what
+    an up direction says of the tilt. The offsets and the first harmonic stay at 0: they trade with the
+    range and the bearing, which no up direction measures, and freed they would only let the marker pull
+    the bearing and the yaw (3.6 deg on a frame of the independent renderer's hand-held set).
+    """
+    upper, gradient = np.zeros((width, width)), np.zeros(width)
+    _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
+    information = _symmetric(upper)
+    free = list(range(6))
+    for lamp in range(mode_prior_sigma.shape[0]):
+        sigma = mode_prior_sigma[lamp]
+        if not sigma > 0.0:
+            continue
+        for j in range(_TILT_MODES[0], _TILT_MODES[1]):
+            k = 7 + per_lamp * lamp + j
+            information[k, k] += 1.0 / (sigma * sigma)
+            free.append(k)
+    size = len(free)
+    reduced, right = np.empty((size, size)), np.empty(size)
+    for a in range(size):
+        right[a] = -gradient[free[a]]
+        for b in range(size):
+            reduced[a, b] = information[free[a], free[b]]
+    stepped = np.linalg.solve(reduced, right)
+    for k in range(solution.shape[0]):
+        solution[k] = 0.0
+    for a in range(size):
+        if free[a] < solution.shape[0]:
+            solution[free[a]] = stepped[a]
 
 
 @kernel
