@@ -408,11 +408,8 @@ def _unblurred(rim: RimFit, points: np.ndarray, plateaus: np.ndarray, box: _Lamp
         return replace(rim, model_sigma=model_sigma, blur=math.sqrt(variance))
     fit = fit_rim(points + blur_shifts(rim.ellipse, points, variance), options.max_slope, options.outlier_sigmas,
                   _MIN_RIM_SIGMA, near=rim.ellipse)
-    # Crossings at the level the profile model put the edge: what is left is the model's misfit, and where
-    # rows clip, the unknown light of the clipped rows that blur after the shutter mixes into the ends of
-    # the rows beside them, alike where the edge has the same slope (``clipped_edge_model_sigma``).
+    # Crossings at the level the profile model put the edge: what is left is the model's misfit.
     model_sigma = MISFIT_SHARE * level.misfit if level.modelled else edge_model_sigma(variance)
-    model_sigma = math.hypot(model_sigma, clipped_edge_model_sigma(clipped_row_share(box, options), fit.sigma))
     return replace(fit, model_sigma=model_sigma, blur=math.sqrt(variance))
 
 
@@ -423,18 +420,16 @@ def clipped_row_share(box: _LampBox, options: DetectionOptions) -> float:
     return np.count_nonzero(lit & (brightest >= options.saturation_level)) / max(np.count_nonzero(lit), 1)
 
 
-def clipped_edge_model_sigma(clipped_share: float, scale_px: float) -> float:
+def clipped_edge_model_sigma(clipped_share: float, blur_px: float) -> float:
     """
     Return how far the crossings of a lamp whose lit rows clip may depart from its edge beyond its blur.
 
     The distance is in px, one sigma per mode of ``measurement.rim_error_modes``, for a lamp whose lit
-    rows clip on ``clipped_share``, beyond what its blur or profile model allows: the light of the
-    clipped rows, of unknown level, that blur mixes into the rows' ends and glare blooms out of them,
-    in units of ``scale_px``: the edge's blur for crossings at a half, the rim points' scatter for
-    crossings at the profile model's level (vlp_ros.sim's realistic robot row: without it 3 of 65
-    poses beyond their 99.9 % bound, 1 with it).
+    rows clip on ``clipped_share``, beyond what its blur alone allows (``edge_model_sigma``): the light
+    of the clipped rows, of unknown level, that blur of ``blur_px`` mixes into the rows' ends and glare
+    blooms out of them.
     """
-    return _CLIPPED_EDGE_BLURS * clipped_share * scale_px
+    return _CLIPPED_EDGE_BLURS * clipped_share * blur_px
 
 
 def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
