@@ -62,14 +62,16 @@ def test_benchmark_locates_the_looks_and_issue_13_rows_and_meets_their_availabil
     assert accuracy.main(['--quick', '--frames', str(frames), '--only', 'look realistic_jpeg',
                           '--only', 'stills 0.1']) == 0
     out = capsys.readouterr().out
-    _, availability, _ = printed_tables(out)
+    _, availability, _, optics = printed_tables(out)
     assert set(availability) == set(LOOK_ROWS)
+    # The look rows are stated again with their optics targets and whether they hold.
+    assert {label for label in LOOK_ROWS if ' look ' in label} == set(optics)
     for label, mean_cm in LOOK_ROWS.items():
         row = availability[label]
         assert int(row['poses']) == int(row['lamp in view']) == frames, (label, row)
         assert int(row['wrong']) == 0 and int(row['NEES > 99.9 %']) == 0 and float(row['mean cm']) < mean_cm, row
     # Each row's availability and wrong-fix targets, under the issue that set them, are met.
-    targets = out.split('Targets of issues 13 and 14')[1].split('Wrong fixes')[0]
+    targets = out.split('Targets of issues 13 and 14')[1].split('Optics targets per look')[0]
     judged = [line.split() for line in targets.splitlines() if ' #1' in line and 'NEES' not in line]
     assert len(judged) == 2 * len(LOOK_ROWS) and all(cells[-1] == 'yes' for cells in judged), targets
     assert {'#13', '#14'} <= {cell for cells in judged for cell in cells}
