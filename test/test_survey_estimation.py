@@ -128,8 +128,7 @@ def _tilted(sighting: Sighting, rng: np.random.Generator, sigma: float) -> Sight
     return replace(sighting, candidates=tuple(candidates), model_errors=tuple(model_errors))
 
 
-def test_lamps_whose_rims_bend_their_tilt_are_still_surveyed_to_the_targets(drive: SurveyDrive,
-                                                                          data: SurveyData) -> None:
+def test_lone_lamp_tilts_bent_by_their_rims_still_survey_to_the_targets(drive: SurveyDrive, data: SurveyData) -> None:
     rng = np.random.default_rng(11)
     bent = replace(data, sightings=[_tilted(s, rng, np.radians(0.5)) for s in data.sightings])
     estimate = estimate_survey(bent)
