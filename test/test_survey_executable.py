@@ -63,7 +63,8 @@ def test_survey_maps_the_recorded_drive_names_what_it_cannot_and_reports_unliste
         true = truth.lamps.get(lamp.id)
         errors.append(np.linalg.norm(lamp.position - true.position))
         angles.append(np.angle(np.exp(1j * (lamp.marker_angle - true.marker_angle))))
-        assert (lamp.position_sigma is None) == (lamp.name in ('s2', 's4', 's9')), lamp.name
+        # Anchors exact (zero sigmas), surveyed lamps with the sigmas of their estimate.
+        assert np.all(lamp.position_sigma == 0.0) == (lamp.name in ('s2', 's4', 's9')), lamp.name
     assert np.sqrt(np.mean(np.square(errors))) <= 0.01 and max(errors) <= 0.025, errors
     assert np.degrees(np.sqrt(np.mean(np.square(angles)))) <= 0.5, np.degrees(angles)
     assert {p.name for p in report.iterdir()} == {'plan.png', 'lamps.md', 'lamps.csv', 'residuals.csv'}

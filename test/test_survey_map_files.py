@@ -51,7 +51,9 @@ def test_the_surveyed_file_is_the_partial_one_filled_in_and_the_locator_loads_it
     np.testing.assert_allclose(lamp.position_sigma, [0.001, 0.002, 0.003])
     assert lamp.marker_angle == pytest.approx(1.25)
     # Everything else as it was: the anchors exact, the mounting and the beacon kept.
-    assert settings.lamps.get(11).position_sigma is None and settings.beacon.chip_rate == 16000.0
+    np.testing.assert_array_equal(settings.lamps.get(11).position_sigma, [0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(settings.lamps.get(11).position, [1.2, 0.0, 2.6])
+    assert settings.beacon.chip_rate == 16000.0
     assert settings.base_frame == 'base_link'
 
 

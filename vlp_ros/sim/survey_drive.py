@@ -21,6 +21,7 @@ from vlp_ros.core.mounting import Mounting
 from vlp_ros.core.pose import Pose
 from vlp_ros.sim.bag_writer import SimBagWriter
 from vlp_ros.sim.exact_observations import synthetic_observation
+from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.recording import EPOCH_NS, LOCATOR_NODE
 from vlp_ros.sim.scenarios import (BeaconDesign, make_lamp, robot_1080p_camera, ROBOT_CAMERA_HEIGHT, ROBOT_EXPOSURE,
                                    ROBOT_LAMP_RADIUS, ROBOT_ROW_TIME, Scenario)
@@ -28,7 +29,7 @@ from vlp_ros.sim.sensor import SensorModel
 from vlp_ros.survey.estimation import OdometryStep, SurveyData
 from vlp_ros.survey.partial_map import Anchor
 from vlp_ros.survey.recording import LEVEL_SIGMA
-from vlp_ros.survey.sightings import relative_candidates, Sighting
+from vlp_ros.survey.sightings import sighting
 
 import yaml
 
@@ -215,9 +216,9 @@ def exact_survey_data(drive: SurveyDrive, rng: np.random.Generator, rim_sigma: f
                 observation = synthetic_observation(lamp, pose, camera, rim_count, rim_sigma, marker_sigma, rng)
             except ValueError:
                 continue
-            candidates = relative_candidates(observation, lamp, camera)
-            if candidates:
-                sightings.append(Sighting(frame, lamp.id, candidates))
+            seen = sighting(frame, observation, lamp, camera)
+            if seen is not None:
+                sightings.append(seen)
     seen = sorted({s.frame for s in sightings})
     steps = []
     if odometry:
@@ -248,9 +249,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--columns', type=int, default=4)
     parser.add_argument('--rows', type=int, default=3)
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    parser.add_argument('--look', choices=sorted(LOOKS), default='clean', help='docs/simulator.md')
     parser.add_argument('--no-odometry', action='store_true', help='leave /odom out')
     args = parser.parse_args(argv)
     drive = survey_drive(args.seed, args.columns, args.rows)
+    drive = replace(drive, scenario=apply_look(drive.scenario, LOOKS[args.look], args.seed))
     record_survey_drive(drive, args.out, np.random.default_rng(args.seed), args.storage, not args.no_odometry)
     print(f'{len(drive.base_poses)} frames under {len(drive.lamps)} lamps (anchors {", ".join(drive.anchors)}): '
           f'{args.out}')

@@ -15,7 +15,9 @@ Anchors (lamps with a given position) are held by tight priors. gtsam's Levenber
 the factor graph, every measurement under a Huber loss, so a wrong association or a glare-bitten
 frame is down-weighted instead of pulling the map; the lamps' covariance is gtsam's marginal at the
 solution, scaled up when the sightings' residuals say their stated noise is too small (the a posteriori
-variance factor). Each sighting
+variance factor). A sighting's covariance is its pose fit's own; where the residuals show more scatter than
+that, a growing share of the fit's allowance for the rim's model error joins it (``MODEL_SHARES``): blurred,
+glaring or graded lamps bend a lone lamp's tilt by tenths of a degree that no single frame shows. Each sighting
 has two candidates at most: the one nearest the expected up direction starts, and after one solve each
 sighting takes the candidate the estimate agrees with and the graph is solved again.
 """
@@ -54,6 +56,11 @@ ROBUST_SCALE = 3.0
 GROSS_OUTLIER_CHI2 = 40.0
 # Median of chi-square with one degree of freedom (the robust variance factor's reference).
 CHI2_1_MEDIAN = 0.4549
+# Shares of the sightings' model-error allowance tried, in turn, while their residuals show more scatter than
+# their covariance claims (``_Graph.variance_factor`` over 1). Clean frames need none: the allowance is for a
+# rim's smooth departures from the model (blur, glare, a diffuser's falloff), which one frame cannot tell from
+# the pose, and where a recording shows none, taking it made the sigmas 3-4x too wide.
+MODEL_SHARES = (0.03, 0.1, 0.3, 1.0)
 # A lamp whose estimate is looser than this is not determined by the recording.
 MAX_POSITION_SIGMA = 0.1
 MAX_ANGLE_SIGMA = 0.2
@@ -142,6 +149,11 @@ def estimate_survey(data: SurveyData) -> SurveyEstimate:
         graph.steps = calibrated_odometry(graph.steps, graph.cameras, data.mounting)
         graph.calibrated = True
     graph.solve(choice)
+    for share in MODEL_SHARES:
+        if graph.variance_factor(graph.whitened(choice)) <= 1.0:
+            break
+        graph.model_share = share
+        graph.solve(choice)
     graph.excluded = graph.gross_outliers(choice)
     graph.odometry_variance = graph.odometry_variance_factor()
     if graph.excluded or graph.odometry_variance > 1.0:
@@ -299,6 +311,8 @@ class _Graph:
         # factors are in the graph.
         self.odometry_variance = 1.0
         self.odometry_factors: list[int] = []
+        # How much of the sightings' model-error allowance their covariance takes (``Sighting.measured``).
+        self.model_share = 0.0
         # Sightings (by index) left out as gross outliers.
         self.excluded: set[int] = set()
 
@@ -329,6 +343,13 @@ class _Graph:
     def _factors(self, choice: list[int]) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         self.odometry_factors = []
+        # Every pose held loosely where it starts: a direction that the measurements leave (nearly) free then
+        # shows as a huge marginal sigma, and the lamp is reported undetermined, instead of stopping the solve.
+        loose = gtsam.noiseModel.Isotropic.Sigma(6, FREE_SIGMA)
+        for frame in self.used_frames:
+            graph.add(gtsam.PriorFactorPose3(X(frame), _pose3(self.cameras[frame]), loose))
+        for lamp_id in self.used_lamps:
+            graph.add(gtsam.PriorFactorPose3(L(lamp_id), _lamp_pose3(*self.lamps[lamp_id]), loose))
         for lamp_id in self.used_lamps:
             angle = self.lamps[lamp_id][1]
             anchor = self.data.anchors.get(lamp_id)
@@ -344,7 +365,7 @@ class _Graph:
         for index, sighting in self.sightings:
             if index in self.excluded:
                 continue
-            relative = sighting.candidates[choice[index]]
+            relative = sighting.measured(choice[index], self.model_share)
             graph.add(gtsam.BetweenFactorPose3(L(sighting.lamp_id), X(sighting.frame), _pose3(relative),
                                                _robust(_in_gtsam_order(relative))))
         mounting = self.data.mounting
@@ -378,7 +399,7 @@ class _Graph:
         """(S, 6) errors of the chosen candidates (position in the lamp frame, rotation vector), and them."""
         errors, measured = [], []
         for index, sighting in self.sightings:
-            relative = sighting.candidates[choice[index]]
+            relative = sighting.measured(choice[index], self.model_share)
             position, angle = self.lamps[sighting.lamp_id]
             camera = self.cameras[sighting.frame]
             turn = _rz(np.array(angle))
@@ -416,10 +437,14 @@ class _Graph:
         chi_square = sum(2.0 * self.graph.at(i).error(self.values) for i in self.odometry_factors)
         return max(1.0, self.odometry_variance * chi_square / (6 * len(self.odometry_factors)))
 
+    def whitened(self, choice: list[int]) -> np.ndarray:
+        """Return the sightings' errors (S, 6) whitened by their covariance."""
+        errors, measured = self.sighting_errors(choice)
+        return np.einsum('sij,sj->si', _whitening(measured), errors)
+
     def gross_outliers(self, choice: list[int]) -> set[int]:
         """Return the indices of the sightings whose chi-square at the estimate exceeds ``GROSS_OUTLIER_CHI2``."""
-        errors, measured = self.sighting_errors(choice)
-        chi_squares = np.sum(np.einsum('sij,sj->si', _whitening(measured), errors) ** 2, axis=1)
+        chi_squares = np.sum(self.whitened(choice) ** 2, axis=1)
         return {index for (index, _), chi in zip(self.sightings, chi_squares) if chi > GROSS_OUTLIER_CHI2}
 
     def nearest_candidate(self, index: int) -> int:
@@ -432,7 +457,8 @@ class _Graph:
         turn = _rz(np.array(angle))
         predicted = Pose(turn.T @ camera.rotation, turn.T @ (camera.position - position))
         scores = []
-        for candidate in sighting.candidates:
+        for k in range(len(sighting.candidates)):
+            candidate = sighting.measured(k, self.model_share)
             error = predicted.error_vector(candidate)
             scores.append(float(error @ np.linalg.solve(candidate.covariance, error)))
         return int(np.argmin(scores))
@@ -444,7 +470,7 @@ class _Graph:
         factor = self.variance_factor(whitened)
         residuals = [SightingResidual(s.frame, s.lamp_id, float(c), float(np.linalg.norm(e[:3])))
                      for (_, s), c, e in zip(self.sightings, chi_squares, errors)]
-        marginals = gtsam.Marginals(self.graph, self.values)
+        marginals = _marginal_covariances(self.graph, self.values)
         lamps, undetermined = {}, dict(undetermined)
         free = [i for i in self.lamps if i not in self.data.anchors or self.data.anchors[i].marker_angle is None]
         for lamp_id in free:
@@ -452,7 +478,7 @@ class _Graph:
                 undetermined[lamp_id] = 'every sighting of it disagrees with the rest of the survey'
                 continue
             position, angle = self.lamps[lamp_id]
-            covariance = factor * marginals.marginalCovariance(L(lamp_id))
+            covariance = factor * marginals(L(lamp_id))
             heading = _rz(np.array(angle))
             position_covariance = heading @ covariance[3:, 3:] @ heading.T
             if lamp_id in self.data.anchors:
@@ -467,6 +493,26 @@ class _Graph:
         cameras = {f: self.cameras[f] for f in self.used_frames}
         return SurveyEstimate(lamps, cameras, undetermined, frames_seen, residuals,
                               float(self.graph.error(self.values)), factor)
+
+
+def _marginal_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+    """
+    Return a function from a key to its marginal covariance (6, 6) at ``values``.
+
+    gtsam's sparse ``Marginals``, or where its Cholesky factorisation finds the system too poorly conditioned, the
+    pseudo-inverse of the dense information matrix.
+    """
+    try:
+        return gtsam.Marginals(graph, values).marginalCovariance
+    except RuntimeError:
+        keys = list(values.keys())
+        ordering = gtsam.Ordering()
+        for key in keys:
+            ordering.push_back(key)
+        information, _ = graph.linearize(values).hessian(ordering)
+        covariance = np.linalg.pinv(information)
+        start = {key: 6 * index for index, key in enumerate(keys)}
+        return lambda key: covariance[start[key]:start[key] + 6, start[key]:start[key] + 6]
 
 
 def _whitening(measured: list[Pose]) -> np.ndarray:

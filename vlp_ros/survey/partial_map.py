@@ -99,9 +99,16 @@ def load_partial_map(path: Path | str) -> PartialMap:
 
 
 def surveyed_document(partial: PartialMap, lamps: dict[str, SurveyedLamp]) -> dict[str, Any]:
-    """Return the partial file's document with the ``lamps`` estimated filled in (anchors as given)."""
+    """
+    Return the partial file's document with the ``lamps`` estimated filled in.
+
+    Anchors keep their position, with a ``position_sigma`` of zeros unless they have one: the survey held them
+    exact, so every lamp of the file says how well it is known.
+    """
     document = copy.deepcopy(partial.document)
     leds = parameters_tree(document, NODE, 'the partial map')['leds']
+    for name in partial.anchors:
+        leds[name].setdefault('position_sigma', [0.0, 0.0, 0.0])
     for name, lamp in lamps.items():
         entry = leds[name]
         if name not in partial.anchors:

@@ -29,12 +29,23 @@ class Sighting:
     """
     One lamp in one frame: the camera's pose candidates in the lamp's frame, each with its covariance.
 
-    ``frame`` indexes the survey's frames; ``candidates`` are cheapest first.
+    ``frame`` indexes the survey's frames; ``candidates`` are cheapest first, their covariance the fit's
+    own (the measurement noise); ``model_errors`` what each candidate's covariance grows by when the rim's
+    smooth model-error patterns are allowed for (``solvers.covariance.allow_for_model_error``), positive
+    semi-definite, zero where the fit allowed none.
     """
 
     frame: int
     lamp_id: int
     candidates: tuple[Pose, ...]
+    model_errors: tuple[np.ndarray, ...] = ()
+
+    def measured(self, k: int, model_share: float) -> Pose:
+        """Return candidate ``k`` with its fit's covariance plus ``model_share`` of its model error."""
+        candidate = self.candidates[k]
+        if not self.model_errors or model_share == 0.0:
+            return candidate
+        return Pose(candidate.rotation, candidate.position, candidate.covariance + model_share * self.model_errors[k])
 
 
 @dataclass
@@ -53,17 +64,25 @@ def lamp_frame_lamp(lamp: Lamp) -> Lamp:
     return replace(lamp, position=np.zeros(3), marker_angle=0.0, position_sigma=None)
 
 
-def relative_candidates(observation: LampObservation, lamp: Lamp, camera: CameraModel) -> tuple[Pose, ...]:
-    """Return the camera's pose candidates in ``lamp``'s frame, covariance set; none without a rim and marker."""
+def sighting(frame: int, observation: LampObservation, lamp: Lamp, camera: CameraModel) -> Sighting | None:
+    """Return the sighting of ``lamp`` in ``frame``, solved in the lamp's frame; None without a rim and a marker."""
     if lamp.is_point or not observation.rim_usable or observation.marker is None or not lamp.marker_distance > 0.0:
-        return ()
+        return None
     [(seen, local)], view = solver_view([(observation, lamp_frame_lamp(lamp))], camera)
     try:
-        candidates = solve_lamp(seen, local, view)
+        candidates = [c for c in solve_lamp(seen, local, view) if c.pose.covariance is not None]
     except ValueError:
-        return ()
-    return tuple(Pose(c.pose.rotation, c.pose.position, c.separating_covariance) for c in candidates
-                 if c.pose.covariance is not None)
+        return None
+    if not candidates:
+        return None
+    poses = tuple(Pose(c.pose.rotation, c.pose.position, c.separating_covariance) for c in candidates)
+    return Sighting(frame, lamp.id, poses, tuple(_semi_definite(c.pose.covariance - c.separating_covariance)
+                                                 for c in candidates))
+
+
+def _semi_definite(matrix: np.ndarray) -> np.ndarray:
+    values, vectors = np.linalg.eigh(0.5 * (matrix + matrix.T))
+    return (vectors * np.maximum(values, 0.0)) @ vectors.T
 
 
 def frame_sightings(pipeline: Pipeline, index: int, image: np.ndarray, camera: CameraModel,
@@ -78,9 +97,9 @@ def frame_sightings(pipeline: Pipeline, index: int, image: np.ndarray, camera: C
             if unlisted is not None:
                 result.unlisted_ids.append(unlisted)
             continue
-        candidates = relative_candidates(observation, lamps.get(lamp_id), camera)
-        if candidates:
-            result.sightings.append(Sighting(index, lamp_id, candidates))
+        seen = sighting(index, observation, lamps.get(lamp_id), camera)
+        if seen is not None:
+            result.sightings.append(seen)
     return result
 
 
