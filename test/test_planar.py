@@ -6,6 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from solver_scenes import camera_wide, observe
+from test_point_lamps import point_observation
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.mounting import Mounting
 from vlp_ros.core.pose import Pose
@@ -90,6 +91,20 @@ def test_the_floor_fixes_a_small_lamp_to_the_centimetre_with_an_honest_covarianc
     if six_dof:
         # A 56 px lamp's ellipse gives its tilt to tenths of a degree: decimetres at 2 m.
         assert np.mean(planar) < 0.3 * np.mean(six_dof), (planar, six_dof)
+
+
+def test_two_point_lamps_on_the_floor_give_the_pose() -> None:
+    points = (Lamp('p', 3, np.array([0.6, 0.3, 2.6]), 0.0), Lamp('q', 4, np.array([1.1, 0.4, 2.6]), 0.0))
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        base = _base(rng, lamps=points)
+        truth = MOUNTING.camera_pose(base)
+        pairs = [(point_observation(lamp, truth, camera_wide(), rng), lamp) for lamp in points]
+        assert solve_lamps(pairs, camera_wide(), DisambiguationHints()).reason is Reason.NO_CANDIDATES
+        choice = solve_lamps(pairs, camera_wide(), DisambiguationHints(), FLOOR)
+        assert choice.pose is not None, (choice.reason, choice.detail)
+        # 0.5 px on lamps 0.5 m apart 2.15 m up, and the floor's 0.15 deg: a few centimetres at most.
+        assert MOUNTING.base_pose(choice.pose).position_error(base) < 0.05
 
 
 def test_a_lone_lamp_without_its_marker_waits_for_a_recent_pose() -> None:

@@ -58,6 +58,7 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import distinct, PoseCandidate
 from vlp_ros.solvers.circle_pose import circle_poses, CirclePose, normalized_conic
 from vlp_ros.solvers.covariance import allow_for_model_error, perturbed
+from vlp_ros.solvers.fit_kernels import inverse_form
 from vlp_ros.solvers.measurement import LampMeasurement, rim_error_modes
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
@@ -65,6 +66,8 @@ from vlp_ros.solvers.up_measurement import UpMeasurement
 # (tail 1e-6), and beyond which (its 95 % point) the covariance is widened by the disagreement.
 OFF_THE_FLOOR_CHI2 = float(chi2.isf(1e-6, 3))
 FLOOR_DOUBT_CHI2 = float(chi2.isf(0.05, 3))
+# Squared Mahalanobis distance (6 dof, tail 1e-4) within which candidates fused with the floor are one pose.
+SAME_POSE_CHI2 = float(chi2.isf(1e-4, 6))
 # Fastest a ground robot is taken to turn (rad/s): a recent pose's yaw vouches for a later frame's
 # within this rate times the time since.
 TURN_RATE = 1.0
@@ -128,7 +131,8 @@ def on_floor(candidates: list[PoseCandidate], floor: Floor, tilt: bool = True) -
     Without ``tilt`` only the height is fused: the tilt is already in the fit, and a fit that
     the image pulled off the floor's tilt by that chi-square contradicts it. A candidate whose
     floor chi-square exceeds ``OFF_THE_FLOOR_CHI2`` is left out; the chi-square is added to each
-    kept candidate's cost, so the fit's cost rule weighs the floor too.
+    kept candidate's cost, so the fit's cost rule weighs the floor too. Candidates the floor has
+    brought within ``SAME_POSE_CHI2`` of the cheapest are one pose (``_merged``).
     """
     kept, contradicting = [], 0
     for candidate in candidates:
@@ -137,7 +141,31 @@ def on_floor(candidates: list[PoseCandidate], floor: Floor, tilt: bool = True) -
             contradicting += 1
         else:
             kept.append(fused)
-    return distinct(kept), contradicting
+    kept = distinct(kept)
+    if len(kept) < 2:
+        return kept, contradicting
+    same = [c for c in kept[1:] if inverse_form(kept[0].pose.covariance, c.pose.error_vector(kept[0].pose))
+            <= SAME_POSE_CHI2]
+    rest = [c for c in kept[1:] if not any(c is s for s in same)]
+    return ([_merged([kept[0], *same]), *rest] if same else kept), contradicting
+
+
+def _merged(candidates: list[PoseCandidate]) -> PoseCandidate:
+    """
+    Return one candidate for several the floor made the same pose: their mixture, weighed by likelihood.
+
+    A near-frontal lamp's two poses, each fused with the floor, end centimetres and a degree or two of
+    yaw apart, within a few sigma: neither is wrong, and the mixture's covariance spans both.
+    """
+    best = candidates[0]
+    weights = np.exp(-0.5 * np.array([c.cost - best.cost for c in candidates]))
+    weights /= weights.sum()
+    offsets = [c.pose.error_vector(best.pose) for c in candidates]
+    mean = sum(w * d for w, d in zip(weights, offsets))
+    covariance = sum(w * (np.asarray(c.pose.covariance) + np.outer(d - mean, d - mean))
+                     for w, c, d in zip(weights, candidates, offsets))
+    pose = Pose(*perturbed(best.pose, mean), 0.5 * (covariance + covariance.T))
+    return PoseCandidate(pose=pose, cost=best.cost, residual_count=best.residual_count)
 
 
 def _fused(candidate: PoseCandidate, floor: Floor, tilt: bool) -> tuple[PoseCandidate, float]:
