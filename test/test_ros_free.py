@@ -5,8 +5,9 @@ import sys
 
 ROOT = Path(__file__).resolve().parents[1]
 # Benchmarks of the nodes themselves: the cost of the locator's visualization messages (it builds
-# them), and the locator's start-up time (it watches for the locator's subscription over DDS).
-NEEDS_ROS = {'vlp_ros.benchmarks.visualization_cost', 'vlp_ros.benchmarks.startup'}
+# them), the locator's start-up time (it watches for the locator's subscription over DDS) and the
+# camera rate it keeps up with (it streams frames into the locator over DDS).
+NEEDS_ROS = {'vlp_ros.benchmarks.visualization_cost', 'vlp_ros.benchmarks.startup', 'vlp_ros.benchmarks.camera_rate'}
 
 
 def ros_free_modules() -> list[str]:
