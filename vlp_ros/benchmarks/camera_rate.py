@@ -5,8 +5,10 @@ For each scene and look of ``pipeline_speed``, renders ``--frames`` frames of th
 pose with a lamp in view (the robot's own video, or a still scene's pose held still), starts the
 installed ``locator`` (its own process, over DDS on loopback, an unshared domain) and publishes the
 frames to it in turn at ``--rate`` frames/s for ``--seconds``, as a camera driver does: best effort,
-depth 1, ``camera_info`` with each image, stamped when sent (bgr8 ``image_raw``, or JPEG on
-``image_raw/compressed`` for the JPEG look). The locator processes the newest frame and drops the ones
+depth 1, ``camera_info`` and the accelerometer's reading (``imu``, as ``pipeline_speed`` gives the pipeline
+gravity) with each image, stamped when sent (bgr8 ``image_raw``, or JPEG on ``image_raw/compressed`` for
+the JPEG look). The locator runs with ``imu.enabled``: one lamp held still is ambiguous without gravity,
+and a still's frames would never reach a pose. The locator processes the newest frame and drops the ones
 that arrive while it is busy. Reports per case the share of frames answered (a ``vlp/processed``
 header with the frame's stamp), the share that reached a pose, the latency from the frame's stamp
 (when it was sent) to its answer arriving here (median, max), and the locator's peak resident memory
@@ -34,7 +36,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
 
 from vlp_ros.benchmarks.pipeline_speed import lamp_poses, scene, SCENES, SPEED_LOOKS, VIDEO_SCENES
@@ -43,6 +45,7 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.evaluation.metrics import format_table
 from vlp_ros.nodes.dds_environment import (claim_domain_id, installed_executable, loopback_profile, stop_process,
                                            use_loopback_dds)
+from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.recording import write_params
 from vlp_ros.sim.render import render_frame
@@ -69,10 +72,19 @@ def camera_info(camera: CameraModel) -> CameraInfo:
     return msg
 
 
+def imu_message(force: np.ndarray, noise_std: float) -> Imu:
+    """Return an accelerometer-only Imu message (orientation and angular velocity marked absent)."""
+    msg = Imu()
+    msg.orientation_covariance[0] = msg.angular_velocity_covariance[0] = -1.0
+    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = (float(v) for v in force)
+    msg.linear_acceleration_covariance = [float(v) for v in (np.eye(3) * noise_std ** 2).reshape(-1)]
+    return msg
+
+
 def frame_messages(name: str, scenario: Scenario, count: int,
-                   rng: np.random.Generator) -> list[Image | CompressedImage]:
+                   rng: np.random.Generator) -> tuple[list[Image | CompressedImage], list[Imu]]:
     """
-    Return ``count`` frames of ``scenario`` with a lamp in view, as a camera driver sends them.
+    Return ``count`` frames of ``scenario`` with a lamp in view, as a camera driver sends them, and the IMU at each.
 
     A video scene's own consecutive frames (a lamp in each); a still scene's pose held still (the beacon moving on).
     """
@@ -82,8 +94,11 @@ def frame_messages(name: str, scenario: Scenario, count: int,
     index = runs[len(runs) // 2] if video else shown[len(shown) // 2]
     start = float(scenario.frame_times()[index])
     messages: list[Image | CompressedImage] = []
+    imus: list[Imu] = []
     for k in range(count):
         pose = index - count + 1 + k if video else index
+        imus.append(imu_message(specific_force(scenario.poses[pose], scenario.accelerations[pose], scenario.imu_noise,
+                                               rng), scenario.imu_noise))
         image = render_frame(scenario.camera, scenario.poses[pose], scenario.lamps + scenario.clutter,
                              scenario.sensor, start + (k - count + 1) / scenario.frame_rate, rng).image
         if scenario.jpeg_quality is not None:
@@ -92,12 +107,13 @@ def frame_messages(name: str, scenario: Scenario, count: int,
         height, width = image.shape[:2]
         messages.append(Image(height=height, width=width, encoding='bgr8', step=width * 3,
                               data=np.ascontiguousarray(image).tobytes()))
-    return messages
+    return messages, imus
 
 
-def send_frames(messages: list[Image | CompressedImage], camera: CameraModel, seconds: float, rate: float) -> None:
+def send_frames(messages: list[Image | CompressedImage], imus: list[Imu], camera: CameraModel, seconds: float,
+                rate: float) -> None:
     """
-    Publish ``messages`` in turn at ``rate`` for ``seconds``, each with a camera_info, stamped when sent.
+    Publish ``messages`` in turn at ``rate`` for ``seconds``, each after its IMU and a camera_info, stamped when sent.
 
     Runs in a process of its own (``run_case``), so that serialising the frames does not delay the answers.
     """
@@ -107,6 +123,7 @@ def send_frames(messages: list[Image | CompressedImage], camera: CameraModel, se
     topic = 'image_raw/compressed' if compressed else 'image_raw'
     images = node.create_publisher(CompressedImage if compressed else Image, topic, CAMERA_QOS)
     infos = node.create_publisher(CameraInfo, 'camera_info', CAMERA_QOS)
+    imu = node.create_publisher(Imu, 'imu', CAMERA_QOS)
     info = camera_info(camera)
     # Serialised once (a 4K frame takes ~0.1 s): each send only writes its stamp into the bytes, as a camera
     # driver's buffer is sent as it is.
@@ -125,6 +142,9 @@ def send_frames(messages: list[Image | CompressedImage], camera: CameraModel, se
         info.header = Header(stamp=stamp, frame_id='camera')
         frame = serialised[n % len(serialised)]
         struct.pack_into(STAMP_FORMAT, frame, STAMP_OFFSET, stamp.sec, stamp.nanosec)
+        reading = imus[n % len(imus)]
+        reading.header = info.header
+        imu.publish(reading)
         infos.publish(info)
         images.publish(bytes(frame))
     node.destroy_node()
@@ -154,7 +174,7 @@ class Answers:
         self.outcome[stamp] = msg.frame_id
 
 
-def run_case(node, executor, scenario: Scenario, messages: list, seconds: float, rate: float,
+def run_case(node, executor, scenario: Scenario, messages: list, imus: list[Imu], seconds: float, rate: float,
              workdir: Path) -> tuple[Answers, int, float]:
     """
     Stream ``messages`` into a fresh locator for ``scenario``.
@@ -162,7 +182,7 @@ def run_case(node, executor, scenario: Scenario, messages: list, seconds: float,
     Return its answers, the frames sent and the locator's peak RSS (MB).
     """
     params = workdir / 'params.yaml'
-    write_params(params, scenario, imu=False)
+    write_params(params, scenario, imu=True)
     wait_until_gone(node)
     log = open(workdir / 'locator.log', 'w')
     process = subprocess.Popen([str(installed_executable('locator')), '--ros-args', '--params-file', str(params)],
@@ -174,7 +194,7 @@ def run_case(node, executor, scenario: Scenario, messages: list, seconds: float,
             executor.spin_once(timeout_sec=0.05)
         answers = Answers(node)
         sender = multiprocessing.get_context('spawn').Process(
-            target=send_frames, args=(messages, scenario.camera, seconds, rate))
+            target=send_frames, args=(messages, imus, scenario.camera, seconds, rate))
         sender.start()
         while sender.is_alive():
             executor.spin_once(timeout_sec=0.01)
@@ -224,10 +244,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             base = scene(name, args.seed)
             for look in args.look or SPEED_LOOKS:
                 scenario = apply_look(base, LOOKS[look], args.seed)
-                messages = frame_messages(name, scenario, args.frames, rng)
+                messages, imus = frame_messages(name, scenario, args.frames, rng)
                 with tempfile.TemporaryDirectory(prefix='vlp_camera_rate_') as workdir:
-                    answers, sent, rss = run_case(node, executor, scenario, messages, args.seconds, args.rate,
-                                                  Path(workdir))
+                    answers, sent, rss = run_case(node, executor, scenario, messages, imus, args.seconds,
+                                                  args.rate, Path(workdir))
                 rows.append(case_row(name, look, answers, sent, rss))
                 print(' '.join(rows[-1]), file=sys.stderr, flush=True)
     finally:
