@@ -479,15 +479,12 @@ def _edge_profile_fit(t: np.ndarray, value: np.ndarray, rho: np.ndarray,
     """
     params = np.array([0.9, 0.0, 0.0, 0.05, 0.0, 0.0, max(blur, 0.3)])
     kept = np.ones(t.size, np.bool_)
-    residual = np.empty(t.size)
-    jacobian = np.empty((t.size, _PROFILE_PARAMETERS))
     converged = False
     covariance = np.zeros((_PROFILE_PARAMETERS, _PROFILE_PARAMETERS))
     for round_ in range(2):
-        converged, params = _profile_rounds(t, value, rho, kept, params)
+        converged, params, cost, residual, jacobian = _profile_rounds(t, value, rho, kept, params)
         if not converged:
             return False, params, 0.0, covariance
-        cost = _profile_model(params, t, value, rho, kept, residual, jacobian)
         if round_ == 1:
             variance = 2.0 * cost / max(np.count_nonzero(kept) - _PROFILE_PARAMETERS, 1)
             normal = jacobian.T @ jacobian
@@ -528,18 +525,24 @@ def _smooth_misfit(t: np.ndarray, rho: np.ndarray, kept: np.ndarray, residual: n
 
 @kernel
 def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.ndarray,
-                    params: np.ndarray) -> tuple[bool, np.ndarray]:
-    """One Levenberg-Marquardt fit of ``_edge_profile_fit``'s model on the ``kept`` samples, from ``params``."""
+                    params: np.ndarray) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray]:
+    """
+    One Levenberg-Marquardt fit of ``_edge_profile_fit``'s model on the ``kept`` samples, from ``params``.
+
+    Returns (converged, parameters) and the model's cost, residuals and Jacobian at those parameters
+    (``_profile_model``), so that the caller need not evaluate it again.
+    """
     n = t.size
     residual, jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
     cost = _profile_model(params, t, value, rho, kept, residual, jacobian)
+    # Trials are evaluated into a second pair of arrays, swapped with the first when one is taken.
+    trial_residual, trial_jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
     damping = 1e-3
     for _ in range(_PROFILE_ITERATIONS):
         normal = jacobian.T @ jacobian
         gradient = jacobian.T @ residual
         improved = False
         trial = params.copy()
-        trial_residual, trial_jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
         trial_cost = cost
         while damping < 1e10:
             damped = normal.copy()
@@ -555,13 +558,15 @@ def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.
                 break
             damping *= 10.0
         if not improved:
-            return True, params
+            return True, params, cost, residual, jacobian
         relative = (cost - trial_cost) / max(cost, 1e-300)
-        params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
+        params, cost = trial, trial_cost
+        residual, trial_residual = trial_residual, residual
+        jacobian, trial_jacobian = trial_jacobian, jacobian
         damping = max(damping / 10.0, 1e-12)
         if relative < 1e-10:
-            return True, params
-    return False, params
+            return True, params, cost, residual, jacobian
+    return False, params, cost, residual, jacobian
 
 
 @kernel
