@@ -167,3 +167,25 @@ def test_more_open_lamps_than_assignments_can_be_tried_are_settled_by_the_most_c
     lamps = [OpenLamp(observation, (disc(r), disc(r - 1), disc(r + 1)), (p, 0.6 * (1.0 - p), 0.4 * (1.0 - p)))
              for r, p in zip(right, (0.999, 0.9985, 0.998, 0.9975, 0.997))]
     assert [lamp.id for _, lamp in settle([], lamps, fits_right)] == list(right)
+
+
+def test_against_the_certain_pose_only_candidates_it_can_see_where_the_lamp_is_are_solved() -> None:
+    # The certain lamps' pose sees lamp 3 where the open lamp is; lamp 4, half a metre on, 2.5 m up, lies
+    # over a hundred pixels off a lamp a few pixels wide: no joint pose near the certain one explains it.
+    camera = bare_led_scenario('1080p', photos=1, seed=1).camera
+    anchor_pose = Pose(np.eye(3), np.zeros(3), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
+    seen_at = camera.project(anchor_pose.map_to_camera(_lamp(3).position))[0]
+    observation = _observation()
+    observation = replace(observation, ellipse=np.array([*seen_at, *observation.ellipse[2:]]))
+    asked = []
+
+    def anywhere(pairs) -> Choice:
+        asked.extend(lamp.id for _, lamp in pairs[2:])
+        return Choice(anchor_pose, Reason.MULTI_LAMP)
+
+    certain = [(observation, _lamp(1)), (observation, _lamp(2))]
+    lamp = OpenLamp(observation, (_lamp(3), _lamp(4)), (0.5, 0.5))
+    assert [lamp.id for _, lamp in settle(certain, [lamp], anywhere, camera)] == [3]
+    assert asked == [3]
+    # Without the camera both are solved, and a pose that explains anything leaves the lamp open.
+    assert settle(certain, [lamp], anywhere) == []

@@ -179,7 +179,7 @@ class Pipeline:
         if odd is not None:
             ids = [None if obs is certain[odd][0] else i for obs, i in zip(observations, ids)]
             certain = pairs_of(ids)
-        settled = settle(certain, open_lamps(observations, ids, readings, lamps, solvable), solve)
+        settled = settle(certain, open_lamps(observations, ids, readings, lamps, solvable), solve, camera)
         by_observation = {id(obs): lamp.id for obs, lamp in settled}
         ids = [by_observation.get(id(obs), i) for obs, i in zip(observations, ids)]
         return ids, certain + settled, solved

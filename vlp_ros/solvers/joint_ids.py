@@ -21,6 +21,11 @@ lamps as well as the right one is (a disc without its marker leaves the yaw free
 spacing of a regular grid (each lamp read as its neighbour), so the right one must be among those
 tried, and the readings must tell it from the others that fit.
 
+Against the certain lamps' pose, a candidate is solved only if that pose, moved anywhere within the
+same Mahalanobis distance, can see it within a few of its radii of the detected lamp: a joint pose
+that coincides with the certain one sees any other candidate (another lamp of the map, typically a
+metre or more away) where no lamp is, and cannot explain the image, so its solve is spared.
+
 Certain IDs are held to the same rule. Two lamps that claim one ID (a lamp not in the map whose
 tone, 2 % off, lies in a mapped lamp's band) are both reopened, and so is the one lamp without
 which the others are explained when no pose explains them all, so that the geometry decides which
@@ -38,8 +43,10 @@ import numpy as np
 from scipy.stats import chi2
 
 from vlp_ros.beacon.reading import BeaconReading
+from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.observation import LampObservation
+from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import Choice, Reason
 
 # A candidate whose posterior (the reading alone) is below this is not tried, unless needed to cover _COVERED.
@@ -53,6 +60,9 @@ _SAME_POSE = float(chi2.ppf(1.0 - 1e-4, 6))
 # Without a pose from the certain lamps, the candidates tried must hold this much of each open lamp's posterior;
 # the candidate (or assignment) taken must hold this much of the posterior of those the geometry explains.
 _COVERED = 1.0 - 1e-4
+# A candidate seen farther than this many of its radii from the detected lamp's centre (beyond where the pose
+# may move) leaves its rim unexplained.
+_REACH_RADII = 3.0
 # Residuals beyond the six a pose takes, so that a wrong assignment can fail to be explained.
 _SPARE_RESIDUALS = 2
 
@@ -143,19 +153,25 @@ def odd_one_out(certain: list[Pair], solve: Solver) -> int | None:
     return explained[0] if len(explained) == 1 else None
 
 
-def settle(certain: list[Pair], lamps: list[OpenLamp], solve: Solver) -> list[Pair]:
-    """Return the open lamps that one pose explains with exactly one of their candidates, as pairs."""
+def settle(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, camera: CameraModel | None = None) -> list[Pair]:
+    """
+    Return the open lamps that one pose explains with exactly one of their candidates, as pairs.
+
+    ``camera`` (that of the observations' pixels), when given, spares the solves of candidates that a pose
+    coinciding with the certain lamps' one cannot see where the lamp is.
+    """
     if not lamps:
         return []
     anchor = solve(certain) if certain else None
     if _anchors(anchor):
-        return _settled_by_pose(certain, lamps, solve, anchor)
+        return _settled_by_pose(certain, lamps, solve, anchor, camera)
     first, rest = _within_budget(lamps)
     settled = _settled_by_assignment(certain, first, solve)
     if not settled or not rest:
         return settled
     anchor = solve([*certain, *settled])
-    return settled + _settled_by_pose([*certain, *settled], rest, solve, anchor) if _anchors(anchor) else settled
+    return settled + _settled_by_pose([*certain, *settled], rest, solve, anchor, camera) if _anchors(anchor) \
+        else settled
 
 
 def _anchors(choice: Choice | None) -> bool:
@@ -178,16 +194,40 @@ def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp
     return ranked, []
 
 
-def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, anchor: Choice) -> list[Pair]:
+def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, anchor: Choice,
+                     camera: CameraModel | None) -> list[Pair]:
     settled: list[Pair] = []
     for open_lamp in lamps:
         used = {lamp.id for _, lamp in settled}
         fitting = [(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior) if lamp.id not in used
+                   and (camera is None or _within_reach(open_lamp.observation, lamp, anchor.pose, camera))
                    and _explained_near(solve([*certain, *settled, (open_lamp.observation, lamp)]), anchor)]
         decided = _decisive(fitting)
         if decided is not None:
             settled.append((open_lamp.observation, decided))
     return settled
+
+
+def _within_reach(observation: LampObservation, lamp: Lamp, pose: Pose, camera: CameraModel) -> bool:
+    """
+    Return whether ``pose``, moved within ``_SAME_POSE`` of its covariance, can see ``lamp`` near ``observation``.
+
+    Near: within ``_REACH_RADII`` of the lamp's angular radius (or the detected one's, if larger) of the
+    detected centre. A pose within that Mahalanobis distance turns by at most sqrt(_SAME_POSE) times the
+    largest rotation sigma and moves by at most as many of the largest position sigma, which turn the
+    lamp's ray by that distance over the lamp's.
+    """
+    point = pose.map_to_camera(lamp.position)[0]
+    distance = float(np.linalg.norm(point))
+    seen = np.append(camera.normalize(observation.center.reshape(1, 2))[0], 1.0)
+    angle = float(np.arccos(np.clip(point @ seen / (distance * np.linalg.norm(seen)), -1.0, 1.0)))
+    covariance = pose.covariance
+    spread = np.sqrt(np.linalg.eigvalsh(covariance[3:, 3:])[-1]) \
+        + np.sqrt(np.linalg.eigvalsh(covariance[:3, :3])[-1]) / distance
+    if lamp.position_sigma is not None:
+        spread += float(np.max(lamp.position_sigma)) / distance
+    size = max(lamp.radius / distance, float(observation.ellipse[2]) / camera.focal)
+    return angle <= np.sqrt(_SAME_POSE) * spread + _REACH_RADII * size
 
 
 def _explained_near(choice: Choice, anchor: Choice) -> bool:
