@@ -298,11 +298,15 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     design, chip_weights = _codebook(id_bits)
     length = len(chip_weights)
     per_mix, misfit = [], np.inf
+    # The neighbours' products summed by weight do not depend on the mix: taken once for all mixes.
+    products = None
     for mix in mixes:
         per_bit, baseline_rss, by_weight = _per_bit_sums(x, v, k, chip_weights, mix)
         # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
         sums = per_bit @ design
-        energy = _template_energy(by_weight, mix, id_bits, float(v.sum()))
+        if products is None and mix != 0.0:
+            products = _neighbour_sums(by_weight, id_bits)
+        energy = _template_energy(products, mix, id_bits, float(v.sum()), length)
         half_gain, best = _half_gains(sums, energy, length)
         # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
         spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / length)
@@ -315,20 +319,29 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     return top + np.log(np.exp(stacked - top).mean(axis=0)), misfit
 
 
-def _template_energy(by_weight: np.ndarray, mix: float, id_bits: int, total: float) -> np.ndarray:
+def _neighbour_sums(by_weight: np.ndarray, id_bits: int) -> tuple[np.ndarray, np.ndarray]:
     """
-    sum(v t^2) of every (shift, ID)'s template t_k = s_k + mix (s_k-1 + s_k+1), (L, ids) float32.
+    Every (shift, ID)'s weighted sums of its sign products s_k s_k+1 + s_k s_k-1 and s_k-1 s_k+1, (L, ids) each.
 
     ``by_weight`` (L, L) holds the weights v summed by packet position for each shift.
     """
-    length = by_weight.shape[0]
-    if mix == 0.0:
-        return np.full((length, 2 ** id_bits), total, dtype=np.float32)
     next_products, second_products = _neighbour_products(id_bits)
     # s_k s_k+1 and s_k s_k-1 (the product one back, at position p - 1), and s_k-1 s_k+1 (at p - 1).
     before = np.roll(by_weight, -1, axis=1)
-    energy = ((1.0 + 2.0 * mix * mix) * total + 2.0 * mix * ((by_weight + before) @ next_products)
-              + 2.0 * mix * mix * (before @ second_products))
+    return (by_weight + before) @ next_products, before @ second_products
+
+
+def _template_energy(products: tuple[np.ndarray, np.ndarray] | None, mix: float, id_bits: int, total: float,
+                     length: int) -> np.ndarray:
+    """
+    sum(v t^2) of every (shift, ID)'s template t_k = s_k + mix (s_k-1 + s_k+1), (L, ids) float32.
+
+    ``products`` are ``_neighbour_sums`` (not needed without a mix); ``total`` is sum(v).
+    """
+    if mix == 0.0:
+        return np.full((length, 2 ** id_bits), total, dtype=np.float32)
+    neighbours, seconds = products
+    energy = (1.0 + 2.0 * mix * mix) * total + 2.0 * mix * neighbours + 2.0 * mix * mix * seconds
     return energy.astype(np.float32)
 
 
