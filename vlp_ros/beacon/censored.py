@@ -124,13 +124,15 @@ def _template_tables(id_bits: int, mixes: tuple[float, ...]) -> tuple[np.ndarray
 
     The template T_p = s_p + mix (s_p-1 + s_p+1) and its square; the chip's own darkness d_p = (1 - s_p) / 2 and
     d_p T_p, d_p T_p^2 (a censored chip counts in the bound's least squares only where the hypothesis makes it
-    dark); and T again. Each (L, mixes x ids), the mixes side by side.
+    dark); and T again. Each (L, mixes x ids), the mixes side by side, but the darkness (L, ids): the mix leaves it.
     """
     signs = np.ascontiguousarray(_signs(id_bits).T)
     neighbours = np.roll(signs, 1, axis=0) + np.roll(signs, -1, axis=0)
     template = np.hstack([signs + mix * neighbours for mix in mixes])
-    dark = np.hstack([0.5 * (1.0 - signs)] * len(mixes))
-    tables = (template, template * template, dark, dark * template, dark * template * template, template)
+    dark = 0.5 * (1.0 - signs)
+    dark_of_each = np.hstack([dark] * len(mixes))
+    tables = (template, template * template, dark, dark_of_each * template, dark_of_each * template * template,
+              template)
     for table in tables:
         table.flags.writeable = False
     return tables
@@ -200,66 +202,70 @@ def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np
     as in ``_solve``; a singular system bounds nothing (0). Written out without branches or inner loops, so
     that the loop over the hypotheses runs several at once (SIMD).
     """
-    length, count = measured_t.shape[1], measured_t.shape[2]
+    length, count, ids = measured_t.shape[1], measured_t.shape[2], censored_d.shape[2]
     out = np.empty((length, count))
     ridge = 1.0 + 1e-9
     for shift in range(length):
-        for i in range(count):
-            cd0, cd1, cd2 = censored_d[0, shift, i], censored_d[1, shift, i], censored_d[2, shift, i]
-            g00 = (fixed[0] + cd0) * ridge + 1e-12
-            g01 = fixed[1] + cd1
-            g02 = fixed[2] + cd2
-            g11 = (fixed[2] + cd2) * ridge + 1e-12
-            g12 = fixed[3] + censored_d[3, shift, i]
-            g22 = (fixed[4] + censored_d[4, shift, i]) * ridge + 1e-12
-            g03 = measured_t[0, shift, i] + censored_dt[0, shift, i]
-            g13 = measured_t[1, shift, i] + censored_dt[1, shift, i]
-            g23 = measured_t[2, shift, i] + censored_dt[2, shift, i]
-            g04, g14 = g13, g23
-            g24 = measured_t[3, shift, i] + censored_dt[3, shift, i]
-            g33 = (measured_t2[0, shift, i] + censored_dt2[0, shift, i]) * ridge + 1e-12
-            g34 = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
-            g44 = (measured_t2[2, shift, i] + censored_dt2[2, shift, i]) * ridge + 1e-12
-            b0 = fixed[5] + censored_d[5, shift, i]
-            b1 = fixed[6] + censored_d[6, shift, i]
-            b2 = fixed[7] + censored_d[7, shift, i]
-            b3 = measured_t[4, shift, i] + censored_dt[4, shift, i]
-            b4 = measured_t[5, shift, i] + censored_dt[5, shift, i]
-            a0, a1, a2 = fixed[9] - cd0, fixed[10] - cd1, fixed[11] - cd2
-            a3 = censored_t[0, shift, i] - censored_dt[0, shift, i]
-            a4 = censored_t[1, shift, i] - censored_dt[1, shift, i]
-            squares = fixed[8] + censored_d[8, shift, i]
-            # Cholesky's factor L, then y = L^-1 b and z = L^-1 a.
-            l00 = math.sqrt(g00)
-            l10, l20, l30, l40 = g01 / l00, g02 / l00, g03 / l00, g04 / l00
-            l11 = math.sqrt(g11 - l10 * l10)
-            l21, l31, l41 = (g12 - l20 * l10) / l11, (g13 - l30 * l10) / l11, (g14 - l40 * l10) / l11
-            l22 = math.sqrt(g22 - l20 * l20 - l21 * l21)
-            l32, l42 = (g23 - l30 * l20 - l31 * l21) / l22, (g24 - l40 * l20 - l41 * l21) / l22
-            l33 = math.sqrt(g33 - l30 * l30 - l31 * l31 - l32 * l32)
-            l43 = (g34 - l40 * l30 - l41 * l31 - l42 * l32) / l33
-            l44 = math.sqrt(g44 - l40 * l40 - l41 * l41 - l42 * l42 - l43 * l43)
-            y0 = b0 / l00
-            y1 = (b1 - l10 * y0) / l11
-            y2 = (b2 - l20 * y0 - l21 * y1) / l22
-            y3 = (b3 - l30 * y0 - l31 * y1 - l32 * y2) / l33
-            y4 = (b4 - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) / l44
-            z0 = a0 / l00
-            z1 = (a1 - l10 * z0) / l11
-            z2 = (a2 - l20 * z0 - l21 * z1) / l22
-            z3 = (a3 - l30 * z0 - l31 * z1 - l32 * z2) / l33
-            z4 = (a4 - l40 * z0 - l41 * z1 - l42 * z2 - l43 * z3) / l44
-            explained = y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4
-            along = z0 * y0 + z1 * y1 + z2 * y2 + z3 * y3 + z4 * y4
-            spread = z0 * z0 + z1 * z1 + z2 * z2 + z3 * z3 + z4 * z4
-            # Without bright censored chips (their weight down to the rounding of the censored chips' total), the
-            # shortfall is rounding too, and no term.
-            weight = fixed[9] - cd0
-            bright = weight > 1e-9 * fixed[9]
-            shortfall = max(fixed[12] - censored_d[5, shift, i] - along, 0.0) if bright else 0.0
-            value = -0.5 * max(squares - explained, 0.0) - 0.5 * shortfall * shortfall / max(weight + spread, 1e-300)
-            # A singular system (a NaN from a negative pivot) bounds nothing.
-            out[shift, i] = value if value <= 0.0 else 0.0
+        # ``censored_d`` is the same for every mix: hypothesis i is its d of a block of ``ids``.
+        for block in range(count // ids):
+            for d in range(ids):
+                i = block * ids + d
+                cd0, cd1, cd2 = censored_d[0, shift, d], censored_d[1, shift, d], censored_d[2, shift, d]
+                g00 = (fixed[0] + cd0) * ridge + 1e-12
+                g01 = fixed[1] + cd1
+                g02 = fixed[2] + cd2
+                g11 = (fixed[2] + cd2) * ridge + 1e-12
+                g12 = fixed[3] + censored_d[3, shift, d]
+                g22 = (fixed[4] + censored_d[4, shift, d]) * ridge + 1e-12
+                g03 = measured_t[0, shift, i] + censored_dt[0, shift, i]
+                g13 = measured_t[1, shift, i] + censored_dt[1, shift, i]
+                g23 = measured_t[2, shift, i] + censored_dt[2, shift, i]
+                g04, g14 = g13, g23
+                g24 = measured_t[3, shift, i] + censored_dt[3, shift, i]
+                g33 = (measured_t2[0, shift, i] + censored_dt2[0, shift, i]) * ridge + 1e-12
+                g34 = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
+                g44 = (measured_t2[2, shift, i] + censored_dt2[2, shift, i]) * ridge + 1e-12
+                b0 = fixed[5] + censored_d[5, shift, d]
+                b1 = fixed[6] + censored_d[6, shift, d]
+                b2 = fixed[7] + censored_d[7, shift, d]
+                b3 = measured_t[4, shift, i] + censored_dt[4, shift, i]
+                b4 = measured_t[5, shift, i] + censored_dt[5, shift, i]
+                a0, a1, a2 = fixed[9] - cd0, fixed[10] - cd1, fixed[11] - cd2
+                a3 = censored_t[0, shift, i] - censored_dt[0, shift, i]
+                a4 = censored_t[1, shift, i] - censored_dt[1, shift, i]
+                squares = fixed[8] + censored_d[8, shift, d]
+                # Cholesky's factor L, then y = L^-1 b and z = L^-1 a.
+                l00 = math.sqrt(g00)
+                l10, l20, l30, l40 = g01 / l00, g02 / l00, g03 / l00, g04 / l00
+                l11 = math.sqrt(g11 - l10 * l10)
+                l21, l31, l41 = (g12 - l20 * l10) / l11, (g13 - l30 * l10) / l11, (g14 - l40 * l10) / l11
+                l22 = math.sqrt(g22 - l20 * l20 - l21 * l21)
+                l32, l42 = (g23 - l30 * l20 - l31 * l21) / l22, (g24 - l40 * l20 - l41 * l21) / l22
+                l33 = math.sqrt(g33 - l30 * l30 - l31 * l31 - l32 * l32)
+                l43 = (g34 - l40 * l30 - l41 * l31 - l42 * l32) / l33
+                l44 = math.sqrt(g44 - l40 * l40 - l41 * l41 - l42 * l42 - l43 * l43)
+                y0 = b0 / l00
+                y1 = (b1 - l10 * y0) / l11
+                y2 = (b2 - l20 * y0 - l21 * y1) / l22
+                y3 = (b3 - l30 * y0 - l31 * y1 - l32 * y2) / l33
+                y4 = (b4 - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) / l44
+                z0 = a0 / l00
+                z1 = (a1 - l10 * z0) / l11
+                z2 = (a2 - l20 * z0 - l21 * z1) / l22
+                z3 = (a3 - l30 * z0 - l31 * z1 - l32 * z2) / l33
+                z4 = (a4 - l40 * z0 - l41 * z1 - l42 * z2 - l43 * z3) / l44
+                explained = y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4
+                along = z0 * y0 + z1 * y1 + z2 * y2 + z3 * y3 + z4 * y4
+                spread = z0 * z0 + z1 * z1 + z2 * z2 + z3 * z3 + z4 * z4
+                # Without bright censored chips (their weight down to the rounding of the censored chips' total), the
+                # shortfall is rounding too, and no term.
+                weight = fixed[9] - cd0
+                bright = weight > 1e-9 * fixed[9]
+                shortfall = max(fixed[12] - censored_d[5, shift, d] - along, 0.0) if bright else 0.0
+                value = -0.5 * max(squares - explained, 0.0) \
+                    - 0.5 * shortfall * shortfall / max(weight + spread, 1e-300)
+                # A singular system (a NaN from a negative pivot) bounds nothing.
+                out[shift, i] = value if value <= 0.0 else 0.0
     return out
 
 
@@ -279,7 +285,7 @@ def _fits_that_can_win(bounds: np.ndarray, x: np.ndarray, v: np.ndarray, k: np.n
     ``margin`` below the best fit found: every later hypothesis is then that far below the best, and keeps its
     bound (its share of the likelihood is below e^-margin of the best's).
     """
-    n, ids, length = len(x), signs.shape[0], signs.shape[1]
+    n = len(x)
     out = bounds.copy()
     design = np.empty((n, _PARAMETERS))
     middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
@@ -287,23 +293,37 @@ def _fits_that_can_win(bounds: np.ndarray, x: np.ndarray, v: np.ndarray, k: np.n
         t = (k[j] - middle) / half
         design[j, 0], design[j, 1], design[j, 2] = 1.0, t, t * t
     root = np.sqrt(v)
-    flat = bounds.ravel()
-    order = np.argsort(-flat)
-    best = -np.inf
-    for h in order:
+    flat, fitted = bounds.ravel(), out.ravel()
+    # The best bound's fit first: only the hypotheses whose bounds come within the margin of it can be fitted, so
+    # only those are sorted (a sort of all 18432 of 8 bits took longer than their fits).
+    first = int(np.argmax(flat))
+    best = _fit_hypothesis(first, design, x, v, root, k, censored, signs, mixes)
+    fitted[first] = best
+    reach = np.flatnonzero(flat >= best - margin)
+    for h in reach[np.argsort(-flat[reach])]:
         if flat[h] < best - margin:
             break
-        m, rest = h // (length * ids), h % (length * ids)
-        shift, i = rest // ids, rest % ids
-        mix = mixes[m]
-        for j in range(n):
-            p = (k[j] + shift) % length
-            template = signs[i, p] + mix * (signs[i, (p - 1) % length] + signs[i, (p + 1) % length])
-            design[j, 3], design[j, 4] = template, template * design[j, 1]
-        value = _fit(design, x, v, root, censored)
-        out[m, shift, i] = value
+        if h == first:
+            continue
+        value = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes)
+        fitted[h] = value
         best = max(best, value)
     return out
+
+
+@kernel
+def _fit_hypothesis(h: int, design: np.ndarray, x: np.ndarray, v: np.ndarray, root: np.ndarray, k: np.ndarray,
+                    censored: np.ndarray, signs: np.ndarray, mixes: np.ndarray) -> float:
+    """Return hypothesis ``h``'s (its flat index over (mixes, L, ids)) maximised log-likelihood, by ``_fit``."""
+    ids, length = signs.shape[0], signs.shape[1]
+    m, rest = h // (length * ids), h % (length * ids)
+    shift, i = rest // ids, rest % ids
+    mix = mixes[m]
+    for j in range(len(x)):
+        p = (k[j] + shift) % length
+        template = signs[i, p] + mix * (signs[i, (p - 1) % length] + signs[i, (p + 1) % length])
+        design[j, 3], design[j, 4] = template, template * design[j, 1]
+    return _fit(design, x, v, root, censored)
 
 
 @kernel
