@@ -230,19 +230,21 @@ def _packet_reading(grids: list[ChipLevels], model_error: float, id_bits: int, m
     """
     first, *nearby = grids
     weights = 1.0 / (first.variances + model_error ** 2)
-    log_likelihoods, misfit = _id_log_likelihoods(first.levels, weights, first.index, id_bits, mixes)
     dof = first.index.size - 4
+    limit = min(_misfit_limit(dof), CLIPPED_MISFIT * dof) if clipped else _misfit_limit(dof)
+    log_likelihoods, misfit = _id_log_likelihoods(first.levels, weights, first.index, id_bits, mixes, limit)
     if misfit > _misfit_limit(dof):
         return no_evidence(candidates, mapped, prior, 'the chips fit no packet')
-    if clipped and misfit > CLIPPED_MISFIT * dof:
+    if log_likelihoods is None:
         return no_evidence(candidates, mapped, prior, 'clipped chips misfit: blur may have lifted dark chips to '
                                                       'the ceiling')
     fitting = [log_likelihoods]
     good_fit = min(NEARBY_MISFIT, CLIPPED_MISFIT) if clipped else NEARBY_MISFIT
     for levels in nearby:
         weights = 1.0 / (levels.variances + model_error ** 2)
-        log_likelihoods, misfit = _id_log_likelihoods(levels.levels, weights, levels.index, id_bits, mixes)
-        if misfit <= good_fit * (levels.index.size - 4):
+        log_likelihoods, _ = _id_log_likelihoods(levels.levels, weights, levels.index, id_bits, mixes,
+                                                 good_fit * (levels.index.size - 4))
+        if log_likelihoods is not None:
             fitting.append(log_likelihoods)
     stacked = np.array(fitting)
     top = stacked.max(axis=0)
@@ -283,11 +285,13 @@ def _hypotheses(id_bits: int, known_ids: tuple[int, ...] | None,
 
 
 def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: int,
-                        mixes: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, float]:
+                        mixes: tuple[float, ...] = (0.0,),
+                        misfit_limit: float = np.inf) -> tuple[np.ndarray | None, float]:
     """
     Return the log-likelihood of each ID, and the best fit's weighted squared residual.
 
-    The window's start in the packet and the blur's mix are marginalised.
+    The window's start in the packet and the blur's mix are marginalised. The log-likelihoods are None (not
+    taken) when that residual exceeds ``misfit_limit``.
 
     Chip k of the window is packet position (k + shift) % L; its level is a
     quadratic baseline in k plus beta * (sign_k + mix (sign_k-1 + sign_k+1)), Gaussian with weights ``v``,
@@ -297,7 +301,7 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     """
     design, chip_weights = _codebook(id_bits)
     length = len(chip_weights)
-    per_mix, misfit = [], np.inf
+    gains, misfit = [], np.inf
     # The neighbours' products summed by weight do not depend on the mix: taken once for all mixes.
     products = None
     for mix in mixes:
@@ -308,10 +312,15 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
             products = _neighbour_sums(by_weight, id_bits)
         energy = _template_energy(products, mix, id_bits, float(v.sum()), length)
         half_gain, best = _half_gains(sums, energy, length)
+        gains.append((half_gain, best, baseline_rss))
+        misfit = min(misfit, baseline_rss - 2.0 * float(best.max()))
+    if misfit > misfit_limit:
+        return None, misfit
+    per_mix = []
+    for half_gain, best, baseline_rss in gains:
         # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
         spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / length)
         per_mix.append(best.astype(float) + spread - 0.5 * baseline_rss)
-        misfit = min(misfit, baseline_rss - 2.0 * float(best.max()))
     if len(per_mix) == 1:
         return per_mix[0], misfit
     stacked = np.array(per_mix)
