@@ -107,6 +107,15 @@ def reference_inflation(residual, rows):
     return factor
 
 
+def reference_row_spread(blur, rows, level_gradient):
+    """Each row's relative level error: 5 %, and blur's mixing beyond the linear part, s^2 / 2 (L'/L)' + (L'/L)^2."""
+    padded = np.concatenate(([0.0], level_gradient, [0.0]))
+    change = 0.5 * (padded[rows + 2] - padded[rows])
+    inside = (rows > 0) & (rows < level_gradient.size - 1)
+    curvature = np.where(inside, change, 0.0) + level_gradient[rows] ** 2
+    return np.hypot(0.05, 0.5 * blur ** 2 * curvature)
+
+
 def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, level_gradient, shape_spread):
     """(centre, covariance, radius, blur, shape) or None, as fit_marker computed them in numpy."""
     half = seed.radius + margin
@@ -158,7 +167,7 @@ def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_u
     level_effect = inverse @ row_terms.T
     covariance = (reference_inflation(residual.reshape(len(rows), -1), rows) * cost / dof * inverse
                   + shape_spread ** 2 * shape_effect @ shape_effect.T
-                  + 0.05 ** 2 * level_effect @ level_effect.T)
+                  + (level_effect * reference_row_spread(blur, rows, level_gradient) ** 2) @ level_effect.T)
     # Blur mixing rows whose level changes by L' shifts the fit by (J^T J)^-1 J^T (-blur^2 L'/L J_cy),
     # if all of the blur came after the shutter: half of it is undone, half counted along the shift.
     gradient = np.repeat(level_gradient[rows], data.shape[1])

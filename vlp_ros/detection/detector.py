@@ -464,10 +464,12 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     index = np.arange(rows.size)
     crossing = np.abs(index - fit.center[1]) < fit.radius
     clipped_share = np.count_nonzero(rows & clipped & crossing) / max(np.count_nonzero(rows & crossing), 1)
-    # The clipped edge moves the marker toward or away from the lamp's centre: radially.
+    # A clipped edge moves the marker toward white and away from dark: radially toward the ceiling beyond
+    # the rim, and across the rows toward the dark stripes beside its clipped rows.
     outward = fit.center - box.rim.ellipse[:2]
     outward = outward / max(float(np.linalg.norm(outward)), 1e-9)
-    covariance = fit.covariance + (_CLIPPED_MARKER_SHIFT * clipped_share * fit.blur) ** 2 * np.outer(outward, outward)
+    clipped_shift = (_CLIPPED_MARKER_SHIFT * clipped_share * fit.blur) ** 2
+    covariance = fit.covariance + clipped_shift * (np.outer(outward, outward) + np.diag([0.0, 1.0]))
     # Rows on one side of the centre only leave it to the curvature of their chords: an extrapolation
     # (on the foreign frames 3.8 px off with a sigma of 0.9 px, from three rows at one end).
     if not ((rows & crossing & (index < fit.center[1])).any() and (rows & crossing & (index > fit.center[1])).any()):

@@ -573,14 +573,15 @@ def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
 
 @kernel
 def _centre_covariance(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
-                       shape_spread: float) -> np.ndarray:
+                       shape_spread: float, row_spread: np.ndarray) -> np.ndarray:
     """
     Covariance (2x2) of the centre: pixel noise plus two things the model holds fixed.
 
     The shape is held at the lamp's, and each row's marker brightness at the ratio
     times the row's measured level. Their true deviations (``shape_spread``, and
-    ``_ROW_LEVEL_SPREAD`` of a row's level) move the centre by the fit's sensitivity
-    to them: a consider covariance. Both matter most when only part of the marker is lit.
+    ``row_spread``, relative, of each row's level: ``_row_level_spread``) move the centre
+    by the fit's sensitivity to them: a consider covariance. Both matter most when only
+    part of the marker is lit.
     ``gram`` (4x4): the Jacobian's (centre, radius, blur); ``cross`` (4x2): its columns against
     the two shape stretches'; ``row_terms`` (rows, 4): each row's marker term against them.
     The rows' terms move the centre mostly across the rows and the pixel noise least along
@@ -604,11 +605,36 @@ def _centre_covariance(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarra
         for k in range(4):
             effect_x += inverse[0, k] * row_terms[r, k]
             effect_y += inverse[1, k] * row_terms[r, k]
-        covariance[0, 0] += _ROW_LEVEL_SPREAD ** 2 * effect_x * effect_x
-        covariance[0, 1] += _ROW_LEVEL_SPREAD ** 2 * effect_x * effect_y
-        covariance[1, 1] += _ROW_LEVEL_SPREAD ** 2 * effect_y * effect_y
+        variance = row_spread[r] * row_spread[r]
+        covariance[0, 0] += variance * effect_x * effect_x
+        covariance[0, 1] += variance * effect_x * effect_y
+        covariance[1, 1] += variance * effect_y * effect_y
     covariance[1, 0] = covariance[0, 1]
     return covariance
+
+
+@kernel
+def _row_level_spread(blur: float, rows: np.ndarray, level_gradient: np.ndarray) -> np.ndarray:
+    """
+    Return the relative error of each used row's level as the marker's brightness there.
+
+    ``_ROW_LEVEL_SPREAD`` and, in quadrature, what blur after the shutter adds beyond the linear part
+    ``_row_mixing_shift`` handles: a level L(y) mixed over a blur s reads L + s^2 L'' / 2, a relative
+    error s^2 / 2 (L'' / L) with L'' / L = (L' / L)' + (L' / L)^2 from the measured gradients (central
+    differences; 0 where a neighbour's is unknown). Stripes a few rows apart under a blur of 1.5 px
+    make it 10-40 %, where the marker's rows are few and its centre across them moves most.
+    """
+    spread = np.empty(rows.size)
+    last = level_gradient.size - 1
+    for k in range(rows.size):
+        row = rows[k]
+        gradient = level_gradient[row]
+        change = 0.0
+        if 0 < row < last:
+            change = 0.5 * (level_gradient[row + 1] - level_gradient[row - 1])
+        curvature = change + gradient * gradient
+        spread[k] = math.hypot(_ROW_LEVEL_SPREAD, 0.5 * blur * blur * curvature)
+    return spread
 
 
 @kernel
@@ -786,7 +812,8 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     sums = _marker_terms(mx, my, radius, blur, rounded, root, level, data, disc_term, marker, jac)
     amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
     inflation = _correlation_inflation(data, marker, disc_term, amplitudes.marker, amplitudes.disc, rows, width)
-    covariance = _centre_covariance(terms.gram, terms.cross, terms.row_terms, inflation * cost / dof, spread)
+    covariance = _centre_covariance(terms.gram, terms.cross, terms.row_terms, inflation * cost / dof, spread,
+                                    _row_level_spread(blur, rows, level_gradient))
     # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
     # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
     # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
