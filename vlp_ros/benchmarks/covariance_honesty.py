@@ -100,7 +100,7 @@ def tally_detection(tally: Tally, observation: LampObservation, truth: LampTruth
 
 
 def marker_z2(observation: LampObservation, truth: LampTruth) -> np.ndarray:
-    """The marker's squared error (tangential, radial) over its covariance's variance each way."""
+    """Return the marker's squared error (tangential, radial) over its covariance's variance each way."""
     covariance = observation.marker_covariance
     if covariance is None:
         covariance = observation.marker_sigma ** 2 * np.eye(2)

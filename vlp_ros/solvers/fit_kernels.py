@@ -49,7 +49,8 @@ class Terms(NamedTuple):
     Rim points: ``rays`` (N, 3) homogeneous normalised, ``lens`` (N, 4) d(normalised)/d(pixel)
     as (g00, g01, g10, g11), ``rim_sigma`` (N,), ``lamp_of_point`` (N,) into ``centres`` (L, 3)
     and ``radii_squared`` (L,). Markers: map positions (K, 3), pixels (K, 2), whitening
-    matrices (K, 2, 2) W with W^T W the inverse of the pixel's covariance, seen through ``intrinsics`` (3, 3) and plumb_bob ``distortion`` (5,). Up directions:
+    matrices (K, 2, 2) W with W^T W the inverse of the pixel's covariance, seen through
+    ``intrinsics`` (3, 3) and plumb_bob ``distortion`` (5,). Up directions:
     unit ``up_directions`` (U, 3), tangent axes ``up_tangents`` (U, 2, 3), ``up_sigma`` (U,).
     """
 
