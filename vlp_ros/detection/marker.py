@@ -138,7 +138,7 @@ class MarkerFit:
 
     @property
     def sigma(self) -> float:
-        """The root mean variance per axis (px)."""
+        """Return the root mean variance per axis (px)."""
         return math.sqrt(0.5 * float(np.trace(self.covariance)))
 
     def ellipse(self, shift: np.ndarray) -> np.ndarray:
