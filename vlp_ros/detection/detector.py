@@ -465,11 +465,14 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     crossing = np.abs(index - fit.center[1]) < fit.radius
     clipped_share = np.count_nonzero(rows & clipped & crossing) / max(np.count_nonzero(rows & crossing), 1)
     # A clipped edge moves the marker toward white and away from dark: radially toward the ceiling beyond
-    # the rim, and across the rows toward the dark stripes beside its clipped rows.
+    # the rim, and across the rows where a clipped row through it borders a row below the clip (a stripe).
     outward = fit.center - box.rim.ellipse[:2]
     outward = outward / max(float(np.linalg.norm(outward)), 1e-9)
-    clipped_shift = (_CLIPPED_MARKER_SHIFT * clipped_share * fit.blur) ** 2
-    covariance = fit.covariance + clipped_shift * (np.outer(outward, outward) + np.diag([0.0, 1.0]))
+    bordering = clipped & ~(np.roll(clipped, 1) & np.roll(clipped, -1))
+    bordering_share = np.count_nonzero(rows & bordering & crossing) / max(np.count_nonzero(rows & crossing), 1)
+    across = np.array([0.0, _CLIPPED_MARKER_SHIFT * bordering_share * fit.blur])
+    covariance = (fit.covariance + (_CLIPPED_MARKER_SHIFT * clipped_share * fit.blur) ** 2 * np.outer(outward, outward)
+                  + np.outer(across, across))
     # Rows on one side of the centre only leave it to the curvature of their chords: an extrapolation
     # (on the foreign frames 3.8 px off with a sigma of 0.9 px, from three rows at one end).
     if not ((rows & crossing & (index < fit.center[1])).any() and (rows & crossing & (index > fit.center[1])).any()):
