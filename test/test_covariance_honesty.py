@@ -35,7 +35,7 @@ def test_a_few_clean_frames_give_unbiased_rims_honest_sigmas_and_nees(capsys: py
         assert int(row['lamps']) == frames, (label, row)
         assert abs(float(row['rim mean px'])) < 0.05, (label, row)
         assert 0.7 < float(row['rim RMS/sigma']) < 1.5, (label, row)
-        assert max(float(row['marker z2 x']), float(row['marker z2 y'])) < 5.0, (label, row)
+        assert max(float(row['marker z2 along rim']), float(row['marker z2 across'])) < 5.0, (label, row)
     for label, row in poses.items():
         # The pipeline may refuse a frame it cannot decide, but most are located, within a centimetre.
         assert int(row['poses']) >= frames // 2, (label, row)

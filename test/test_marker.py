@@ -107,8 +107,17 @@ def reference_inflation(residual, rows):
     return factor
 
 
+def reference_row_spread(blur, rows, level_gradient):
+    """Each row's relative level error: 5 %, and blur's mixing beyond the linear part, s^2 / 2 (L'/L)' + (L'/L)^2."""
+    padded = np.concatenate(([0.0], level_gradient, [0.0]))
+    change = 0.5 * (padded[rows + 2] - padded[rows])
+    inside = (rows > 0) & (rows < level_gradient.size - 1)
+    curvature = np.where(inside, change, 0.0) + level_gradient[rows] ** 2
+    return np.hypot(0.05, 0.5 * blur ** 2 * curvature)
+
+
 def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, level_gradient, shape_spread):
-    """(centre, sigma, radius, blur, shape) or None, as fit_marker computed them in numpy."""
+    """(centre, covariance, radius, blur, shape) or None, as fit_marker computed them in numpy."""
     half = seed.radius + margin
     x0 = max(int(np.floor(seed.center[0] - half)), 0)
     y0 = max(int(np.floor(seed.center[1] - half)), 0)
@@ -158,15 +167,13 @@ def reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_u
     level_effect = inverse @ row_terms.T
     covariance = (reference_inflation(residual.reshape(len(rows), -1), rows) * cost / dof * inverse
                   + shape_spread ** 2 * shape_effect @ shape_effect.T
-                  + 0.05 ** 2 * level_effect @ level_effect.T)
-    sigma = float(np.sqrt(0.5 * (covariance[0, 0] + covariance[1, 1])))
+                  + (level_effect * reference_row_spread(blur, rows, level_gradient) ** 2) @ level_effect.T)
     # Blur mixing rows whose level changes by L' shifts the fit by (J^T J)^-1 J^T (-blur^2 L'/L J_cy),
-    # if all of the blur came after the shutter: half of it is undone, half counted in sigma.
+    # if all of the blur came after the shutter: half of it is undone, half counted along the shift.
     gradient = np.repeat(level_gradient[rows], data.shape[1])
     shift = -blur ** 2 * (inverse @ fitted.T @ (gradient * fitted[:, 1]))[:2]
     centre = centre - 0.5 * shift
-    sigma = float(np.hypot(sigma, 0.5 * np.linalg.norm(shift)))
-    return centre, sigma, float(radius), float(blur), root @ root
+    return centre, covariance[:2, :2] + 0.25 * np.outer(shift, shift), float(radius), float(blur), root @ root
 
 
 # ---------------------------------------------------------------------------------------------
@@ -209,10 +216,10 @@ def test_fit_marker_matches_the_numpy_formulation(recorded_fits):
         if fit is None:
             continue
         found += 1
-        centre, sigma, radius, blur, shape = expected
+        centre, covariance, radius, blur, shape = expected
         # A micro-pixel: far below the marker's noise, far above rounding (which differs between CPUs).
         np.testing.assert_allclose(fit.center, centre, rtol=0.0, atol=1e-6)
-        assert fit.sigma == pytest.approx(sigma, rel=1e-6)
+        np.testing.assert_allclose(fit.covariance, covariance, rtol=1e-6, atol=1e-6 * np.trace(covariance))
         assert fit.radius == pytest.approx(radius, abs=1e-6)
         assert fit.blur == pytest.approx(blur, abs=1e-6)
         np.testing.assert_allclose(fit.shape, shape, rtol=0.0, atol=1e-9)  # dimensionless, of order 1

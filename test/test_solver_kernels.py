@@ -71,6 +71,33 @@ def test_lamp_residuals_are_the_direct_formulation(pose: Pose) -> None:
     np.testing.assert_allclose(residuals, expected, rtol=1e-6, atol=1e-6)  # in sigmas
 
 
+def test_a_marker_covariance_whitens_its_residual_and_jacobian() -> None:
+    """A 2x2 marker covariance: the marker's residuals are independent unit-variance ones, its Jacobian theirs."""
+    lamp = grid_lamps(2)[1]
+    observation = observe(lamp, WIDE_TRUTH, camera_wide(), rng=np.random.default_rng(2))
+    # Sharp along the rim, five times wider across it, at 30 deg to the image axes.
+    turn = np.array([[np.cos(0.5), -np.sin(0.5)], [np.sin(0.5), np.cos(0.5)]])
+    covariance = turn @ np.diag([0.2 ** 2, 1.0 ** 2]) @ turn.T
+    round_one = LampMeasurement.from_observation(observation, lamp, camera_wide())
+    observation.marker_covariance = covariance
+    measurement = LampMeasurement.from_observation(observation, lamp, camera_wide())
+    count = len(measurement.rim_rays)
+    for pose in (WIDE_TRUTH, AWAY):
+        residuals, jacobian = measurement.linearize(pose.rotation, pose.position)
+        offset = (camera_wide().project(pose.map_to_camera(lamp.marker_position()))[0] - measurement.marker_pixel)
+        # Whitened: their squares sum to the offset's Mahalanobis distance, and the rim's are unchanged.
+        assert residuals[count:] @ residuals[count:] == pytest.approx(offset @ np.linalg.solve(covariance, offset))
+        round_residuals, round_jacobian = round_one.linearize(pose.rotation, pose.position)
+        np.testing.assert_allclose(residuals[:count], round_residuals[:count], rtol=1e-12)
+        step = 1e-7
+        for k in range(6):
+            delta = np.zeros(6)
+            delta[k] = step
+            moved, _ = measurement.linearize(*perturbed(pose, delta))
+            np.testing.assert_allclose((moved[count:] - residuals[count:]) / step, jacobian[count:, k],
+                                       rtol=1e-4, atol=1e-3)
+
+
 def test_rim_pixel_jacobian_is_the_undistortions() -> None:
     lamp = grid_lamps(2)[1]
     camera = camera_wide()

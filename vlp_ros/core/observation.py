@@ -14,7 +14,10 @@ class LampObservation:
     ``ellipse`` is (cx, cy, a, b, theta): centre, semi-axes a >= b, and the angle (rad)
     of the a axis from image +x toward +y, from a direct least-squares fit of
     ``rim_points``. ``rim_sigma`` is the measured standard deviation (px) of rim
-    points across the edge; ``marker_sigma`` that of the marker centroid per axis.
+    points across the edge; ``marker_sigma`` that of the marker centroid per axis (the root
+    mean variance), and ``marker_covariance`` (2x2, px^2; None: ``marker_sigma`` on either
+    axis) its covariance, which is not round: the marker fit pins it along the rim better
+    than across it, where blur, glare and clipping move it.
     ``bbox`` = (x0, y0, x1, y1), x1 and y1 exclusive; ``disc_mask`` and
     ``marker_mask`` are boolean arrays over that box. ``rim_model_sigma`` is the prior sigma
     (px) of the smooth patterns (offset, first and second harmonic round the rim) by which a
@@ -42,6 +45,7 @@ class LampObservation:
     rim_usable: bool = True
     center_sigma: float | None = None
     rim_model_sigma: float = 0.0
+    marker_covariance: np.ndarray | None = None
 
     @property
     def center(self) -> np.ndarray:

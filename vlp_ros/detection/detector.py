@@ -464,12 +464,20 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     index = np.arange(rows.size)
     crossing = np.abs(index - fit.center[1]) < fit.radius
     clipped_share = np.count_nonzero(rows & clipped & crossing) / max(np.count_nonzero(rows & crossing), 1)
-    sigma = math.hypot(fit.sigma, _CLIPPED_MARKER_SHIFT * clipped_share * fit.blur)
+    # A clipped edge moves the marker toward white and away from dark: radially toward the ceiling beyond
+    # the rim, and across the rows where a clipped row through it borders a row below the clip (a stripe).
+    outward = fit.center - box.rim.ellipse[:2]
+    outward = outward / max(float(np.linalg.norm(outward)), 1e-9)
+    bordering = clipped & ~(np.roll(clipped, 1) & np.roll(clipped, -1))
+    bordering_share = np.count_nonzero(rows & bordering & crossing) / max(np.count_nonzero(rows & crossing), 1)
+    across = np.array([0.0, _CLIPPED_MARKER_SHIFT * bordering_share * fit.blur])
+    covariance = (fit.covariance + (_CLIPPED_MARKER_SHIFT * clipped_share * fit.blur) ** 2 * np.outer(outward, outward)
+                  + np.outer(across, across))
     # Rows on one side of the centre only leave it to the curvature of their chords: an extrapolation
     # (on the foreign frames 3.8 px off with a sigma of 0.9 px, from three rows at one end).
     if not ((rows & crossing & (index < fit.center[1])).any() and (rows & crossing & (index > fit.center[1])).any()):
-        sigma = math.hypot(sigma, _ONE_SIDED_MARKER_SHIFT * fit.radius)
-    return replace(fit, sigma=sigma)
+        covariance = covariance + (_ONE_SIDED_MARKER_SHIFT * fit.radius) ** 2 * np.eye(2)
+    return replace(fit, covariance=covariance)
 
 
 class _MarkerRows(NamedTuple):
@@ -617,14 +625,15 @@ def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
     bbox = (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
             min(math.ceil(hi_x) + 2, frame_shape[1]), min(math.ceil(hi_y) + 2, frame_shape[0]))
     disc_mask = _chord_mask(conic_of(ellipse), *bbox)
-    marker_centre, marker_sigma, marker_mask = None, float('inf'), None
+    marker_centre, marker_sigma, marker_covariance, marker_mask = None, float('inf'), None, None
     if marker is not None:
         marker_centre = marker.center + shift
-        marker_sigma = marker.sigma
+        marker_sigma, marker_covariance = marker.sigma, marker.covariance
         marker_mask = _chord_mask(conic_of(marker.ellipse(shift)), *bbox)
     return LampObservation(ellipse=ellipse, rim_points=rim.points + shift, rim_sigma=rim.sigma,
                            rim_model_sigma=rim.model_sigma, marker=marker_centre, marker_sigma=marker_sigma,
-                           bbox=bbox, disc_mask=disc_mask, marker_mask=marker_mask)
+                           marker_covariance=marker_covariance, bbox=bbox, disc_mask=disc_mask,
+                           marker_mask=marker_mask)
 
 
 @kernel

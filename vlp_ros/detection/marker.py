@@ -106,7 +106,7 @@ class _Fitted(NamedTuple):
 
     found: bool
     center: np.ndarray
-    sigma: float
+    covariance: np.ndarray
     radius: float
     blur: float
     shape: np.ndarray
@@ -123,16 +123,23 @@ class MarkerSeed:
 @dataclass(frozen=True)
 class MarkerFit:
     """
-    Marker centre (px, lamp-box pixels), its standard deviation per axis, mean radius and the blur fitted.
+    Marker centre (px, lamp-box pixels), its covariance (2x2, px^2), mean radius and the blur fitted.
 
     ``shape`` (2x2, det 1): the marker's edge is (p - center)^T shape (p - center) = radius^2.
+    The covariance is the fit's own (pixel noise from its residuals, and the consider terms of
+    ``_centre_covariance``) with the rows' mixing shift along its own direction: not round.
     """
 
     center: np.ndarray
-    sigma: float
+    covariance: np.ndarray
     radius: float
     blur: float
     shape: np.ndarray
+
+    @property
+    def sigma(self) -> float:
+        """Return the root mean variance per axis (px)."""
+        return math.sqrt(0.5 * float(np.trace(self.covariance)))
 
     def ellipse(self, shift: np.ndarray) -> np.ndarray:
         """Return the marker's edge as (cx, cy, a, b, theta), moved by ``shift``."""
@@ -204,7 +211,7 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
         np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
     if not fitted.found:
         return None
-    return MarkerFit(fitted.center, fitted.sigma, fitted.radius, fitted.blur, fitted.shape)
+    return MarkerFit(fitted.center, fitted.covariance, fitted.radius, fitted.blur, fitted.shape)
 
 
 # The compiled kernels (vlp_ros.compiled). The fit is one call: window, model, Levenberg-Marquardt
@@ -565,36 +572,69 @@ def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _centre_sigma(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
-                  shape_spread: float) -> float:
+def _centre_covariance(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
+                       shape_spread: float, row_spread: np.ndarray) -> np.ndarray:
     """
-    Per-axis standard deviation of the centre: pixel noise plus two things the model holds fixed.
+    Covariance (2x2) of the centre: pixel noise plus two things the model holds fixed.
 
     The shape is held at the lamp's, and each row's marker brightness at the ratio
     times the row's measured level. Their true deviations (``shape_spread``, and
-    ``_ROW_LEVEL_SPREAD`` of a row's level) move the centre by the fit's sensitivity
-    to them: a consider covariance. Both matter most when only part of the marker is lit.
+    ``row_spread``, relative, of each row's level: ``_row_level_spread``) move the centre
+    by the fit's sensitivity to them: a consider covariance. Both matter most when only
+    part of the marker is lit.
     ``gram`` (4x4): the Jacobian's (centre, radius, blur); ``cross`` (4x2): its columns against
     the two shape stretches'; ``row_terms`` (rows, 4): each row's marker term against them.
+    The rows' terms move the centre mostly across the rows and the pixel noise least along
+    a long chord: the covariance keeps those directions.
     """
     inverse = _pseudo_inverse(gram)
-    variance = 0.0
-    for axis in range(2):
-        shape = 0.0
-        for c in range(2):
-            effect = 0.0
-            for k in range(4):
-                effect += inverse[axis, k] * cross[k, c]
-            shape += effect * effect
-        level = 0.0
-        for r in range(row_terms.shape[0]):
-            effect = 0.0
-            for k in range(4):
-                effect += inverse[axis, k] * row_terms[r, k]
-            level += effect * effect
-        variance += (noise_variance * inverse[axis, axis] + shape_spread ** 2 * shape
-                     + _ROW_LEVEL_SPREAD ** 2 * level)
-    return math.sqrt(0.5 * variance)
+    covariance = np.zeros((2, 2))
+    for i in range(2):
+        for j in range(2):
+            covariance[i, j] = noise_variance * inverse[i, j]
+    for c in range(2):
+        effect_x = effect_y = 0.0
+        for k in range(4):
+            effect_x += inverse[0, k] * cross[k, c]
+            effect_y += inverse[1, k] * cross[k, c]
+        covariance[0, 0] += shape_spread ** 2 * effect_x * effect_x
+        covariance[0, 1] += shape_spread ** 2 * effect_x * effect_y
+        covariance[1, 1] += shape_spread ** 2 * effect_y * effect_y
+    for r in range(row_terms.shape[0]):
+        effect_x = effect_y = 0.0
+        for k in range(4):
+            effect_x += inverse[0, k] * row_terms[r, k]
+            effect_y += inverse[1, k] * row_terms[r, k]
+        variance = row_spread[r] * row_spread[r]
+        covariance[0, 0] += variance * effect_x * effect_x
+        covariance[0, 1] += variance * effect_x * effect_y
+        covariance[1, 1] += variance * effect_y * effect_y
+    covariance[1, 0] = covariance[0, 1]
+    return covariance
+
+
+@kernel
+def _row_level_spread(blur: float, rows: np.ndarray, level_gradient: np.ndarray) -> np.ndarray:
+    """
+    Return the relative error of each used row's level as the marker's brightness there.
+
+    ``_ROW_LEVEL_SPREAD`` and, in quadrature, what blur after the shutter adds beyond the linear part
+    ``_row_mixing_shift`` handles: a level L(y) mixed over a blur s reads L + s^2 L'' / 2, a relative
+    error s^2 / 2 (L'' / L) with L'' / L = (L' / L)' + (L' / L)^2 from the measured gradients (central
+    differences; 0 where a neighbour's is unknown). Stripes a few rows apart under a blur of 1.5 px
+    make it 10-40 %, where the marker's rows are few and its centre across them moves most.
+    """
+    spread = np.empty(rows.size)
+    last = level_gradient.size - 1
+    for k in range(rows.size):
+        row = rows[k]
+        gradient = level_gradient[row]
+        change = 0.0
+        if 0 < row < last:
+            change = 0.5 * (level_gradient[row + 1] - level_gradient[row - 1])
+        curvature = change + gradient * gradient
+        spread[k] = math.hypot(_ROW_LEVEL_SPREAD, 0.5 * blur * blur * curvature)
+    return spread
 
 
 @kernel
@@ -662,7 +702,7 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
          blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
          spread: float) -> _Fitted:
     """fit_marker's work."""
-    failed = _Fitted(False, np.zeros(2), 0.0, 0.0, 0.0, np.zeros((2, 2)))
+    failed = _Fitted(False, np.zeros(2), np.zeros((2, 2)), 0.0, 0.0, np.zeros((2, 2)))
     half = seed_radius + margin
     x0 = max(int(np.floor(seed_x - half)), 0)
     y0 = max(int(np.floor(seed_y - half)), 0)
@@ -772,17 +812,21 @@ def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, elli
     sums = _marker_terms(mx, my, radius, blur, rounded, root, level, data, disc_term, marker, jac)
     amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
     inflation = _correlation_inflation(data, marker, disc_term, amplitudes.marker, amplitudes.disc, rows, width)
-    sigma = _centre_sigma(terms.gram, terms.cross, terms.row_terms, inflation * cost / dof, spread)
+    covariance = _centre_covariance(terms.gram, terms.cross, terms.row_terms, inflation * cost / dof, spread,
+                                    _row_level_spread(blur, rows, level_gradient))
     # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
     # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
     # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
-    # other half is counted as the centre's uncertainty, so either way the error stays within sigma.
+    # other half is counted as the centre's uncertainty along the shift, so either way the error stays within it.
     shift_x, shift_y = _row_mixing_shift(blur, terms.gram, terms.row_vertical, rows, level_gradient)
     mx, my = mx - 0.5 * shift_x, my - 0.5 * shift_y
-    sigma = math.hypot(sigma, 0.5 * math.hypot(shift_x, shift_y))
+    covariance[0, 0] += 0.25 * shift_x * shift_x
+    covariance[0, 1] += 0.25 * shift_x * shift_y
+    covariance[1, 0] += 0.25 * shift_x * shift_y
+    covariance[1, 1] += 0.25 * shift_y * shift_y
     center, shape = np.empty(2), np.empty((2, 2))
     center[0], center[1] = mx, my
     for i in range(2):
         for j in range(2):
             shape[i, j] = root[i, 0] * root[0, j] + root[i, 1] * root[1, j]
-    return _Fitted(True, center, sigma, radius, blur, shape)
+    return _Fitted(True, center, covariance, radius, blur, shape)

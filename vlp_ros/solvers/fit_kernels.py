@@ -48,8 +48,9 @@ class Terms(NamedTuple):
 
     Rim points: ``rays`` (N, 3) homogeneous normalised, ``lens`` (N, 4) d(normalised)/d(pixel)
     as (g00, g01, g10, g11), ``rim_sigma`` (N,), ``lamp_of_point`` (N,) into ``centres`` (L, 3)
-    and ``radii_squared`` (L,). Markers: map positions (K, 3), pixels (K, 2), sigmas (K,),
-    seen through ``intrinsics`` (3, 3) and plumb_bob ``distortion`` (5,). Up directions:
+    and ``radii_squared`` (L,). Markers: map positions (K, 3), pixels (K, 2), whitening
+    matrices (K, 2, 2) W with W^T W the inverse of the pixel's covariance, seen through
+    ``intrinsics`` (3, 3) and plumb_bob ``distortion`` (5,). Up directions:
     unit ``up_directions`` (U, 3), tangent axes ``up_tangents`` (U, 2, 3), ``up_sigma`` (U,).
     """
 
@@ -61,7 +62,7 @@ class Terms(NamedTuple):
     radii_squared: np.ndarray = np.empty(0)
     marker_maps: np.ndarray = np.empty((0, 3))
     marker_pixels: np.ndarray = np.empty((0, 2))
-    marker_sigma: np.ndarray = np.empty(0)
+    marker_whitening: np.ndarray = np.empty((0, 2, 2))
     intrinsics: np.ndarray = np.eye(3)
     distortion: np.ndarray = np.zeros(5)
     up_directions: np.ndarray = np.empty((0, 3))
@@ -79,7 +80,7 @@ def _fields(first: str, last: str) -> slice:
 
 
 # Fields that come and go together: a lamp's rim points (and the lamp), markers, up directions.
-_KINDS = (_fields('rays', 'radii_squared'), _fields('marker_maps', 'marker_sigma'),
+_KINDS = (_fields('rays', 'radii_squared'), _fields('marker_maps', 'marker_whitening'),
           _fields('up_directions', 'up_sigma'))
 _CAMERA = _fields('intrinsics', 'distortion')
 _LAMP_OF_POINT = Terms._fields.index('lamp_of_point')
@@ -281,7 +282,7 @@ def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_coni
 
 @kernel
 def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, centres, radii_squared,
-                   marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,
+                   marker_maps, marker_pixels, marker_whitening, intrinsics, distortion,
                    up_directions, up_tangents, up_sigma, residuals, jacobian):
     """
     Write the whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose.
@@ -332,20 +333,24 @@ def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, cen
         for i in range(3):
             point[i] = rotation[0, i] * offset[0] + rotation[1, i] * offset[1] + rotation[2, i] * offset[2]
         u, v = project_point(point, intrinsics, distortion, lens_jacobian)
-        sigma = marker_sigma[marker]
-        residuals[row] = (u - marker_pixels[marker, 0]) / sigma
-        residuals[row + 1] = (v - marker_pixels[marker, 1]) / sigma
+        whitening = marker_whitening[marker]
+        du, dv = u - marker_pixels[marker, 0], v - marker_pixels[marker, 1]
         for i in range(2):
             for m in range(3):
                 to_pixel[i, m] = (lens_jacobian[i, 0] * rotation[m, 0] + lens_jacobian[i, 1] * rotation[m, 1]
                                   + lens_jacobian[i, 2] * rotation[m, 2])
+        for i in range(2):
+            w0, w1 = whitening[i, 0], whitening[i, 1]
             r = row + i
-            jacobian[r, 0] = -to_pixel[i, 0] / sigma
-            jacobian[r, 1] = -to_pixel[i, 1] / sigma
-            jacobian[r, 2] = -to_pixel[i, 2] / sigma
-            jacobian[r, 3] = (to_pixel[i, 1] * offset[2] - to_pixel[i, 2] * offset[1]) / sigma
-            jacobian[r, 4] = (to_pixel[i, 2] * offset[0] - to_pixel[i, 0] * offset[2]) / sigma
-            jacobian[r, 5] = (to_pixel[i, 0] * offset[1] - to_pixel[i, 1] * offset[0]) / sigma
+            residuals[r] = w0 * du + w1 * dv
+            for m in range(3):
+                w[m] = w0 * to_pixel[0, m] + w1 * to_pixel[1, m]
+            jacobian[r, 0] = -w[0]
+            jacobian[r, 1] = -w[1]
+            jacobian[r, 2] = -w[2]
+            jacobian[r, 3] = w[1] * offset[2] - w[2] * offset[1]
+            jacobian[r, 4] = w[2] * offset[0] - w[0] * offset[2]
+            jacobian[r, 5] = w[0] * offset[1] - w[1] * offset[0]
         row += 2
     for k in range(up_directions.shape[0]):
         g, tangents, sigma = up_directions[k], up_tangents[k], up_sigma[k]
@@ -429,7 +434,7 @@ def _normal_equations(residuals, jacobian, information, gradient):
 @kernel
 def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
             rays, lens, rim_sigma, lamp_of_point, centres, radii_squared, marker_maps, marker_pixels,
-            marker_sigma, intrinsics, distortion, up_directions, up_tangents, up_sigma):
+            marker_whitening, intrinsics, distortion, up_directions, up_tangents, up_sigma):
     """
     Run Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose.
 
@@ -471,7 +476,7 @@ def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
         step = solved.solution
         perturb(rotation, position, step, trial_rotation, trial_position)
         trial_cost = linearize_into(trial_rotation, trial_position, rays, lens, rim_sigma, lamp_of_point, centres,
-                                    radii_squared, marker_maps, marker_pixels, marker_sigma, intrinsics, distortion,
+                                    radii_squared, marker_maps, marker_pixels, marker_whitening, intrinsics, distortion,
                                     up_directions, up_tangents, up_sigma, trial_residuals, trial_jacobian)
         if not np.isfinite(trial_cost) or trial_cost > cost:
             damping *= 10.0

@@ -50,6 +50,8 @@ class LampMeasurement:
     marker_ray: np.ndarray | None
     # The prior sigma (px) of the rim's smooth error patterns (``LampObservation.rim_model_sigma``).
     rim_model_sigma: float = 0.0
+    # The marker pixel's covariance (2x2, px^2; None: ``marker_sigma`` on either axis).
+    marker_covariance: np.ndarray | None = None
 
     @classmethod
     def from_observation(cls, observation: LampObservation, lamp: Lamp,
@@ -72,12 +74,17 @@ class LampMeasurement:
                 raise ValueError(f'lamp {lamp.name!r}: marker_sigma must be positive, '
                                  f'got {observation.marker_sigma}')
             marker_ray = np.append(camera.normalize(marker)[0], 1.0)
+            covariance = observation.marker_covariance
+            if covariance is not None and not _is_covariance(covariance):
+                raise ValueError(f'lamp {lamp.name!r}: marker_covariance must be a positive definite 2x2 matrix')
         rays, lens = rim_terms(camera.normalize(rim), camera.K, camera.D, camera.is_distorted,
                                camera.pinhole_pixel_inverse)
         return cls(lamp=lamp, camera=camera, rim_rays=rays, rim_pixel_jacobian=lens,
                    rim_sigma=float(observation.rim_sigma), marker_pixel=marker,
                    marker_sigma=float(observation.marker_sigma), marker_ray=marker_ray,
-                   rim_model_sigma=float(observation.rim_model_sigma))
+                   rim_model_sigma=float(observation.rim_model_sigma),
+                   marker_covariance=None if marker is None or observation.marker_covariance is None
+                   else np.array(observation.marker_covariance, dtype=float).reshape(2, 2))
 
     def thinned(self, max_rim_points: int) -> LampMeasurement:
         """Return the same measurement on every k-th rim point, at most ``max_rim_points`` of them."""
@@ -94,7 +101,7 @@ class LampMeasurement:
         if self.marker_pixel is not None:
             markers = {'marker_maps': lamp.marker_position().reshape(1, 3),
                        'marker_pixels': np.array(self.marker_pixel, dtype=float).reshape(1, 2),
-                       'marker_sigma': np.array([self.marker_sigma])}
+                       'marker_whitening': marker_whitening(self.marker_sigma, self.marker_covariance)[None]}
         terms = Terms(rays=np.ascontiguousarray(self.rim_rays, dtype=float),
                       lens=np.ascontiguousarray(self.rim_pixel_jacobian, dtype=float).reshape(count, 4),
                       rim_sigma=np.full(count, self.rim_sigma), lamp_of_point=np.zeros(count, dtype=np.int64),
@@ -137,6 +144,24 @@ class LampMeasurements:
     def linearize(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """As ``LampMeasurement.linearize``, for all the parts at once."""
         return linearize(self.terms, rotation, position)
+
+
+def marker_whitening(sigma: float, covariance: np.ndarray | None) -> np.ndarray:
+    """
+    Return W (2x2) with W^T W the inverse of a marker pixel's covariance (``sigma`` on either axis if None).
+
+    W = L^-1 for the Cholesky factor L L^T = covariance: its residuals W d are independent with unit variance.
+    """
+    if covariance is None:
+        return np.eye(2) / sigma
+    return np.ascontiguousarray(np.linalg.inv(np.linalg.cholesky(0.5 * (covariance + covariance.T))))
+
+
+def _is_covariance(covariance: np.ndarray) -> bool:
+    matrix = np.asarray(covariance, dtype=float)
+    if matrix.shape != (2, 2) or not np.isfinite(matrix).all():
+        return False
+    return bool(matrix[0, 0] > 0.0 and matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0] > 0.0)
 
 
 # Modes of model error per lamp in ``rim_error_modes``: the offset and the first two harmonics.

@@ -59,6 +59,9 @@ def seen_through_pinhole(observation: LampObservation, camera: CameraModel) -> L
             camera, np.asarray(observation.marker, dtype=float).reshape(1, 2))
         changes.update(marker=marker[0],
                        marker_sigma=float(observation.marker_sigma * np.sqrt(abs(np.linalg.det(marker_jacobian[0])))))
+        if observation.marker_covariance is not None:
+            to_pinhole = marker_jacobian[0]
+            changes.update(marker_covariance=to_pinhole @ observation.marker_covariance @ to_pinhole.T)
     return replace(observation, **changes)
 
 

@@ -83,7 +83,8 @@ class PointLampMeasurement:
         object.__setattr__(self, 'ray', np.append(self.camera.normalize(pixel)[0], 1.0))
         object.__setattr__(self, 'terms', Terms(
             marker_maps=np.array(self.lamp.position, dtype=float).reshape(1, 3), marker_pixels=pixel.reshape(1, 2),
-            marker_sigma=np.array([float(self.sigma)]), intrinsics=self.camera.K, distortion=self.camera.D))
+            marker_whitening=np.eye(2).reshape(1, 2, 2) / float(self.sigma), intrinsics=self.camera.K,
+            distortion=self.camera.D))
 
     def thinned(self, max_rim_points: int) -> PointLampMeasurement:
         """Itself: a point has no rim to thin (as ``LampMeasurement.thinned``)."""
