@@ -326,6 +326,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.seconds <= 0.0 or args.rate <= 0.0 or args.frames < 1:
         parser.error('--seconds, --rate and --frames must be positive')
+    for folder in args.recording:
+        if not ((folder / 'params.yaml').is_file() and (folder / 'bag').is_dir()):
+            parser.error(f'--recording {folder}: needs bag/ and params.yaml')
     simulate = not args.recording or bool(args.scene or args.look)
     folders = recordings(args.recording) if not (args.scene or args.look) or args.recording else []
     use_loopback_dds(loopback_profile(), claim_domain_id())
