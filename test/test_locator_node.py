@@ -203,7 +203,8 @@ def test_compressed_transport_follows_image_raw_remapping(start_process, test_no
                                                'position_sigma': [0.01, -0.01, 0.0]}}}, 'leds.lamp_1.position_sigma'),
     ({'beacon': {'mode': 'morse'}}, 'beacon.mode'),
     ({'solvr': 'paper'}, 'solvr'),
-    ({'qos_overrides': {'/camera_info': {'subscription': {'depth': 3}}}}, 'qos_overrides./camera_info.subscription.depth'),
+    ({'qos_overrides': {'/camera_info': {'subscription': {'depth': 3}}}},
+     'qos_overrides./camera_info.subscription.depth'),
     ({'qos_overrides': {'/image_raw': {'subscription': {'reliability': 'sometimes'}}}},
      'qos_overrides./image_raw.subscription.reliability'),
 ])

@@ -8,7 +8,7 @@ import sys
 ROOT = Path(__file__).resolve().parents[1]
 
 # rclpy destroys every node of a context it shuts down, also one whose __init__ raised while the error is kept.
-FAILED_START = '''
+FAILED_START = """
 import rclpy
 from vlp_ros.nodes.locator import Locator
 from vlp_ros.pipeline.config import ConfigError
@@ -19,7 +19,7 @@ except ConfigError as err:
     kept = err
 rclpy.shutdown()
 print('shut down after:', kept)
-'''
+"""
 
 
 def test_a_locator_that_failed_to_start_is_destroyed_without_a_second_error() -> None:

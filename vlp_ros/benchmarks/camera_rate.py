@@ -1,5 +1,5 @@
 """
-Camera rate through the node: python -m vlp_ros.benchmarks.camera_rate [--scene NAME ...] [--look NAME ...] [--recording DIR ...].
+Camera rate through the node: python -m vlp_ros.benchmarks.camera_rate [--scene NAME] [--look NAME] [--recording DIR].
 
 Streams frames into the installed ``locator`` (its own process, over DDS on loopback, an unshared domain) at
 ``--rate`` frames/s for ``--seconds``, as a camera driver does: best effort, depth 1, ``camera_info`` (and the
