@@ -203,6 +203,10 @@ def test_compressed_transport_follows_image_raw_remapping(start_process, test_no
                                                'position_sigma': [0.01, -0.01, 0.0]}}}, 'leds.lamp_1.position_sigma'),
     ({'beacon': {'mode': 'morse'}}, 'beacon.mode'),
     ({'solvr': 'paper'}, 'solvr'),
+    ({'qos_overrides': {'/camera_info': {'subscription': {'depth': 3}}}},
+     'qos_overrides./camera_info.subscription.depth'),
+    ({'qos_overrides': {'/image_raw': {'subscription': {'reliability': 'sometimes'}}}},
+     'qos_overrides./image_raw.subscription.reliability'),
 ])
 def test_bad_parameters_stop_the_node_with_one_line_naming_them(start_process, tmp_path, robot_frame,
                                                                 overrides, parameter) -> None:
@@ -247,3 +251,27 @@ def test_camera_settings_that_hinder_identification_are_named_at_start(start_pro
     output = _output_once_locating(_start_locator(start_process, tmp_path, robot_frame[0],
                                                   overrides={'beacon': {'chip_rate': 30000.0}}))
     assert 'beacon.chip_rate 30000 Hz gives 2.2 rows per chip' in output, output
+
+
+@pytest.mark.parametrize('overrides, reliability', [
+    ({}, ReliabilityPolicy.BEST_EFFORT),
+    ({'qos_overrides': {'/image_raw': {'subscription': {'reliability': 'reliable', 'depth': 2}}}},
+     ReliabilityPolicy.RELIABLE),
+])
+def test_qos_overrides_of_the_image_subscription_are_honoured(start_process, test_node, tmp_path, robot_frame,
+                                                              overrides, reliability) -> None:
+    locator = _start_locator(start_process, tmp_path, robot_frame[0], overrides=overrides)
+
+    def subscriptions():
+        return [info for info in test_node.get_subscriptions_info_by_topic('/image_raw')
+                if info.node_name == 'vlp_locator']
+
+    assert spin_until(test_node, subscriptions, CONNECT_S), locator.output()
+    assert subscriptions()[0].qos_profile.reliability == reliability
+
+
+def test_a_reliable_qos_override_does_not_warn(start_process, tmp_path, robot_frame) -> None:
+    output = _start_without_transport_setup(
+        start_process, tmp_path, robot_frame[0],
+        overrides={'qos_overrides': {'/image_raw': {'subscription': {'reliability': 'reliable'}}}})
+    assert 'FASTDDS_BUILTIN_TRANSPORTS' not in output

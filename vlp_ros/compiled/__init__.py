@@ -20,7 +20,7 @@ modules (``__pycache__``) when the package directory is writable (a source tree,
 colcon install of one's own); else ``$ROS_HOME/vlp_ros/numba_cache``, or without
 ``ROS_HOME`` ``${XDG_CACHE_HOME:-~/.cache}/vlp_ros/numba`` (a read-only install from
 apt or a shared workspace). A ``NUMBA_CACHE_DIR`` set by the user wins. When nothing
-is writable, the kernels are compiled in memory at every start (about a minute) and
+is writable, the kernels are compiled in memory at every start (minutes) and
 one warning line says so.
 """
 from __future__ import annotations
@@ -77,7 +77,7 @@ if _cache_dir is not None:
 if not CACHING:
     logging.getLogger(__name__).warning(
         'vlp_ros: no writable directory for the numba cache (the package, $ROS_HOME/vlp_ros/numba_cache or '
-        '~/.cache/vlp_ros/numba): the kernels are compiled in memory at every start, about a minute of CPU; '
+        '~/.cache/vlp_ros/numba): the kernels are compiled in memory at every start, minutes of CPU; '
         'set ROS_HOME (or NUMBA_CACHE_DIR) to a writable directory to compile them once')
 
 

@@ -2,7 +2,7 @@
 Make every numba kernel ready before the first frame: python -m vlp_ros.compiled.warm_up.
 
 Numba compiles a kernel on its first call for the argument types it gets (about
-half a second per kernel, a minute for all of them), or loads it from the cache
+about half a second per kernel and signature, minutes for all of them), or loads it from the cache
 (``vlp_ros.compiled``); a node would pay that on its first frames. ``warm_up``
 builds a few small frames in place and runs them through the pipeline: a camera
 looking straight up at lamps 2 m above it, each a disc whose rows carry its beacon

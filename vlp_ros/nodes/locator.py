@@ -9,6 +9,7 @@ so its first frames take no longer than later ones.
 """
 from __future__ import annotations
 
+import ctypes
 import os
 import sys
 import threading
@@ -20,6 +21,7 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import Header
@@ -35,7 +37,7 @@ from vlp_ros.images.conversion import decode_compressed, ImageConversionError, p
 from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
 from vlp_ros.nodes.diagnostics import diagnostic_array
 from vlp_ros.nodes.lifecycle import run_node
-from vlp_ros.nodes.parameters import declare_locator_parameters
+from vlp_ros.nodes.parameters import check_qos_overrides, declare_locator_parameters
 from vlp_ros.nodes.visualization import bgr8_image, lamp_markers
 from vlp_ros.pipeline.config import ConfigError, settings_from_parameters
 from vlp_ros.pipeline.debug_view import debug_view
@@ -43,21 +45,29 @@ from vlp_ros.pipeline.frame import FrameResult, Pipeline
 from vlp_ros.pipeline.frame_stats import FrameStats
 
 THROTTLE_S = 5.0
+# glibc's mallopt parameters (malloc.h).
+_M_MMAP_THRESHOLD, _M_ARENA_MAX = -3, -8
+_MMAP_THRESHOLD_BYTES = 1 << 20
 
 
 class Locator(Node):
 
     def __init__(self) -> None:
+        # Before anything that can fail: rclpy destroys a node that failed to start, and destroy_node reads these.
+        self._pending: tuple[bytes, float] | None = None
+        self._wake = threading.Condition()
+        self._running = True
+        self._worker: threading.Thread | None = None
         # Overrides declared on arrival, so that misspelt parameters can be named (nodes.parameters).
         super().__init__('vlp_locator', automatically_declare_parameters_from_overrides=True)
         self.settings = settings_from_parameters(declare_locator_parameters(self))
+        self._image_topic = self.resolve_topic_name('image_raw') + (
+            '/compressed' if self.settings.image_transport == 'compressed' else '')
+        check_qos_overrides(self, self._image_topic)
         self.pipeline = Pipeline(self.settings)
         self.stats = FrameStats()
         self._camera: CameraModel | None = None
         self._gravity = GravityBuffer(self.settings.imu_rotation, self.settings.imu_max_age)
-        self._pending: tuple[bytes, float] | None = None
-        self._wake = threading.Condition()
-        self._running = True
 
         self.pose_pub = self.create_publisher(PoseStamped, 'vlp/pose', 10)
         self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', 10)
@@ -127,8 +137,6 @@ class Locator(Node):
         reliability = (ReliabilityPolicy.RELIABLE if self.settings.qos_reliability == 'reliable'
                        else ReliabilityPolicy.BEST_EFFORT)
         qos = QoSProfile(depth=self.settings.qos_depth, reliability=reliability)
-        if reliability == ReliabilityPolicy.BEST_EFFORT:
-            self._warn_without_large_data_transport()
         # camera_info and imu before the image: the executor serves the messages waiting at one wake in the
         # order the subscriptions were made, so a camera_info that came before its frame is read before it.
         # Best effort matches both reliable and best-effort publishers.
@@ -136,13 +144,13 @@ class Locator(Node):
         if self.settings.imu_enabled:
             self.create_subscription(Imu, 'imu', self._on_imu, QoSProfile(
                 depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
-        if self.settings.image_transport == 'compressed':
-            # Derived from the resolved name so that remapping image_raw moves it too.
-            self._image_topic = self.resolve_topic_name('image_raw') + '/compressed'
-            self.create_subscription(CompressedImage, self._image_topic, self._on_frame, qos, raw=True)
-        else:
-            self._image_topic = self.resolve_topic_name('image_raw')
-            self.create_subscription(Image, 'image_raw', self._on_frame, qos, raw=True)
+        # The compressed topic is derived from the resolved name so that remapping image_raw moves it too.
+        # qos_overrides.<topic>.subscription.* (checked at start) win over qos.*, as in any rclpy node.
+        image_type = CompressedImage if self.settings.image_transport == 'compressed' else Image
+        subscription = self.create_subscription(image_type, self._image_topic, self._on_frame, qos, raw=True,
+                                                qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        if subscription.qos_profile.reliability != ReliabilityPolicy.RELIABLE:
+            self._warn_without_large_data_transport()
 
     def _warn_without_large_data_transport(self) -> None:
         large_data = os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', '').upper().startswith('LARGE_DATA')
@@ -282,7 +290,8 @@ class Locator(Node):
         with self._wake:
             self._running = False
             self._wake.notify()
-        self._worker.join(timeout=5.0)
+        if self._worker is not None:
+            self._worker.join(timeout=5.0)
         super().destroy_node()
 
 
@@ -294,8 +303,26 @@ def _pose_message(pose: Pose) -> PoseMsg:
     return msg
 
 
+def return_large_buffers_to_the_system() -> None:
+    """
+    Make glibc give a frame's buffers back when they are freed, before rclpy starts its threads.
+
+    glibc raises its mmap threshold to the size of each large block freed (up to 32 MB), so that 4K frames
+    (25 MB, several per frame: the message, its bytes, the decoded pixels) are then carved from heap arenas, one
+    per thread that allocates (DDS's, the executor's, the worker's), which keep the freed memory as resident
+    fragments. A fixed threshold keeps every frame-sized block mapped on its own; two arenas bound the rest.
+    """
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_BYTES)
+        libc.mallopt(_M_ARENA_MAX, 2)
+    except (OSError, AttributeError):  # not glibc: its allocator is left as it is
+        pass
+
+
 def main(args: list[str] | None = None) -> int:
     """Run the locator until Ctrl-C; exit status 2 after a parameter error."""
+    return_large_buffers_to_the_system()
     return run_node(Locator, args=args, start_errors=(ConfigError,), on_start_error=_report_parameter_error)
 
 

@@ -19,8 +19,11 @@ _STATIC_TYPES = {
     'bool': Parameter.Type.BOOL,
 }
 _INTEGER_RANGES = {'beacon.id_bits': (1, 16), 'qos.depth': (1, 1000)}
-# Parameters every rclpy node may be given besides its own.
+# Parameters every rclpy node may be given besides its own (qos_overrides.* are checked by check_qos_overrides).
 _INFRASTRUCTURE = ('use_sim_time', 'start_type_description_service', 'qos_overrides.')
+# The image subscription's policies that rclpy's QoSOverridingOptions.with_default_policies() reads.
+_QOS_OVERRIDE_VALUES = {'reliability': ('reliable', 'best_effort', 'system_default'),
+                        'history': ('keep_last', 'keep_all', 'system_default')}
 
 
 def _descriptor(name: str, spec: ParameterSpec) -> ParameterDescriptor:
@@ -81,3 +84,26 @@ def declare_locator_parameters(node: Node) -> dict[str, Any]:
         else:
             raise ConfigError(name, 'unknown parameter (a typo?)')
     return values
+
+
+def check_qos_overrides(node: Node, image_topic: str) -> None:
+    """
+    Check the ``qos_overrides.*`` parameters: only the image subscription's reliability, history and depth.
+
+    rclpy applies them when the subscription is made (over ``qos.*``); any other one would be
+    ignored silently, so it stops the node, as does a value rclpy would refuse.
+    """
+    prefix = f'qos_overrides.{image_topic}.subscription.'
+    for name, parameter in node.get_parameters_by_prefix('qos_overrides').items():
+        name = f'qos_overrides.{name}'
+        policy = name[len(prefix):] if name.startswith(prefix) else None
+        value = parameter.value
+        if policy == 'depth':
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 1000:
+                raise ConfigError(name, f'{value!r} is not a queue depth (an integer from 1 to 1000)')
+        elif policy in _QOS_OVERRIDE_VALUES:
+            if not isinstance(value, str) or value.lower() not in _QOS_OVERRIDE_VALUES[policy]:
+                raise ConfigError(name, f'{value!r} is none of {", ".join(_QOS_OVERRIDE_VALUES[policy])}')
+        else:
+            raise ConfigError(name, f'not used: the locator takes QoS overrides for its image subscription only '
+                                    f'({prefix}reliability, history or depth)')
