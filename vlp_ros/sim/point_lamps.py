@@ -10,17 +10,17 @@ is 46 px wide at half level from 2.46 m), its edge softened by the lens (``edge_
 px), over a glow ``glow_level`` x exp(-r / ``glow_scale``) (relative to the core; 0.4 and
 87 px put it at 10 % 120 px out), scaled with the output width. Every row's light is the
 tone averaged over that row's exposure, so the glow carries the stripes as a real one does.
-There is no marker.
+There is no marker. Lower output resolutions bin the sensor: rows take longer, the
+exposure stays.
 
 A real lens adds what the defaults leave out, each an option of ``PointLampLook``: a long
 tail of the lens's spread (``tail_level`` x (1 + (r / ``tail_scale``)^2)^-1.5, the Moffat
-form of a real PSF's wings); a comatic glow off the optical axis (``coma``: the glow and
-tail shifted away from the image centre by ``coma`` x their scale at the frame's corner,
-in proportion to the distance from the centre, and stretched along that direction by
-1 + ``coma``); an emitter that is not round (``core_roughness``: its radius varies with
-the angle by that share, in second to fourth harmonics of random phase); and
-``overexposure``, the light's level over the default's (more of the core clips). Lower output resolutions bin the sensor: rows take longer, the
-exposure stays.
+form of a real PSF's wings); a comatic flare off the optical axis (``coma``: the glow and
+tail, peaked on the LED, drawn out on their side away from the image centre by 1 +
+``coma`` x the distance from the centre over the half-diagonal); an emitter that is not
+round (``core_roughness``: its radius varies with the angle by that share, in second to
+fourth harmonics of random phase); and ``overexposure``, the light's level over the
+default's (more of the core, then the glow, clips).
 
 ``bare_led_scenario`` renders that rig for hand-held photos (``python -m vlp_ros.sim
 --scenario bare_leds``), with the locator's parameters for it: tone mode, point lamps
@@ -93,7 +93,7 @@ class PointLampLook:
 
     def light(self, core_r: np.ndarray, glow_r: np.ndarray, core_px: float | np.ndarray,
               scale: float) -> np.ndarray:
-        """The light at ``core_r`` px from the core's centre (radius ``core_px``) and ``glow_r`` from the glow's."""
+        """Return the light ``core_r`` px from the core's centre (radius ``core_px``) and ``glow_r`` from the glow's."""
         core = 0.5 * erfc((core_r - core_px) / (np.sqrt(2.0) * self.edge_sigma * scale))
         glow = self.glow_level * np.exp(-glow_r / (self.glow_scale * scale))
         tail = self.tail_level * (1.0 + (glow_r / (self.tail_scale * scale)) ** 2) ** -1.5
@@ -103,13 +103,13 @@ class PointLampLook:
         """Radius (px) beyond which the light is below ``_GLOW_CUTOFF``."""
         glow = self.glow_scale * scale * np.log(max(self.glow_level, _GLOW_CUTOFF) / _GLOW_CUTOFF)
         tail = self.tail_scale * scale * np.sqrt(max(self.tail_level / _GLOW_CUTOFF, 1.0) ** (2.0 / 3.0) - 1.0)
-        return (1.0 + 2.0 * self.coma) * max(core_px * (1.0 + self.core_roughness) + 4.0 * self.edge_sigma * scale,
-                                             glow, tail)
+        core = core_px * (1.0 + self.core_roughness) + 4.0 * self.edge_sigma * scale
+        return (1.0 + self.coma) * max(core, glow, tail)
 
     def image(self, dx: np.ndarray, dy: np.ndarray, core_px: float, scale: float, off_axis: np.ndarray,
               phases: np.ndarray) -> np.ndarray:
         """
-        The light at offsets (``dx``, ``dy``) px from where the LED projects.
+        Return the light at offsets (``dx``, ``dy``) px from where the LED projects.
 
         ``off_axis`` is that point's offset from the image centre over the half-diagonal (coma grows with
         it), ``phases`` the core's second to fourth harmonics' phases.
@@ -122,9 +122,10 @@ class PointLampLook:
             return self.light(core_r, core_r, radius, scale)
         distance = float(np.linalg.norm(off_axis))
         direction = off_axis / distance if distance > 0.0 else np.array([1.0, 0.0])
-        shift = self.coma * distance * self.glow_scale * scale
-        along = (dx * direction[0] + dy * direction[1] - shift) / (1.0 + self.coma * distance)
+        along = dx * direction[0] + dy * direction[1]
         across = -dx * direction[1] + dy * direction[0]
+        # Comatic flare: the glow's peak stays on the LED, its outward side drawn out.
+        along = np.where(along > 0.0, along / (1.0 + self.coma * distance), along)
         return self.light(core_r, np.hypot(along, across), radius, scale)
 
 
