@@ -13,12 +13,15 @@ the centre of the light, with a covariance from the crossings' own scatter.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 
+import cv2
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from vlp_ros.compiled.small_arrays import median
+from vlp_ros.core.observation import LampObservation
 
 # Robust (MAD) standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
@@ -38,8 +41,34 @@ _MAX_SCATTER_SHARE = 0.3
 # The kept crossings must span this share of the circle's height: a bar's or a box's rows, all alike,
 # fit a circle too, but over a band of rows well short of its diameter.
 _MIN_HEIGHT_SHARE = 0.65
+# An overexposed light's clipped area may be this much taller than wide, or wider than tall (its stripes).
+_MAX_CLIPPED_ASPECT = 1.6
 # Largest lag-one correlation of the residuals of adjacent rows counted.
 _MAX_CORRELATION = 0.8
+# The light's centre is found over the glow out to this many core radii (plus a margin, px), then
+# measured over the core's flank out to the second: a comatic glow shifted by 13 px (4K) moved the
+# first fit by 0.4-5 px, the second by 0.1-0.4 px.
+_GLOW_REACH = 3.0
+_GLOW_MARGIN_PX = 10.0
+_CORE_REACH = 1.3
+_CORE_MARGIN_PX = 6.0
+# The core's area is where the de-striped light is above this share of its plateau (or of the clip).
+_CORE_LEVEL = 0.9
+# Shares of the distances between the estimates taken as the centre's sigma (per axis).
+_DISAGREEMENT_SHARE = 0.5
+_ASYMMETRY_SHARE = 0.25
+_MIN_LIGHT_PIXELS = 200
+_KNOT_PX = 1.0
+_SMOOTHNESS = 2.0
+_START_STEPS = 4
+_MAX_ITERATIONS = 30
+_GAUGE = 1.0
+_MAX_STEP_PX = 2.0
+_CONVERGED_PX = 1e-3
+# The fit's sigma counts pixels as independent; neighbours share their errors (the lens, JPEG's blocks,
+# the shape's asymmetry), so it is taken as this many times that.
+_LIGHT_CORRELATION = 1.7
+_LIGHT_SIGMA_FLOOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -79,7 +108,32 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
     core = width <= _CORE_WIDTH_FACTOR * median(narrow)
     unclipped = core & ~clipped
     fit = _core_fit(points, rows, unclipped, min_radius) if np.count_nonzero(unclipped) >= _MIN_POINTS // 2 else None
-    return fit if fit is not None or not np.any(core & clipped) else _core_fit(points, rows, core, min_radius)
+    if fit is None and np.any(core & clipped):
+        fit = _core_fit(points, rows, core, min_radius)
+    return fit if fit is not None else _overexposed_fit(brightness, background, min_radius, saturation_level)
+
+
+def _overexposed_fit(brightness: np.ndarray, background: float, min_radius: float,
+                     saturation_level: float) -> PointFit | None:
+    """
+    ``fit_point`` for a light that clips its glow too: no row's half-maximum crossing is the core's.
+
+    The clipped area then varies row by row with the stripes and is no circle; the centre is the
+    light's (``measure_light_centre``) from the clipped area's centroid, for a clipped area about as
+    tall as it is wide (a bar or a window is not a bare LED).
+    """
+    clipped = brightness >= saturation_level
+    rows, columns = np.nonzero(clipped)
+    if len(rows) < _MIN_POINTS:
+        return None
+    height, width = np.ptp(rows) + 1.0, np.ptp(columns) + 1.0
+    radius = 0.25 * (height + width)
+    if radius < min_radius or max(height, width) > _MAX_CLIPPED_ASPECT * min(height, width):
+        return None
+    light = measure_light_centre(brightness, np.array([columns.mean(), rows.mean()]), radius, saturation_level)
+    if light is None:
+        return None
+    return PointFit(light.center, radius, light.sigma, np.zeros((0, 2)), 0.0)
 
 
 def _core_fit(points: np.ndarray, rows: np.ndarray, core: np.ndarray, min_radius: float) -> PointFit | None:
@@ -226,3 +280,250 @@ def _row_correlation_inflation(rows: np.ndarray, residual: np.ndarray, left: np.
         norm += 0.5 * float(np.sum(r[adjacent] ** 2) + np.sum(r[adjacent + 1] ** 2))
     rho = min(max(total / norm, 0.0), _MAX_CORRELATION) if norm > 0.0 else 0.0
     return (1.0 + rho) / (1.0 - rho)
+
+
+@dataclass(frozen=True)
+class LightCentre:
+    """
+    The centre of a point lamp's light (full-frame pixels) and its standard deviation per axis (px).
+
+    ``radius`` is how far out (px) the light was measured, ``clipped`` the share of those pixels clipped.
+    """
+
+    center: np.ndarray
+    sigma: float
+    radius: float
+    clipped: float
+
+
+def measure_light_centre(image: np.ndarray, start: np.ndarray, core_radius: float,
+                         saturation_level: float = 250.0) -> LightCentre | None:
+    """
+    Return the centre of the light around ``start`` (px) whose core is about ``core_radius`` px.
+
+    The light is modelled as one radial shape times each row's level over the ambient level,
+    I(x, y) = b + s(y) f(|p - c|): the stripes scale every row of core and glow alike, and
+    the shape f is free (any lens's spread, glow and tail), so only its symmetry about c is
+    assumed. Clipped pixels say only that the light is above the clip and are left out, so
+    the centre comes from the unclipped flanks, weighted by how steeply each pixel changes
+    with the centre. It is fitted twice: over the glow out to ``_GLOW_REACH`` core radii, which
+    finds the light from a start many pixels off, then over the core's flank alone
+    (``_CORE_REACH``), which gives the centre: a real glow is not symmetric (coma, flare) and
+    would pull it. The two fits' distance widens the sigma. None when too little light is
+    unclipped.
+    """
+    coarse = _fit_within(image, np.asarray(start, dtype=float), _GLOW_REACH * core_radius + _GLOW_MARGIN_PX,
+                         saturation_level, core_radius + _GLOW_MARGIN_PX)
+    if coarse is None:
+        return None
+    fine = _fit_within(image, coarse.center, _CORE_REACH * core_radius + _CORE_MARGIN_PX, saturation_level,
+                       0.5 * core_radius + 2.0)
+    if fine is None:
+        return None
+    area = level_centroids(coarse, (_CORE_LEVEL,))
+    if area is None:
+        return None
+    # Two estimates that assume different things: the flank's radial symmetry (a comatic glow does not
+    # move it; an irregular emitter does) and the core's area centroid (the reverse). Each's departure
+    # from the other, and the glow's from the flank, say how far the light departs from either.
+    centre = 0.5 * (fine.center + area[0])
+    disagreement = float(np.linalg.norm(fine.center - area[0]))
+    asymmetry = float(np.linalg.norm(fine.center - coarse.center))
+    sigma = math.sqrt(fine.sigma ** 2 + (_DISAGREEMENT_SHARE * disagreement) ** 2 + (_ASYMMETRY_SHARE * asymmetry) ** 2)
+    return LightCentre(centre, sigma, fine.reach, fine.clipped_share)
+
+
+def level_centroids(fit: _Fit, shares: tuple[float, ...]) -> np.ndarray | None:
+    """
+    Return the centroids (K, 2) of the de-striped light's areas above ``shares`` of its top level.
+
+    The top is the core's plateau, or the clip where the brightest row clips: a clipped pixel lies
+    above the clip in its own row, so above it de-striped too (its row's level is at most 1), and
+    every area below the clip is known. The area holding the fit's centre counts, its pixels whole.
+    """
+    light = fit.destriped
+    known = fit.inside & ~fit.clipped
+    if not np.any(known):
+        return None
+    top = min(float(np.percentile(light[known], 99.5)), fit.clip)
+    centroids = []
+    x0, y0 = fit.origin
+    seed = np.rint(fit.center - np.array([x0, y0])).astype(int)
+    for share in shares:
+        above = (fit.inside & (fit.clipped | (light >= share * top))).astype(np.uint8)
+        _, labels = cv2.connectedComponents(above)
+        if not (0 <= seed[1] < labels.shape[0] and 0 <= seed[0] < labels.shape[1]) or labels[seed[1], seed[0]] == 0:
+            return None
+        ys, xs = np.nonzero(labels == labels[seed[1], seed[0]])
+        centroids.append([xs.mean() + x0, ys.mean() + y0])
+    return np.array(centroids)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A radial fit's centre, sigma, reach and clipped share, and its box de-striped (levels divided out)."""
+
+    center: np.ndarray
+    sigma: float
+    reach: float
+    clipped_share: float
+    destriped: np.ndarray
+    clipped: np.ndarray
+    inside: np.ndarray
+    origin: tuple[int, int]
+    clip: float
+
+
+def _fit_within(image: np.ndarray, start: np.ndarray, reach: float, saturation_level: float,
+                max_shift: float) -> _Fit | None:
+    """``measure_light_centre``'s radial fit over the pixels within ``reach`` of ``start``."""
+    height, width = image.shape[:2]
+    x0, y0 = max(int(start[0] - reach), 0), max(int(start[1] - reach), 0)
+    x1, y1 = min(int(start[0] + reach) + 2, width), min(int(start[1] + reach) + 2, height)
+    roi = image[y0:y1, x0:x1]
+    if roi.size == 0:
+        return None
+    colour = roi.ndim == 3
+    # Luma: JPEG keeps it at full resolution, the colours at half.
+    light = (roi.astype(np.float64) @ np.array([0.114, 0.587, 0.299])) if colour else roi.astype(np.float64)
+    clipped = (roi.max(axis=2) if colour else roi) >= saturation_level
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    inside = np.hypot(xs - start[0], ys - start[1]) <= reach
+    use = inside & ~clipped
+    if np.count_nonzero(use) < _MIN_LIGHT_PIXELS:
+        return None
+    # The ambient level: the box's darkest pixels.
+    background = float(np.percentile(light, 2.0))
+    # Rows are numbered among those with a pixel used: a row all clipped has no level to fit.
+    lit_rows, row = np.unique(ys[use], return_inverse=True)
+    fit = _radial_fit(xs[use].astype(float), ys[use].astype(float), row, light[use] - background, start, reach,
+                      len(lit_rows))
+    if fit is None or np.hypot(*(fit[0] - start)) > max_shift:
+        return None
+    # Each box row's level, the brightest 1 (a row with no pixel used lies where the light clips: 1).
+    levels = np.ones(y1 - y0)
+    levels[lit_rows - y0] = fit[2] / fit[2].max()
+    return _Fit(fit[0], fit[1], reach, float(np.count_nonzero(inside & clipped) / np.count_nonzero(inside)),
+                (light - background) / levels[:, None], clipped, inside, (x0, y0), float(saturation_level - background))
+
+
+def _radial_fit(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, centre: np.ndarray, reach: float,
+                rows: int) -> tuple[np.ndarray, float] | None:
+    """
+    Centre and its sigma of s(row) f(r) fitted to the pixels (``x``, ``y``) of ``value``, ``row`` their rows' index.
+
+    f is piecewise linear on knots ``_KNOT_PX`` apart (smoothed by a penalty on its curvature), s one
+    level per row. A few alternating linear steps (f, then s) start it; then Levenberg-Marquardt on all
+    of them and the centre together, since a centre moved up or down is nearly undone by the rows'
+    levels alone. The centre's sigma is its marginal from that fit, the rows' levels and the shape free.
+    """
+    knots = int(np.ceil(reach / _KNOT_PX)) + 2
+    curvature = np.diff(np.eye(knots), 2, axis=0)
+    penalty = _SMOOTHNESS * curvature.T @ curvature
+    level = np.ones(rows)
+    for _ in range(_START_STEPS):
+        k, t, _, _, _ = _radii(x, y, centre, knots)
+        shape = _shape(k, t, level[row], value, knots, penalty)
+        level = _row_levels(row, (1.0 - t) * shape[k] + t * shape[k + 1], value, rows)
+    size = rows + knots + 2
+    pixels = np.arange(len(value))
+    damping = 1e-3
+    cost, normal, gradient = _linearised(x, y, row, value, centre, level, shape, penalty, pixels, size)
+    for _ in range(_MAX_ITERATIONS):
+        try:
+            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
+        except np.linalg.LinAlgError:
+            return None
+        trial = (centre + step[-2:], level + step[:rows], shape + step[rows:rows + knots])
+        if not np.all(np.isfinite(trial[0])):
+            return None
+        linearised = _linearised(x, y, row, value, *trial, penalty, pixels, size)
+        if linearised[0] > cost:
+            damping *= 10.0
+            if damping > 1e6:
+                break
+            continue
+        damping = max(damping / 10.0, 1e-7)
+        moved = float(np.linalg.norm(step[-2:]))
+        (centre, level, shape), (cost, normal, gradient) = trial, linearised
+        if moved < _CONVERGED_PX:
+            break
+    variance = cost / max(len(value) - size, 1)
+    try:
+        covariance = variance * np.linalg.inv(normal)[-2:, -2:]
+    except np.linalg.LinAlgError:
+        return None
+    sigma = _LIGHT_CORRELATION * math.sqrt(max(covariance[0, 0], covariance[1, 1], 0.0))
+    return centre, max(sigma, _LIGHT_SIGMA_FLOOR), level
+
+
+def _linearised(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, centre: np.ndarray,
+                level: np.ndarray, shape: np.ndarray, penalty: np.ndarray, pixels: np.ndarray,
+                size: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """Return the cost of ``_radial_fit``'s model, its Gauss-Newton normal matrix and gradient."""
+    rows, knots = len(level), len(shape)
+    k, t, dx, dy, r = _radii(x, y, centre, knots)
+    s = level[row]
+    g = (1.0 - t) * shape[k] + t * shape[k + 1]
+    residual = value - s * g
+    # d(model)/d(centre): the shape's slope along the pixel's direction from the centre, reversed.
+    slope = (shape[k + 1] - shape[k]) / _KNOT_PX
+    columns = np.concatenate([row, rows + k, rows + k + 1, np.full(len(value), size - 2),
+                              np.full(len(value), size - 1)])
+    entries = np.concatenate([g, s * (1.0 - t), s * t, -s * slope * dx / r, -s * slope * dy / r])
+    jacobian = csr_matrix((entries, (np.tile(pixels, 5), columns)), shape=(len(value), size))
+    normal = (jacobian.T @ jacobian).toarray()
+    gradient = jacobian.T @ residual
+    normal[rows:rows + knots, rows:rows + knots] += penalty
+    gradient[rows:rows + knots] -= penalty @ shape
+    # The product s f keeps its scale free: the levels' sum is held.
+    normal[:rows, :rows] += _GAUGE
+    gradient[:rows] -= _GAUGE * (level.sum() - rows)
+    cost = float(residual @ residual + shape @ penalty @ shape + _GAUGE * (level.sum() - rows) ** 2)
+    return cost, normal, gradient
+
+
+def _radii(x: np.ndarray, y: np.ndarray, centre: np.ndarray, knots: int
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's knot interval and place in it, its offset from the centre and its distance."""
+    dx, dy = x - centre[0], y - centre[1]
+    r = np.maximum(np.hypot(dx, dy), 1e-9)
+    k = np.minimum((r / _KNOT_PX).astype(int), knots - 2)
+    return k, r / _KNOT_PX - k, dx, dy, r
+
+
+def _shape(k: np.ndarray, t: np.ndarray, s: np.ndarray, value: np.ndarray, knots: int,
+           penalty: np.ndarray) -> np.ndarray:
+    """Least squares of ``value`` = s (interpolated shape): the shape's knots."""
+    # Each pixel touches two knots: the normal equations' three diagonals, summed pixel by pixel.
+    a0, a1 = s * (1.0 - t), s * t
+    normal = penalty + np.diag(np.bincount(k, a0 * a0, minlength=knots) + np.bincount(k + 1, a1 * a1, minlength=knots))
+    off = np.bincount(k, a0 * a1, minlength=knots)[:-1]
+    normal[np.arange(knots - 1), np.arange(1, knots)] += off
+    normal[np.arange(1, knots), np.arange(knots - 1)] += off
+    rhs = np.bincount(k, a0 * value, minlength=knots) + np.bincount(k + 1, a1 * value, minlength=knots)
+    return np.linalg.solve(normal + 1e-9 * np.eye(knots), rhs)
+
+
+def _row_levels(row: np.ndarray, g: np.ndarray, light: np.ndarray, rows: int) -> np.ndarray:
+    """Each row's level: the least-squares scale of the shape ``g`` to the row's ``light``, the brightest 1."""
+    level = np.bincount(row, g * light, minlength=rows) / np.maximum(np.bincount(row, g * g, minlength=rows), 1e-12)
+    top = level.max()
+    return level / top if top > 0.0 else np.ones(rows)
+
+
+def measured_as_point(image: np.ndarray, observation: LampObservation, saturation_level: float = 250.0
+                      ) -> LampObservation:
+    """
+    Return ``observation`` as a point lamp's light: its centre and sigma from ``measure_light_centre``.
+
+    A bare LED's round core may pass for a disc, whose rim sits where the stripes and the clip put
+    it; as a point it has no rim and no marker. The observation itself when its light gives no centre.
+    """
+    radius = float(observation.ellipse[2])
+    light = measure_light_centre(image, observation.center, radius, saturation_level)
+    if light is None:
+        return observation
+    return replace(observation, ellipse=np.array([*light.center, radius, radius, 0.0]), rim_points=np.zeros((0, 2)),
+                   rim_sigma=float('inf'), marker=None, marker_sigma=float('inf'), rim_usable=False,
+                   center_sigma=light.sigma, rim_model_sigma=0.0)

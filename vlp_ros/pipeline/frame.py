@@ -20,6 +20,7 @@ from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps
+from vlp_ros.detection.point import measured_as_point
 from vlp_ros.pipeline.config import LocatorSettings
 from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints, UpHint
 from vlp_ros.solvers.candidates import Choice, explains_the_image, PoseCandidate, Reason
@@ -89,6 +90,7 @@ class Pipeline:
         self._known_ids = settings.lamps.ids
         self._frequencies = settings.lamps.frequencies()
         self._point_lamps = any(lamp.is_point for lamp in settings.lamps)
+        self._only_point_lamps = all(lamp.is_point for lamp in settings.lamps)
         self.tracker = EvidenceTracker(known_ids=self._known_ids)
         self._recent: tuple[Pose, float] | None = None
         # Poses published against continuity (decisive evidence outside the recent pose's gate).
@@ -127,7 +129,12 @@ class Pipeline:
         """
         observations = detect_lamps(image)
         readings = [self._read_beacon(image, obs) for obs in observations]
-        return observations, readings, self.tracker.update(observations, readings, stamp) if observations else []
+        ids = self.tracker.update(observations, readings, stamp) if observations else []
+        if self._point_lamps:
+            # Once read, a point lamp's light is measured as a point (a map of point lamps only: every light).
+            observations = [measured_as_point(image, obs) if self._only_point_lamps or not obs.rim_usable else obs
+                            for obs in observations]
+        return observations, readings, ids
 
     def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None = None) -> Choice:

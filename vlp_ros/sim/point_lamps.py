@@ -13,6 +13,15 @@ tone averaged over that row's exposure, so the glow carries the stripes as a rea
 There is no marker. Lower output resolutions bin the sensor: rows take longer, the
 exposure stays.
 
+A real lens adds what the defaults leave out, each an option of ``PointLampLook``: a long
+tail of the lens's spread (``tail_level`` x (1 + (r / ``tail_scale``)^2)^-1.5, the Moffat
+form of a real PSF's wings); a comatic flare off the optical axis (``coma``: the glow and
+tail, peaked on the LED, drawn out on their side away from the image centre by 1 +
+``coma`` x the distance from the centre over the half-diagonal); an emitter that is not
+round (``core_roughness``: its radius varies with the angle by that share, in second to
+fourth harmonics of random phase); and ``overexposure``, the light's level over the
+default's (more of the core, then the glow, clips).
+
 ``bare_led_scenario`` renders that rig for hand-held photos (``python -m vlp_ros.sim
 --scenario bare_leds``), with the locator's parameters for it: tone mode, point lamps
 (``radius: 0``).
@@ -59,27 +68,65 @@ class PointLampLook:
     edge_sigma: float = 2.0
     glow_level: float = 0.4
     glow_scale: float = 87.0
+    tail_level: float = 0.0
+    tail_scale: float = 60.0
+    coma: float = 0.0
+    core_roughness: float = 0.0
+    overexposure: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (self.core_radius > 0.0 and self.edge_sigma > 0.0 and self.glow_scale > 0.0):
-            raise ValueError('core_radius, edge_sigma and glow_scale must be positive')
+        if not (self.core_radius > 0.0 and self.edge_sigma > 0.0 and self.glow_scale > 0.0
+                and self.tail_scale > 0.0 and self.overexposure > 0.0):
+            raise ValueError('core_radius, edge_sigma, glow_scale, tail_scale and overexposure must be positive')
         if not 0.0 <= self.glow_level < 1.0:
             raise ValueError(f'glow_level must be in [0, 1), got {self.glow_level}')
+        if not (0.0 <= self.tail_level < 1.0 and 0.0 <= self.coma < 1.0 and 0.0 <= self.core_roughness < 0.5):
+            raise ValueError('tail_level and coma must be in [0, 1), core_roughness in [0, 0.5)')
 
     def profile(self, r: np.ndarray, core_px: float, scale: float) -> np.ndarray:
         """
-        Return the light at ``r`` px from the centre (1 = the core's level).
+        Return the light at ``r`` px from the centre (1 = the core's level) of a round, on-axis LED.
 
         For a core of ``core_px`` px radius, pixel lengths of the look multiplied by ``scale``.
         """
-        core = 0.5 * erfc((r - core_px) / (np.sqrt(2.0) * self.edge_sigma * scale))
-        glow = self.glow_level * np.exp(-r / (self.glow_scale * scale))
-        return np.maximum(core, glow)
+        return self.light(r, r, core_px, scale)
+
+    def light(self, core_r: np.ndarray, glow_r: np.ndarray, core_px: float | np.ndarray,
+              scale: float) -> np.ndarray:
+        """Return the light ``core_r`` px from the core's centre (radius ``core_px``) and ``glow_r`` from the glow's."""
+        core = 0.5 * erfc((core_r - core_px) / (np.sqrt(2.0) * self.edge_sigma * scale))
+        glow = self.glow_level * np.exp(-glow_r / (self.glow_scale * scale))
+        tail = self.tail_level * (1.0 + (glow_r / (self.tail_scale * scale)) ** 2) ** -1.5
+        return np.maximum(core, glow) + tail
 
     def reach(self, core_px: float, scale: float) -> float:
         """Radius (px) beyond which the light is below ``_GLOW_CUTOFF``."""
         glow = self.glow_scale * scale * np.log(max(self.glow_level, _GLOW_CUTOFF) / _GLOW_CUTOFF)
-        return max(core_px + 4.0 * self.edge_sigma * scale, glow)
+        tail = self.tail_scale * scale * np.sqrt(max(self.tail_level / _GLOW_CUTOFF, 1.0) ** (2.0 / 3.0) - 1.0)
+        core = core_px * (1.0 + self.core_roughness) + 4.0 * self.edge_sigma * scale
+        return (1.0 + self.coma) * max(core, glow, tail)
+
+    def image(self, dx: np.ndarray, dy: np.ndarray, core_px: float, scale: float, off_axis: np.ndarray,
+              phases: np.ndarray) -> np.ndarray:
+        """
+        Return the light at offsets (``dx``, ``dy``) px from where the LED projects.
+
+        ``off_axis`` is that point's offset from the image centre over the half-diagonal (coma grows with
+        it), ``phases`` the core's second to fourth harmonics' phases.
+        """
+        angle = np.arctan2(dy, dx)
+        radius = core_px * (1.0 + self.core_roughness * sum(
+            np.cos(k * angle + phase) for k, phase in zip((2, 3, 4), phases)) / 3.0)
+        core_r = np.hypot(dx, dy)
+        if self.coma == 0.0:
+            return self.light(core_r, core_r, radius, scale)
+        distance = float(np.linalg.norm(off_axis))
+        direction = off_axis / distance if distance > 0.0 else np.array([1.0, 0.0])
+        along = dx * direction[0] + dy * direction[1]
+        across = -dx * direction[1] + dy * direction[0]
+        # Comatic flare: the glow's peak stays on the LED, its outward side drawn out.
+        along = np.where(along > 0.0, along / (1.0 + self.coma * distance), along)
+        return self.light(core_r, np.hypot(along, across), radius, scale)
 
 
 @dataclass(frozen=True)
@@ -111,10 +158,13 @@ def render_point_lamps(camera: CameraModel, pose: Pose, lamps: list[PointSimLamp
         x0, y0, x1, y1 = box
         core_px = camera.focal * look.core_radius / truth.center_camera[2]
         ys, xs = np.mgrid[y0:y1, x0:x1]
-        r = np.hypot(xs - truth.center_pixel[0], ys - truth.center_pixel[1])
+        half_diagonal = 0.5 * np.hypot(camera.width, camera.height)
+        off_axis = (truth.center_pixel - 0.5 * np.array([camera.width - 1, camera.height - 1])) / half_diagonal
+        phases = np.zeros(3) if rng is None or look.core_roughness == 0.0 else rng.uniform(0.0, 2.0 * np.pi, 3)
+        shape = look.image(xs - truth.center_pixel[0], ys - truth.center_pixel[1], core_px, scale, off_axis, phases)
         rows = sensor.row_start_times(start_time, y0, y1 - y0)
         level = sim.waveform.mean_brightness(rows, sensor.exposure)
-        light = (look.profile(r, core_px, scale) * level[:, None] * sim.peak_dn).astype(np.float32)
+        light = (shape * level[:, None] * sim.peak_dn * look.overexposure).astype(np.float32)
         canvas = np.asarray(sensor.ambient_bgr, dtype=np.float32) + light[..., None] * np.asarray(
             sim.color_bgr, dtype=np.float32)
         if pattern is not None:
