@@ -20,7 +20,7 @@ from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import render_frame, SimLamp
-from vlp_ros.sim.scenarios import paper_scenario
+from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 from vlp_ros.sim.sensor import SensorModel
 
 ROW_TIME = 1e-5
@@ -524,6 +524,29 @@ def test_the_rim_model_prior_covers_the_patterns_the_edge_shows(optics):
         assert min(priors) > 0.04
     else:
         assert max(priors) < 0.05
+
+
+def test_the_rim_model_prior_covers_the_light_clipped_rows_mix_into_their_neighbours():
+    # Small robot lamps under the realistic look clip on most rows; where enough rows stay below the clip
+    # the rim is theirs, but blur mixes the clipped rows' light, of unknown level, into their ends: the
+    # patterns that moves round the rim (up to 0.6 px) must lie within the prior (3 sigma beyond what the
+    # points' scatter moves a mode), not only within the profile model's misfit of the unclipped pixels.
+    scenario = apply_look(robot_scenario(seed=2017).truncated(85), LOOKS['realistic'], 2017)
+    from_unclipped_rows = 0
+    for index in range(72, 85, 3):
+        frame = scenario.render(index, np.random.default_rng([2017, 0, index]))
+        observations = detect_lamps(transported(scenario, frame.image))
+        for truth in (t for t in scenario.mapped_truths(frame) if t.visible and t.fully_inside):
+            near = [o for o in observations if np.linalg.norm(o.center - truth.center_pixel) < 5.0]
+            if len(near) != 1 or not near[0].rim_usable:
+                continue
+            observation = near[0]
+            rim = scenario.camera.undistort_pixels(observation.rim_points)
+            patterns = _rim_patterns(truth.ellipse, rim)
+            noise = 2.0 * observation.rim_sigma / np.sqrt(len(rim))
+            assert np.all(np.abs(patterns) <= 3.0 * observation.rim_model_sigma + 3.0 * noise)
+            from_unclipped_rows += observation.rim_model_sigma < 0.5
+    assert from_unclipped_rows >= 3
 
 
 @pytest.mark.parametrize('falloff, exponent', [(0.4, 4.0), (0.2, 1.0), (0.3, 2.0)])
