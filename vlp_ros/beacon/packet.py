@@ -125,6 +125,14 @@ def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bit
                            clipped)
 
 
+def no_packet(id_bits: int, known_ids: Iterable[int] | None, detail: str,
+              unmapped_weight: float = UNMAPPED_WEIGHT) -> BeaconReading:
+    """Return the reading that ``decode_packet`` gives a lamp without chips: no evidence, with why."""
+    candidates, mapped, prior = _hypotheses(id_bits, None if known_ids is None else tuple(known_ids),
+                                            unmapped_weight)
+    return no_evidence(candidates, mapped, prior, detail)
+
+
 def decode_clipped_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bits: int = 8,
                           known_ids: Iterable[int] | None = None, *, exposure: float | None = None,
                           timing_tolerance: float = 0.05, unmapped_weight: float = UNMAPPED_WEIGHT,

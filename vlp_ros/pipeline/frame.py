@@ -14,7 +14,9 @@ import numpy as np
 from vlp_ros.beacon.decoding import (BeaconReading, decode_clipped_packet, decode_glow, decode_packet, decode_tone,
                                      read_lamp, RowProfile)
 from vlp_ros.beacon.evidence import EvidenceTracker
-from vlp_ros.beacon.tone import agreeing, point_light_profile
+from vlp_ros.beacon.packet import no_packet
+from vlp_ros.beacon.steady import shows_no_modulation
+from vlp_ros.beacon.tone import agreeing, no_tone, point_light_profile
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.observation import LampObservation
@@ -33,6 +35,7 @@ from vlp_ros.solvers.pinhole_view import solver_view
 NO_LAMP = 'no_lamp'
 NO_ID = 'no_id'
 UNKNOWN_ID = 'unknown_id'
+STEADY = 'its rows show no modulation: a steady lamp'
 
 
 @dataclass(frozen=True)
@@ -219,6 +222,11 @@ class Pipeline:
 
     def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
         beacon = self.settings.beacon
+        if shows_no_modulation(image, observation):
+            # A steady lamp (not in the map) still counts as a lamp in view; only its reading is spared.
+            if beacon.mode == 'tone':
+                return no_tone(self._frequencies, STEADY)
+            return no_packet(beacon.id_bits, self._known_ids, STEADY)
         if beacon.mode == 'tone':
             def decode(profile: RowProfile) -> BeaconReading:
                 return decode_tone(profile, beacon.row_time, self._frequencies, beacon.frequency_tolerance,

@@ -138,6 +138,12 @@ def decode_tone(profile: RowProfile, row_time: float, frequencies: dict[int, flo
     return reading(candidates, mapped, log_mass, prior, min_confidence)
 
 
+def no_tone(frequencies: dict[int, float], detail: str, unmapped_weight: float = UNMAPPED_WEIGHT) -> BeaconReading:
+    """Return the reading that ``decode_tone`` gives a lamp without stripes: no evidence, with why."""
+    lamps = _lamps(tuple(frequencies.items()), unmapped_weight)
+    return no_evidence(lamps.candidates, lamps.mapped, lamps.log_prior, detail)
+
+
 def point_light_profile(image: np.ndarray, observation: LampObservation) -> RowProfile:
     """
     Return the brightness per row of a lamp without a rim (a bare LED: core and glow), for ``decode_tone``.
