@@ -5,7 +5,8 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from scipy.stats import chi2
+# scipy.special, not scipy.stats: the same chi-square tail without scipy.stats' import time at start.
+from scipy.special import chdtrc
 
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.fit_kernels import inverse_form
@@ -113,4 +114,4 @@ def explains_the_image(candidate: PoseCandidate) -> bool:
     dof = candidate.residual_count - 6
     if dof <= 0:
         return True
-    return not (candidate.cost > INCONSISTENT_REDUCED_CHI2 * dof and chi2.sf(candidate.cost, dof) < INCONSISTENT_TAIL)
+    return not (candidate.cost > INCONSISTENT_REDUCED_CHI2 * dof and chdtrc(dof, candidate.cost) < INCONSISTENT_TAIL)

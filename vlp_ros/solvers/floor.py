@@ -48,7 +48,8 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from scipy.stats import chi2
+# scipy.special, not scipy.stats: the same chi-square tail without scipy.stats' import time at start.
+from scipy.special import chdtri
 
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp
@@ -64,10 +65,10 @@ from vlp_ros.solvers.up_measurement import UpMeasurement
 
 # Chi-square (3 dof) of the floor against the image beyond which the frame plainly contradicts it
 # (tail 1e-6), and beyond which (its 95 % point) the covariance is widened by the disagreement.
-OFF_THE_FLOOR_CHI2 = float(chi2.isf(1e-6, 3))
-FLOOR_DOUBT_CHI2 = float(chi2.isf(0.05, 3))
+OFF_THE_FLOOR_CHI2 = float(chdtri(3, 1e-6))
+FLOOR_DOUBT_CHI2 = float(chdtri(3, 0.05))
 # Squared Mahalanobis distance (6 dof, tail 1e-4) within which candidates fused with the floor are one pose.
-SAME_POSE_CHI2 = float(chi2.isf(1e-4, 6))
+SAME_POSE_CHI2 = float(chdtri(6, 1e-4))
 # Fastest a ground robot is taken to turn (rad/s): a recent pose's yaw vouches for a later frame's
 # within this rate times the time since.
 TURN_RATE = 1.0

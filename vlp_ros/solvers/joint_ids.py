@@ -40,7 +40,8 @@ import itertools
 from typing import TypeVar
 
 import numpy as np
-from scipy.stats import chi2
+# scipy.special, not scipy.stats: the same chi-square tail without scipy.stats' import time at start.
+from scipy.special import chdtri
 
 from vlp_ros.beacon.reading import BeaconReading
 from vlp_ros.core.camera import CameraModel
@@ -56,7 +57,7 @@ _MAX_CANDIDATES = 3
 _MAX_ASSIGNMENTS = 27
 # The joint pose with a settled lamp must lie within this squared Mahalanobis distance (under the
 # certain lamps' covariance) of their pose: chi-square(6) at 1 - 1e-4.
-_SAME_POSE = float(chi2.ppf(1.0 - 1e-4, 6))
+_SAME_POSE = float(chdtri(6, 1e-4))
 # Without a pose from the certain lamps, the candidates tried must hold this much of each open lamp's posterior;
 # the candidate (or assignment) taken must hold this much of the posterior of those the geometry explains.
 _COVERED = 1.0 - 1e-4
