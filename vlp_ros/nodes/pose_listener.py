@@ -32,6 +32,7 @@ class PoseListener:
         self.poses: dict[int, Pose] = {}
         self.outcomes: dict[int, str] = {}
         self.latency_ms = float('nan')
+        self.diagnostics_received = 0
         self.node.create_subscription(PoseWithCovarianceStamped, 'vlp/pose_with_covariance', self._on_pose, 100)
         self.node.create_subscription(Header, 'vlp/processed', self._on_processed, 100)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
@@ -50,10 +51,18 @@ class PoseListener:
         self.outcomes[self._stamp(msg)] = msg.frame_id
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        self.diagnostics_received += 1
         for status in msg.status:
             for kv in status.values:
                 if kv.key == 'latency median (ms)' and kv.value != 'nan':
                     self.latency_ms = float(kv.value)
+
+    def spin_until_diagnostics(self, count: int, timeout: float) -> None:
+        """Process answers until ``count`` more diagnostics have arrived, or ``timeout`` s have passed."""
+        target = self.diagnostics_received + count
+        deadline = time.monotonic() + timeout
+        while self.diagnostics_received < target and time.monotonic() < deadline:
+            rclpy.spin_once(self.node, timeout_sec=0.02)
 
     def spin_for(self, seconds: float) -> None:
         """Process the answers that arrive in the next ``seconds``."""
@@ -110,7 +119,8 @@ def play_through_nodes(bag: Path, params: Path, frames: int, listener: PoseListe
             if count != answered:
                 answered = count
                 report(min(count, frames), frames)
-        listener.spin_for(0.5)
+        # Diagnostics come once a second: the second after the last answer counts every frame.
+        listener.spin_until_diagnostics(2, 5.0)
         report(frames, frames)
         if replay.returncode != 0:
             raise RuntimeError(f'replay failed: see {logs / (bag.name + "_replay.log")}')
