@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from scipy.sparse import csr_matrix
 
+from vlp_ros.compiled import kernel
 from vlp_ros.compiled.small_arrays import median
 from vlp_ros.core.observation import LampObservation
 
@@ -171,30 +172,49 @@ def _half_maximum_crossings(brightness: np.ndarray, background: float, floor: fl
     light = brightness.astype(np.float64) - background
     maxima = light.max(axis=1)
     peak = maxima.max()
-    points, rows = [], []
-    width = light.shape[1]
     clip = saturation_level - 1.0 - background
-    for row in np.flatnonzero((maxima > _MIN_ROW_SHARE * peak) & (maxima > floor)):
-        profile = light[row]
-        # A clipped row's maximum is not its level: where it leaves the clip is a level crossing
-        # of its own (half of the clip would lie out in the glow).
-        half = clip if maxima[row] >= clip else 0.5 * maxima[row]
-        top = int(np.argmax(profile))
+    bright = np.flatnonzero((maxima > _MIN_ROW_SHARE * peak) & (maxima > floor))
+    # A clipped row's maximum is not its level: where it leaves the clip is a level crossing
+    # of its own (half of the clip would lie out in the glow).
+    halves = np.where(maxima[bright] >= clip, clip, 0.5 * maxima[bright])
+    points, crossed = _crossings_around_maxima(light, bright, halves)
+    rows = bright[crossed]
+    return points, rows, maxima[rows] >= clip
+
+
+@kernel
+def _crossings_around_maxima(light: np.ndarray, rows: np.ndarray, halves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return the crossings of each of ``rows`` at its level in ``halves``, (2N, 2) interleaved, and which rows have them.
+
+    Around the run of pixels at or above the level that holds the row's (first) maximum; a run that reaches
+    the box's edge gives none. Each crossing is interpolated linearly between the last pixel below the level
+    and the first at or above it.
+    """
+    width = light.shape[1]
+    points = np.empty((2 * rows.size, 2))
+    crossed = np.zeros(rows.size, np.bool_)
+    count = 0
+    for i in range(rows.size):
+        row, half = rows[i], halves[i]
+        top = 0
+        for x in range(1, width):
+            if light[row, x] > light[row, top]:
+                top = x
         left = top
-        while left > 0 and profile[left - 1] >= half:
+        while left > 0 and light[row, left - 1] >= half:
             left -= 1
         right = top
-        while right < width - 1 and profile[right + 1] >= half:
+        while right < width - 1 and light[row, right + 1] >= half:
             right += 1
         if left == 0 or right == width - 1:
             continue
-        # Linear interpolation between the last pixel below half and the first above it.
-        x_left = left - (profile[left] - half) / (profile[left] - profile[left - 1])
-        x_right = right + (profile[right] - half) / (profile[right] - profile[right + 1])
-        points += [(x_left, row), (x_right, row)]
-        rows.append(row)
-    rows = np.asarray(rows, dtype=int)
-    return np.asarray(points, dtype=float).reshape(-1, 2), rows, maxima[rows] >= clip
+        points[2 * count, 0] = left - (light[row, left] - half) / (light[row, left] - light[row, left - 1])
+        points[2 * count + 1, 0] = right + (light[row, right] - half) / (light[row, right] - light[row, right + 1])
+        points[2 * count, 1] = points[2 * count + 1, 1] = row
+        crossed[i] = True
+        count += 1
+    return points[:2 * count], crossed
 
 
 def _robust_circle(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray] | None:
