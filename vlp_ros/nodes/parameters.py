@@ -99,8 +99,9 @@ def check_qos_overrides(node: Node, image_topic: str) -> None:
         policy = name[len(prefix):] if name.startswith(prefix) else None
         value = parameter.value
         if policy == 'depth':
-            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 1000:
-                raise ConfigError(name, f'{value!r} is not a queue depth (an integer from 1 to 1000)')
+            low, high = _INTEGER_RANGES['qos.depth']
+            if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+                raise ConfigError(name, f'{value!r} is not a queue depth (an integer from {low} to {high})')
         elif policy in _QOS_OVERRIDE_VALUES:
             if not isinstance(value, str) or value.lower() not in _QOS_OVERRIDE_VALUES[policy]:
                 raise ConfigError(name, f'{value!r} is none of {", ".join(_QOS_OVERRIDE_VALUES[policy])}')
