@@ -7,12 +7,13 @@ the ceiling reads the same in a bright run and in a bright chip between dark one
 an isolated dark chip to the ceiling too. The Gaussian fit of ``packet.py`` then misfits (it predicts
 the bright run brighter) and is refused. Here such a chip is *censored* (a Tobit likelihood): its
 term is P(level >= observed) = Phi((mu - x) / sd) instead of a Gaussian around x. Every hypothesis (ID,
-where in the packet the window starts, blur's mix) gets a closed-form upper bound of its maximised
-log-likelihood, all of them at once; Newton's method fits that concave log-likelihood only for the
-hypotheses whose bound comes within PRUNE_MARGIN of the best fit (at the median 127 of the 18432 of 8-bit
-IDs, clipped drive and hand-held discs). The chips below the ceiling (dark chips, the falloff's dimmer rows near
-the rim) decide; the clipped ones only rule out hypotheses that put a dark chip there that blur
-could not have lifted above the ceiling.
+where in the packet the window starts, blur's mix) gets a closed-form guide to its maximised log-likelihood,
+all of them at once; Newton's method fits that concave log-likelihood only for the hypotheses whose guide comes
+within PRUNE_MARGIN of the best fit. A window whose best fit misfits is refused; whether it does is decided on
+closed-form upper bounds, sound for every hypothesis, so that a refused window fits only the few hypotheses
+whose bounds reach the limit (about 80 of the 18432 of 8-bit IDs per refused window of the foreign clipped
+frames). The chips below the ceiling (dark chips, the falloff's dimmer rows near the rim) decide; the clipped
+ones only rule out hypotheses that put a dark chip there that blur could not have lifted above the ceiling.
 """
 from __future__ import annotations
 
@@ -41,6 +42,8 @@ _PERIOD_STEP = 5e-4
 # Hypotheses whose bound lies this far (nats) below the best fit are not fitted: even all of them together
 # weigh less than 1e-4 of it (18432 of them at 8 bits: e^-20 x 18432 = 4e-5).
 PRUNE_MARGIN = 20.0
+# Nats the sound bounds are taken as loose by, for their rounding (a ridge of 1e-9 of the fit's Gram matrix).
+_SOUND_SLACK = 1e-3
 
 
 @lru_cache(maxsize=4)
@@ -97,24 +100,31 @@ def raw_chips(z: np.ndarray, w: np.ndarray, share: np.ndarray, levels: ChipLevel
 
 
 def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
-                             mixes: tuple[float, ...]) -> tuple[np.ndarray, float]:
+                             mixes: tuple[float, ...],
+                             deviance_limit: float = math.inf) -> tuple[np.ndarray | None, float]:
     """
     Return the log-likelihood of each ID of chip levels ``x``, and the best hypothesis's deviance.
 
     Shift and mix are marginalised, the IDs equally likely a priori; ``v`` are the weights, ``k`` the
     chip indices, and ``censored`` ones are lower bounds. The deviance is the weighted squared residuals
-    of the measured chips plus -2 log P of the censored ones.
+    of the measured chips plus -2 log P of the censored ones. Where it exceeds ``deviance_limit``, the
+    log-likelihoods are None (not taken) and the deviance returned is a lower bound of it, above the limit:
+    the fits stop once no hypothesis left can come within the limit (``_fits_that_can_win``).
     """
     x, v = np.asarray(x, dtype=float), np.asarray(v, dtype=float)
     k, censored = np.asarray(k, dtype=np.int64), np.asarray(censored, dtype=np.bool_)
     mixes = tuple(float(mix) for mix in mixes)
-    bounds = _closed_form_bounds(x, v, k, censored, id_bits, mixes)
-    fits = _fits_that_can_win(bounds, x, v, k, censored, _signs(id_bits), np.asarray(mixes, dtype=float),
-                              PRUNE_MARGIN)
-    top = fits.max()
+    sums = _hypothesis_sums(x, v, k, censored, id_bits, mixes)
+    bounds = np.ascontiguousarray(_bounds_from_sums(*sums).reshape(-1, len(mixes), 2 ** id_bits).transpose(1, 0, 2))
+    floor = -0.5 * deviance_limit
+    fits, refused_top = _fits_that_can_win(bounds, sums, x, v, k, censored, _signs(id_bits),
+                                           np.asarray(mixes, dtype=float), PRUNE_MARGIN, floor)
+    top = refused_top if refused_top < floor else float(fits.max())
+    if -2.0 * top > deviance_limit:
+        return None, -2.0 * top
     # Mean over mixes and shifts, per ID.
     per_id = top + np.log(np.exp(fits - top).mean(axis=(0, 1)))
-    return per_id, -2.0 * float(top)
+    return per_id, -2.0 * top
 
 
 @lru_cache(maxsize=16)
@@ -138,18 +148,14 @@ def _template_tables(id_bits: int, mixes: tuple[float, ...]) -> tuple[np.ndarray
     return tables
 
 
-def _closed_form_bounds(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
-                        mixes: tuple[float, ...]) -> np.ndarray:
+def _hypothesis_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
+                     mixes: tuple[float, ...]) -> tuple[np.ndarray, ...]:
     """
-    Return an upper bound of every (mix, shift, ID)'s maximised censored log-likelihood, (mixes, L, ids).
+    Return the weighted sums from which every (mix, shift, ID)'s bound is taken in closed form.
 
-    log Phi(u) <= -u^2 / 2 for u <= 0 (Chernoff) and <= 0: a censored chip costs at most its shortfall below
-    its bound squared. The bound is the least-squares fit of the measured chips and of the censored chips
-    the hypothesis makes dark (at their bound), with the censored chips it makes bright taken together: their
-    summed squared shortfalls are at least the square of their summed shortfall over their summed weight
-    (Jensen), one term that the fit can take in closed form (``_bounds_from_sums``). The contrast is left
-    unconstrained. Tight for the hypotheses that can win (their dark chips are not lifted over the ceiling),
-    loose for the others, which is all that pruning needs.
+    The arguments of ``_bounds_from_sums`` and ``_sound_bounds_from_sums``: the chips' sums that no hypothesis
+    changes, and per (shift, hypothesis) the sums over the measured chips with the template T and its square,
+    over the censored ones with their darkness d (d, d T, d T^2) and with T, (rows, L, mixes x ids) each.
 
     All hypotheses at once: every sum over the chips is a fold of the chips by packet position for each shift
     (``_folded``) times a table of every ID's template (``_template_tables``).
@@ -171,8 +177,7 @@ def _closed_form_bounds(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: n
     folds = [_folded(w, k, length) for w in weights]
     sums = [(fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
             for fold, table in zip(folds, _template_tables(id_bits, mixes))]
-    bounds = _bounds_from_sums(fixed, *sums)
-    return np.ascontiguousarray(bounds.reshape(length, len(mixes), -1).transpose(1, 0, 2))
+    return (fixed, *sums)
 
 
 @kernel
@@ -192,7 +197,16 @@ def _folded(weights: np.ndarray, k: np.ndarray, length: int) -> np.ndarray:
 def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray, censored_d: np.ndarray,
                       censored_dt: np.ndarray, censored_dt2: np.ndarray, censored_t: np.ndarray) -> np.ndarray:
     """
-    Return every (shift, hypothesis)'s bound from its weighted sums (``_closed_form_bounds``), (L, mixes x ids).
+    Return every (shift, hypothesis)'s guide bound from its weighted sums (``_hypothesis_sums``), (L, mixes x ids).
+
+    log Phi(u) <= -u^2 / 2 for u <= 0 (Chernoff) and <= 0: a censored chip costs at most its shortfall below
+    its bound squared. The guide is the least-squares fit of the measured chips and of the censored chips
+    the hypothesis makes dark (at their bound), with the censored chips it makes bright taken together: their
+    summed squared shortfalls are at least the square of their summed shortfall over their summed weight
+    (Jensen), one term that the fit can take in closed form. The contrast is left unconstrained. It bounds the
+    hypotheses whose dark chips are not lifted over the ceiling, tightly; where blur lifts a dark censored chip
+    over it, the fit lies above the guide (by up to 26 nats on the foreign drive frames), so the guide orders
+    the fits and prunes the likelihood's far tail, and ``_sound_bounds_from_sums`` decides refusals.
 
     Columns 1, t, t^2 (envelope), T, t T (contrast) in the chip index t and the template T. The least-squares
     fit of the measured and dark censored chips (Gram matrix G = L L^T, right-hand side b), then the bright
@@ -270,10 +284,132 @@ def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np
 
 
 @kernel
-def _fits_that_can_win(bounds: np.ndarray, x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray,
-                       signs: np.ndarray, mixes: np.ndarray, margin: float) -> np.ndarray:
+def _sound_bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray,
+                            censored_d: np.ndarray, censored_dt: np.ndarray, censored_dt2: np.ndarray,
+                            censored_t: np.ndarray) -> np.ndarray:
+    """
+    Return an upper bound of every (shift, hypothesis)'s maximised log-likelihood, (L, mixes x ids).
+
+    log Phi(u) <= -max(-u, 0)^2 / 2 for every censored chip, bright or dark in the hypothesis. The censored chips
+    it makes dark and those it makes bright form two groups, each of whose summed squared shortfalls is at least
+    its summed shortfall, where positive, squared over its summed weight (Jensen, the shortfall being convex):
+    the bound is the exact maximum of the measured chips' least squares minus those two one-sided terms. Its
+    maximiser has one of four sets of active terms; the set whose solution is consistent (an active group's
+    shortfall positive at it, an inactive one's not) gives the maximum (the problem is concave). Where rounding
+    leaves none consistent, the measured chips' fit alone bounds. Columns, ridge and Cholesky as
+    ``_bounds_from_sums``; the contrast unconstrained.
+    """
+    length, count, ids = measured_t.shape[1], measured_t.shape[2], censored_d.shape[2]
+    out = np.empty((length, count))
+    ridge = 1.0 + 1e-9
+    g00, g01, g02 = fixed[0] * ridge + 1e-12, fixed[1], fixed[2]
+    g11, g12, g22 = fixed[2] * ridge + 1e-12, fixed[3], fixed[4] * ridge + 1e-12
+    all_weight = fixed[9]
+    # The envelope's part of the factor is the same for every hypothesis.
+    l00 = math.sqrt(g00)
+    l10, l20 = g01 / l00, g02 / l00
+    l11 = math.sqrt(g11 - l10 * l10)
+    l21 = (g12 - l20 * l10) / l11
+    l22 = math.sqrt(g22 - l20 * l20 - l21 * l21)
+    y0 = fixed[5] / l00
+    y1 = (fixed[6] - l10 * y0) / l11
+    y2 = (fixed[7] - l20 * y0 - l21 * y1) / l22
+    for shift in range(length):
+        for block in range(count // ids):
+            for d in range(ids):
+                i = block * ids + d
+                g03, g13, g23 = measured_t[0, shift, i], measured_t[1, shift, i], measured_t[2, shift, i]
+                g04, g14, g24 = g13, g23, measured_t[3, shift, i]
+                g33 = measured_t2[0, shift, i] * ridge + 1e-12
+                g34 = measured_t2[1, shift, i]
+                g44 = measured_t2[2, shift, i] * ridge + 1e-12
+                l30, l40 = g03 / l00, g04 / l00
+                l31, l41 = (g13 - l30 * l10) / l11, (g14 - l40 * l10) / l11
+                l32, l42 = (g23 - l30 * l20 - l31 * l21) / l22, (g24 - l40 * l20 - l41 * l21) / l22
+                l33 = math.sqrt(g33 - l30 * l30 - l31 * l31 - l32 * l32)
+                l43 = (g34 - l40 * l30 - l41 * l31 - l42 * l32) / l33
+                l44 = math.sqrt(g44 - l40 * l40 - l41 * l41 - l42 * l42 - l43 * l43)
+                y3 = (measured_t[4, shift, i] - l30 * y0 - l31 * y1 - l32 * y2) / l33
+                y4 = (measured_t[5, shift, i] - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) / l44
+                value = -0.5 * max(fixed[8] - (y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4), 0.0)
+                # The dark group's summed columns and bounds, then the bright one's (all censored chips less dark),
+                # each over the root of its weight (none for a group of next to no weight: no term).
+                dark_weight = censored_d[0, shift, d]
+                bright_weight = all_weight - dark_weight
+                dark_scale = 1.0 / math.sqrt(dark_weight) if dark_weight > 1e-9 * all_weight else 0.0
+                bright_scale = 1.0 / math.sqrt(bright_weight) if bright_weight > 1e-9 * all_weight else 0.0
+                a0, a1, a2 = dark_weight, censored_d[1, shift, d], censored_d[2, shift, d]
+                a3, a4, c = censored_dt[0, shift, i], censored_dt[1, shift, i], censored_d[5, shift, d]
+                # z = L^-1 a, and the shortfall at the measured chips' fit, h = c - a'theta = c - z'y.
+                z0 = a0 * dark_scale / l00
+                z1 = (a1 * dark_scale - l10 * z0) / l11
+                z2 = (a2 * dark_scale - l20 * z0 - l21 * z1) / l22
+                z3 = (a3 * dark_scale - l30 * z0 - l31 * z1 - l32 * z2) / l33
+                z4 = (a4 * dark_scale - l40 * z0 - l41 * z1 - l42 * z2 - l43 * z3) / l44
+                h0 = c * dark_scale - (z0 * y0 + z1 * y1 + z2 * y2 + z3 * y3 + z4 * y4)
+                w0 = bright_weight * bright_scale / l00
+                w1 = ((fixed[10] - a1) * bright_scale - l10 * w0) / l11
+                w2 = ((fixed[11] - a2) * bright_scale - l20 * w0 - l21 * w1) / l22
+                w3 = ((censored_t[0, shift, i] - a3) * bright_scale - l30 * w0 - l31 * w1 - l32 * w2) / l33
+                w4 = ((censored_t[1, shift, i] - a4) * bright_scale - l40 * w0 - l41 * w1 - l42 * w2 - l43 * w3) / l44
+                h1 = (fixed[12] - c) * bright_scale - (w0 * y0 + w1 * y1 + w2 * y2 + w3 * y3 + w4 * y4)
+                bound = _with_one_sided_terms(value, z0 * z0 + z1 * z1 + z2 * z2 + z3 * z3 + z4 * z4,
+                                              w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3 + w4 * w4,
+                                              z0 * w0 + z1 * w1 + z2 * w2 + z3 * w3 + z4 * w4, h0, h1)
+                # A singular system (a NaN from a negative pivot) bounds nothing.
+                out[shift, i] = bound if bound <= 0.0 else 0.0
+    return out
+
+
+@kernel
+def _with_one_sided_terms(value: float, z00: float, z11: float, z01: float, h0: float, h1: float) -> float:
+    """
+    Return the maximum of a least squares (maximum ``value``) less two one-sided terms max(h_g, 0)^2 / 2.
+
+    ``h0``, ``h1`` are the terms' arguments at the least squares' maximiser, ``z00``, ``z11``, ``z01`` the products
+    of their gradients whitened by its factor (Z): with the terms in A active, the arguments at the maximiser are
+    (I + Z_A)^-1 h_A and the value falls by h_A^T (I + Z_A)^-1 h_A / 2. The consistent active set's value; else
+    ``value``.
+    """
+    if h0 <= 0.0 and h1 <= 0.0:
+        return value
+    # One term active: its argument shrinks by 1 + z'z, the other's moves by z0'z1 times the active one's.
+    if h0 > 0.0:
+        active = h0 / (1.0 + z00)
+        if h1 - z01 * active <= 0.0:
+            return value - 0.5 * h0 * active
+    if h1 > 0.0:
+        active = h1 / (1.0 + z11)
+        if h0 - z01 * active <= 0.0:
+            return value - 0.5 * h1 * active
+    a, b, c = 1.0 + z00, z01, 1.0 + z11
+    det = a * c - b * b
+    if det > 0.0:
+        lambda0, lambda1 = (c * h0 - b * h1) / det, (a * h1 - b * h0) / det
+        if lambda0 > 0.0 and lambda1 > 0.0:
+            return value - 0.5 * (h0 * lambda0 + h1 * lambda1)
+    return value
+
+
+@kernel
+def _envelope_design(k: np.ndarray, n: int) -> np.ndarray:
+    """Return the fit's design (n, 5) with its envelope columns 1, t, t^2 filled in (t: chip index to +-1)."""
+    design = np.empty((n, _PARAMETERS))
+    middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
+    for j in range(n):
+        t = (k[j] - middle) / half
+        design[j, 0], design[j, 1], design[j, 2] = 1.0, t, t * t
+    return design
+
+
+@kernel
+def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.ndarray, k: np.ndarray,
+                       censored: np.ndarray, signs: np.ndarray, mixes: np.ndarray, margin: float,
+                       floor: float) -> tuple[np.ndarray, float]:
     """
     Return every (mix, shift, ID)'s maximised censored log-likelihood, (mixes, L, ids), where it can matter.
+
+    And, for a window refused, an upper bound of the best (below ``floor``); else inf.
 
     Chip j's light is an envelope times (1 + contrast x its template s_p + mix (s_p-1 + s_p+1)), p = (k_j
     + shift) % L: the lamp's light (falloff, chords, glare) scales bright and dark chips alike, which is
@@ -281,34 +417,50 @@ def _fits_that_can_win(bounds: np.ndarray, x: np.ndarray, v: np.ndarray, k: np.n
     quadratic in the chip index, contrast-times-envelope linear in it and positive over the window (a
     bright chip is brighter).
 
-    Newton's method (``_fit``) runs on the hypotheses in the order of their ``bounds``, until a bound falls
-    ``margin`` below the best fit found: every later hypothesis is then that far below the best, and keeps its
-    bound (its share of the likelihood is below e^-margin of the best's).
+    Newton's method (``_fit``) runs on the hypotheses in the order of their guide ``bounds``, until a bound falls
+    ``margin`` below the best fit found: every later hypothesis keeps its bound. A window is refused when its best
+    fit lies below ``floor``: when the first fit does, the hypotheses whose sound bounds (``_sound_bounds_from_sums``
+    of ``sums``, ``_hypothesis_sums``) reach the floor are fitted first, in their order, until one fits over it;
+    when none does, the window is refused without the rest (every other one lies below the floor).
     """
     n = len(x)
     out = bounds.copy()
-    design = np.empty((n, _PARAMETERS))
-    middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
-    for j in range(n):
-        t = (k[j] - middle) / half
-        design[j, 0], design[j, 1], design[j, 2] = 1.0, t, t * t
+    design = _envelope_design(k, n)
     root = np.sqrt(v)
     flat, fitted = bounds.ravel(), out.ravel()
-    # The best bound's fit first: only the hypotheses whose bounds come within the margin of it can be fitted, so
-    # only those are sorted (a sort of all 18432 of 8 bits took longer than their fits).
+    done = np.zeros(len(flat), dtype=np.bool_)
     first = int(np.argmax(flat))
-    best = _fit_hypothesis(first, design, x, v, root, k, censored, signs, mixes)
-    fitted[first] = best
+    first_fit = _fit_hypothesis(first, design, x, v, root, k, censored, signs, mixes)
+    fitted[first], done[first] = first_fit, True
+    if first_fit < floor:
+        # As (mixes, L, ids), the order of the hypotheses' flat index.
+        sound = _sound_bounds_from_sums(sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6])
+        lifting = sound.reshape(bounds.shape[1], bounds.shape[0], bounds.shape[2]).transpose(1, 0, 2).copy().ravel()
+        # The sound bounds' rounding (the ridge) is far below the slack.
+        best = first_fit
+        lift = np.flatnonzero(lifting >= floor - _SOUND_SLACK)
+        for h in lift[np.argsort(-lifting[lift])]:
+            if not done[h]:
+                fitted[h], done[h] = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes), True
+                best = max(best, fitted[h])
+                if best >= floor:
+                    break
+        if best < floor:
+            for h in range(len(flat)):
+                if not done[h]:
+                    best = max(best, lifting[h] + _SOUND_SLACK)
+            return out, best
+    # Only the hypotheses whose bounds come within the margin of the first fit can be fitted, so only those are
+    # sorted (a sort of all 18432 of 8 bits took longer than their fits).
+    best = first_fit
     reach = np.flatnonzero(flat >= best - margin)
     for h in reach[np.argsort(-flat[reach])]:
         if flat[h] < best - margin:
             break
-        if h == first:
-            continue
-        value = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes)
-        fitted[h] = value
-        best = max(best, value)
-    return out
+        if not done[h]:
+            fitted[h], done[h] = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes), True
+        best = max(best, fitted[h])
+    return out, math.inf
 
 
 @kernel

@@ -187,8 +187,9 @@ def _censored_fit(z: np.ndarray, w: np.ndarray, clipped_share: np.ndarray, level
     # The model error in half-contrasts, as the Gaussian reading's, on the raw chips' scale.
     half_contrast = 0.5 * float(means.max() - means.min())
     weights = 1.0 / (_noise_variance(z, w) / chip_weights + (model_error * half_contrast) ** 2)
-    log_likelihoods, deviance = censored_log_likelihoods(means, weights, levels.index, censored, id_bits, mixes)
-    return None if deviance > _misfit_limit(max(measured - 5, 1)) else log_likelihoods
+    log_likelihoods, _ = censored_log_likelihoods(means, weights, levels.index, censored, id_bits, mixes,
+                                                  _misfit_limit(max(measured - 5, 1)))
+    return log_likelihoods
 
 
 def _chip_timing(chip_rate: float, row_time: float, id_bits: int,
