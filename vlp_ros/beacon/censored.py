@@ -52,6 +52,15 @@ def _signs(id_bits: int) -> np.ndarray:
     return np.array([packet_chips(i, id_bits) for i in range(2 ** id_bits)], dtype=float) * 2.0 - 1.0
 
 
+@lru_cache(maxsize=4)
+def _packet_masks(id_bits: int) -> np.ndarray:
+    """Every ID's packet as a bit mask of its bright chips (bit p: position p), (2^id_bits,) int64."""
+    powers = np.int64(1) << np.arange(packet_length(id_bits), dtype=np.int64)
+    masks = (_signs(id_bits) > 0.0).astype(np.int64) @ powers
+    masks.flags.writeable = False
+    return masks
+
+
 def clipped_run_grids(share: np.ndarray, period: float, tolerance: float) -> list[tuple[float, float]]:
     """
     Chip grids (period, where a chip begins, in rows) from where the rows cross half clipped.
@@ -117,7 +126,7 @@ def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censor
     sums = _hypothesis_sums(x, v, k, censored, id_bits, mixes)
     bounds = np.ascontiguousarray(_bounds_from_sums(*sums).reshape(-1, len(mixes), 2 ** id_bits).transpose(1, 0, 2))
     floor = -0.5 * deviance_limit
-    fits, refused_top = _fits_that_can_win(bounds, sums, x, v, k, censored, _signs(id_bits),
+    fits, refused_top = _fits_that_can_win(bounds, sums, x, v, k, censored, _signs(id_bits), _packet_masks(id_bits),
                                            np.asarray(mixes, dtype=float), PRUNE_MARGIN, floor)
     top = refused_top if refused_top < floor else float(fits.max())
     if -2.0 * top > deviance_limit:
@@ -404,7 +413,7 @@ def _envelope_design(k: np.ndarray, n: int) -> np.ndarray:
 
 @kernel
 def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.ndarray, k: np.ndarray,
-                       censored: np.ndarray, signs: np.ndarray, mixes: np.ndarray, margin: float,
+                       censored: np.ndarray, signs: np.ndarray, packets: np.ndarray, mixes: np.ndarray, margin: float,
                        floor: float) -> tuple[np.ndarray, float]:
     """
     Return every (mix, shift, ID)'s maximised censored log-likelihood, (mixes, L, ids), where it can matter.
@@ -454,13 +463,61 @@ def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.nda
     # sorted (a sort of all 18432 of 8 bits took longer than their fits).
     best = first_fit
     reach = np.flatnonzero(flat >= best - margin)
+    # Hypotheses of one mix and shift whose IDs agree on every packet position the window's templates read are
+    # the same fit (IDs that differ only outside a window shorter than the packet): fitted once, looked up by
+    # (mix, shift, the ID's chips there) in an open-addressing table of at least twice the hypotheses in reach.
+    touched = _positions_read(k, signs.shape[1])
+    slots = 1 << int(math.ceil(math.log2(2 * len(reach) + 2)))
+    keys, values = np.full(slots, -1, dtype=np.int64), np.empty(slots)
     for h in reach[np.argsort(-flat[reach])]:
         if flat[h] < best - margin:
             break
         if not done[h]:
-            fitted[h], done[h] = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes), True
+            fitted[h], done[h] = _fit_or_twin(h, touched, packets, keys, values, design, x, v, root, k, censored,
+                                              signs, mixes), True
         best = max(best, fitted[h])
     return out, math.inf
+
+
+@kernel
+def _positions_read(k: np.ndarray, length: int) -> np.ndarray:
+    """
+    Return, per shift, the packet positions the window's templates read as a bit mask, (2, L) int64.
+
+    Row 0 without blur's mix (the chips' own positions), row 1 with it (their neighbours too).
+    """
+    touched = np.zeros((2, length), dtype=np.int64)
+    for shift in range(length):
+        for j in range(len(k)):
+            p = (k[j] + shift) % length
+            touched[0, shift] |= np.int64(1) << p
+            touched[1, shift] |= (np.int64(1) << p) | (np.int64(1) << ((p - 1) % length)) \
+                | (np.int64(1) << ((p + 1) % length))
+    return touched
+
+
+@kernel
+def _fit_or_twin(h: int, touched: np.ndarray, packets: np.ndarray, keys: np.ndarray, values: np.ndarray,
+                 design: np.ndarray, x: np.ndarray, v: np.ndarray, root: np.ndarray, k: np.ndarray,
+                 censored: np.ndarray, signs: np.ndarray, mixes: np.ndarray) -> float:
+    """
+    Return hypothesis ``h``'s fit (``_fit_hypothesis``), or its twin's from the table ``keys``, ``values``.
+
+    ``packets`` are the IDs' chips as bit masks, ``touched`` the positions read (``_positions_read``).
+    """
+    ids, length = signs.shape[0], signs.shape[1]
+    m, rest = h // (length * ids), h % (length * ids)
+    shift, i = rest // ids, rest % ids
+    chips = packets[i] & touched[0 if mixes[m] == 0.0 else 1, shift]
+    key = (chips * length + shift) * len(mixes) + m
+    slot = (key * np.int64(0x2545F4914F6CDD1D)) >> np.int64(17) & (len(keys) - 1)
+    while keys[slot] >= 0:
+        if keys[slot] == key:
+            return values[slot]
+        slot = (slot + 1) & (len(keys) - 1)
+    value = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes)
+    keys[slot], values[slot] = key, value
+    return value
 
 
 @kernel
