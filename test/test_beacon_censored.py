@@ -10,7 +10,9 @@ misfits such a disc and refuses it (main read an ID on 1 of the benchmark's 9 re
 import numpy as np
 import pytest
 
-from vlp_ros.beacon.encoding import packet_length, packet_waveform
+from vlp_ros.beacon.censored import (_bounds_from_sums, _fits_that_can_win, _hypothesis_sums, _packet_masks,
+                                     _signs, _sound_bounds_from_sums, censored_log_likelihoods)
+from vlp_ros.beacon.encoding import packet_chips, packet_length, packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_packet
 from vlp_ros.beacon.profile import RowProfile
@@ -127,3 +129,69 @@ def test_the_simulators_realistic_stills_are_identified():
         assert set(result.decoded_ids) <= {11}
         identified += 11 in result.decoded_ids
     assert identified >= 7
+
+
+def clipped_chips(lamp_id: int, seed: int, gain: float, mix: float = 0.3, chips: int = 17,
+                  steady: bool = False) -> tuple[np.ndarray, ...]:
+    """
+    Return a window's chip levels, weights, indices and which are censored, as ``censored_log_likelihoods`` takes.
+
+    The chips of ``lamp_id`` from a random packet position, blurred (``mix`` of each neighbour) at a depth of 0.6,
+    under an envelope that falls off 30 % to the window's ends; the brightest chip ``gain`` times the ceiling (1.0)
+    at the middle, with 2 % noise.
+    """
+    rng = np.random.default_rng([lamp_id, seed])
+    length = packet_length(8)
+    signs = packet_chips(lamp_id, 8) * 2.0 - 1.0
+    positions = (np.arange(chips) + rng.integers(length)) % length
+    template = 0.0 if steady else signs[positions] + mix * (signs[positions - 1] + signs[(positions + 1) % length])
+    t = np.linspace(-1.0, 1.0, chips)
+    depth = 0.6
+    light = gain * (1.0 - 0.3 * t * t) * (1.0 + depth * template) / (1.0 + depth * (1.0 + 2.0 * mix)) \
+        + 0.02 * rng.standard_normal(chips)
+    censored = light >= 1.0
+    x = np.minimum(light, 1.0)
+    weights = np.full(chips, 1.0 / (0.02 ** 2 + (0.2 * 0.5 * (x.max() - x.min())) ** 2))
+    return x, weights, np.arange(chips), censored
+
+
+def every_fit(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """Return every (mix, shift, ID) hypothesis fitted by Newton's method (no pruning), and the bounds' sums."""
+    sums = _hypothesis_sums(x, v, k, censored, 8, BLUR_MIXES)
+    bounds = np.ascontiguousarray(_bounds_from_sums(*sums).reshape(-1, len(BLUR_MIXES), 256).transpose(1, 0, 2))
+    fits, _ = _fits_that_can_win(bounds, sums, x, v, k, censored, _signs(8), _packet_masks(8),
+                                 np.asarray(BLUR_MIXES), np.inf, -np.inf)
+    return fits, sums
+
+
+WINDOWS = [(lamp_id, seed, gain) for lamp_id, seed, gain in [(90, 0, 1.6), (11, 1, 2.2), (200, 2, 3.0), (37, 3, 2.6)]]
+
+
+@pytest.mark.parametrize('lamp_id, seed, gain', WINDOWS)
+def test_the_sound_bounds_bound_every_hypothesis(lamp_id, seed, gain):
+    """Blur lifts dark chips over the ceiling here: no hypothesis fits above its sound bound."""
+    x, v, k, censored = clipped_chips(lamp_id, seed, gain)
+    fits, sums = every_fit(x, v, k, censored)
+    sound = _sound_bounds_from_sums(*sums).reshape(-1, len(BLUR_MIXES), 256).transpose(1, 0, 2)
+    assert censored.sum() >= 3
+    assert np.all(fits <= sound + 1e-3)
+
+
+@pytest.mark.parametrize('lamp_id, seed, gain, scrambled', [window + (False,) for window in WINDOWS]
+                         + [(0, 4, 2.2, False), (90, 5, 2.2, True), (11, 6, 1.6, True)])
+def test_a_window_is_refused_exactly_when_no_hypothesis_fits_within_the_limit(lamp_id, seed, gain, scrambled):
+    """
+    Limits a hair below and above the best of all fits: refused, then read at that deviance.
+
+    A steady lamp, lamps' chips, and their chips in a random order (which fit no packet).
+    """
+    x, v, k, censored = clipped_chips(lamp_id, seed, gain, steady=lamp_id == 0)
+    if scrambled:
+        order = np.random.default_rng(seed).permutation(len(x))
+        x, censored = x[order], censored[order]
+    best = -2.0 * every_fit(x, v, k, censored)[0].max()
+    below, above = best * (1.0 - 1e-6) - 1e-9, best * (1.0 + 1e-6) + 1e-9
+    refused, deviance = censored_log_likelihoods(x, v, k, censored, 8, BLUR_MIXES, below)
+    assert refused is None and deviance > below
+    read, deviance = censored_log_likelihoods(x, v, k, censored, 8, BLUR_MIXES, above)
+    assert read is not None and deviance == best
