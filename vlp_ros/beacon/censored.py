@@ -441,6 +441,9 @@ def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.nda
     first = int(np.argmax(flat))
     first_fit = _fit_hypothesis(first, design, x, v, root, k, censored, signs, mixes)
     fitted[first], done[first] = first_fit, True
+    # Hypotheses of one mix and shift whose IDs agree on every packet position the window's templates read are
+    # the same fit (IDs that differ only outside a window shorter than the packet): fitted once (``_fit_or_twin``).
+    touched = _positions_read(k, signs.shape[1])
     if first_fit < floor:
         # As (mixes, L, ids), the order of the hypotheses' flat index.
         sound = _sound_bounds_from_sums(sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6])
@@ -448,9 +451,11 @@ def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.nda
         # The sound bounds' rounding (the ridge) is far below the slack.
         best = first_fit
         lift = np.flatnonzero(lifting >= floor - _SOUND_SLACK)
+        keys, values = _twin_table(len(lift))
         for h in lift[np.argsort(-lifting[lift])]:
             if not done[h]:
-                fitted[h], done[h] = _fit_hypothesis(h, design, x, v, root, k, censored, signs, mixes), True
+                fitted[h], done[h] = _fit_or_twin(h, touched, packets, keys, values, design, x, v, root, k,
+                                                  censored, signs, mixes), True
                 best = max(best, fitted[h])
                 if best >= floor:
                     break
@@ -463,12 +468,7 @@ def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.nda
     # sorted (a sort of all 18432 of 8 bits took longer than their fits).
     best = first_fit
     reach = np.flatnonzero(flat >= best - margin)
-    # Hypotheses of one mix and shift whose IDs agree on every packet position the window's templates read are
-    # the same fit (IDs that differ only outside a window shorter than the packet): fitted once, looked up by
-    # (mix, shift, the ID's chips there) in an open-addressing table of at least twice the hypotheses in reach.
-    touched = _positions_read(k, signs.shape[1])
-    slots = 1 << int(math.ceil(math.log2(2 * len(reach) + 2)))
-    keys, values = np.full(slots, -1, dtype=np.int64), np.empty(slots)
+    keys, values = _twin_table(len(reach))
     for h in reach[np.argsort(-flat[reach])]:
         if flat[h] < best - margin:
             break
@@ -477,6 +477,13 @@ def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.nda
                                               signs, mixes), True
         best = max(best, fitted[h])
     return out, math.inf
+
+
+@kernel
+def _twin_table(hypotheses: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return an empty open-addressing table (keys -1, values) for ``hypotheses`` fits: at least twice the slots."""
+    slots = 1 << int(math.ceil(math.log2(2 * hypotheses + 2)))
+    return np.full(slots, -1, dtype=np.int64), np.empty(slots)
 
 
 @kernel
@@ -503,7 +510,8 @@ def _fit_or_twin(h: int, touched: np.ndarray, packets: np.ndarray, keys: np.ndar
     """
     Return hypothesis ``h``'s fit (``_fit_hypothesis``), or its twin's from the table ``keys``, ``values``.
 
-    ``packets`` are the IDs' chips as bit masks, ``touched`` the positions read (``_positions_read``).
+    ``packets`` are the IDs' chips as bit masks, ``touched`` the positions read (``_positions_read``): the table
+    is keyed by (mix, shift, the ID's chips there).
     """
     ids, length = signs.shape[0], signs.shape[1]
     m, rest = h // (length * ids), h % (length * ids)
