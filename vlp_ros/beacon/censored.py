@@ -136,22 +136,22 @@ def censored_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, censor
     return per_id, -2.0 * top
 
 
-@lru_cache(maxsize=16)
-def _template_tables(id_bits: int, mixes: tuple[float, ...]) -> tuple[np.ndarray, ...]:
+@lru_cache(maxsize=4)
+def _template_tables(id_bits: int) -> tuple[np.ndarray, ...]:
     """
-    Every (mix, ID)'s template at each packet position, and what the closed-form bound weighs with it.
+    Every ID's chip signs and what the closed-form bounds weigh with them, at each packet position.
 
-    The template T_p = s_p + mix (s_p-1 + s_p+1) and its square; the chip's own darkness d_p = (1 - s_p) / 2 and
-    d_p T_p, d_p T_p^2 (a censored chip counts in the bound's least squares only where the hypothesis makes it
-    dark); and T again. Each (L, mixes x ids), the mixes side by side, but the darkness (L, ids): the mix leaves it.
+    The template T_p = s_p + mix n_p (n_p = s_p-1 + s_p+1) is linear in the mix, so every sum with it is taken
+    from sums with s and n: with T, T^2 = 1 + 2 mix s n + mix^2 n^2 (s^2 = 1), and with the chip's own darkness
+    d_p = (1 - s_p) / 2 (a censored chip counts in the guide's least squares only where the hypothesis makes it
+    dark), d T = -d + mix d n and d T^2 = d - 2 mix d n + mix^2 d n^2 (d s = -d). The tables [s | n], [s n | n^2],
+    d, d n and d n^2, (L, 2 ids) or (L, ids).
     """
     signs = np.ascontiguousarray(_signs(id_bits).T)
     neighbours = np.roll(signs, 1, axis=0) + np.roll(signs, -1, axis=0)
-    template = np.hstack([signs + mix * neighbours for mix in mixes])
     dark = 0.5 * (1.0 - signs)
-    dark_of_each = np.hstack([dark] * len(mixes))
-    tables = (template, template * template, dark, dark_of_each * template, dark_of_each * template * template,
-              template)
+    tables = (np.hstack([signs, neighbours]), np.hstack([signs * neighbours, neighbours * neighbours]), dark,
+              dark * neighbours, dark * neighbours * neighbours)
     for table in tables:
         table.flags.writeable = False
     return tables
@@ -163,11 +163,13 @@ def _hypothesis_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.n
     Return the weighted sums from which every (mix, shift, ID)'s bound is taken in closed form.
 
     The arguments of ``_bounds_from_sums`` and ``_sound_bounds_from_sums``: the chips' sums that no hypothesis
-    changes, and per (shift, hypothesis) the sums over the measured chips with the template T and its square,
-    over the censored ones with their darkness d (d, d T, d T^2) and with T, (rows, L, mixes x ids) each.
+    changes, the mixes, and per (shift, ID) the sums (``_template_tables``) over the measured chips with s and n
+    (weights t^i, i < 4, and x t^i, i < 2) and with s n and n^2 (t^i, i < 3), over the censored ones with their
+    darkness d (every weight below), d n (those with s) and d n^2 (t^i, i < 3), and with s and n (t^i, i < 2),
+    (rows, L, [s | n] of ids each) or (rows, L, ids).
 
     All hypotheses at once: every sum over the chips is a fold of the chips by packet position for each shift
-    (``_folded``) times a table of every ID's template (``_template_tables``).
+    (``_folded``) times a table of every ID's signs; the mixes are combined per hypothesis by the bounds.
     """
     length = packet_length(id_bits)
     middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
@@ -178,15 +180,18 @@ def _hypothesis_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.n
     # Hypothesis-free sums: over the measured chips sum v t^i (i < 5), sum v x t^i (i < 3), sum v x^2; over the
     # censored ones sum v t^i (i < 3) and sum v x.
     fixed = np.concatenate([powers @ vm, powers[:3] @ (vm * x), [vm @ (x * x)], powers[:3] @ vc, [vc @ x]])
-    # Per table, the chip weights folded with it: measured chips with the template T and its square, the censored
-    # ones with their darkness (d, d T, d T^2) and with T.
-    weights = (np.vstack([powers[:4] * vm, powers[:2] * (vm * x)]), powers[:3] * vm,
-               np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]]),
-               np.vstack([powers[:4] * vc, powers[:2] * (vc * x)]), powers[:3] * vc, powers[:2] * vc)
-    folds = [_folded(w, k, length) for w in weights]
-    sums = [(fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
-            for fold, table in zip(folds, _template_tables(id_bits, mixes))]
-    return (fixed, *sums)
+    # The chip weights folded: measured chips' t^i (i < 4), x t^i (i < 2); censored ones' t^i (i < 5), x t^i
+    # (i < 3), x^2.
+    measured_fold = _folded(np.vstack([powers[:4] * vm, powers[:2] * (vm * x)]), k, length)
+    censored_fold = _folded(np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]]), k, length)
+    signs, squares, dark, dark_neighbours, dark_squares = _template_tables(id_bits)
+
+    def times(fold: np.ndarray, table: np.ndarray) -> np.ndarray:
+        return (fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
+
+    return (fixed, np.asarray(mixes, dtype=float), times(measured_fold, signs), times(measured_fold[:3], squares),
+            times(censored_fold, dark), times(censored_fold[[0, 1, 2, 3, 5, 6]], dark_neighbours),
+            times(censored_fold[:3], dark_squares), times(censored_fold[:2], signs))
 
 
 @kernel
@@ -203,8 +208,9 @@ def _folded(weights: np.ndarray, k: np.ndarray, length: int) -> np.ndarray:
 
 
 @kernel
-def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray, censored_d: np.ndarray,
-                      censored_dt: np.ndarray, censored_dt2: np.ndarray, censored_t: np.ndarray) -> np.ndarray:
+def _bounds_from_sums(fixed: np.ndarray, mixes: np.ndarray, measured_s: np.ndarray, measured_sn: np.ndarray,
+                      censored_d: np.ndarray, censored_dn: np.ndarray, censored_dnn: np.ndarray,
+                      censored_s: np.ndarray) -> np.ndarray:
     """
     Return every (shift, hypothesis)'s guide bound from its weighted sums (``_hypothesis_sums``), (L, mixes x ids).
 
@@ -225,12 +231,14 @@ def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np
     as in ``_solve``; a singular system bounds nothing (0). Written out without branches or inner loops, so
     that the loop over the hypotheses runs several at once (SIMD).
     """
-    length, count, ids = measured_t.shape[1], measured_t.shape[2], censored_d.shape[2]
-    out = np.empty((length, count))
+    length, ids = censored_d.shape[1], censored_d.shape[2]
+    out = np.empty((length, len(mixes) * ids))
     ridge = 1.0 + 1e-9
     for shift in range(length):
-        # ``censored_d`` is the same for every mix: hypothesis i is its d of a block of ``ids``.
-        for block in range(count // ids):
+        # Hypothesis i is ID d of the mix's block of ``ids``; its sums with T, T^2, d T and d T^2
+        # (``_template_tables``).
+        for block in range(len(mixes)):
+            mix = mixes[block]
             for d in range(ids):
                 i = block * ids + d
                 cd0, cd1, cd2 = censored_d[0, shift, d], censored_d[1, shift, d], censored_d[2, shift, d]
@@ -240,22 +248,32 @@ def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np
                 g11 = (fixed[2] + cd2) * ridge + 1e-12
                 g12 = fixed[3] + censored_d[3, shift, d]
                 g22 = (fixed[4] + censored_d[4, shift, d]) * ridge + 1e-12
-                g03 = measured_t[0, shift, i] + censored_dt[0, shift, i]
-                g13 = measured_t[1, shift, i] + censored_dt[1, shift, i]
-                g23 = measured_t[2, shift, i] + censored_dt[2, shift, i]
+                # The dark censored chips' sums with T (rows t^0, t^1).
+                dt0 = mix * censored_dn[0, shift, d] - cd0
+                dt1 = mix * censored_dn[1, shift, d] - cd1
+                g03 = measured_s[0, shift, d] + mix * measured_s[0, shift, ids + d] + dt0
+                g13 = measured_s[1, shift, d] + mix * measured_s[1, shift, ids + d] + dt1
+                g23 = measured_s[2, shift, d] + mix * measured_s[2, shift, ids + d] \
+                    + mix * censored_dn[2, shift, d] - cd2
                 g04, g14 = g13, g23
-                g24 = measured_t[3, shift, i] + censored_dt[3, shift, i]
-                g33 = (measured_t2[0, shift, i] + censored_dt2[0, shift, i]) * ridge + 1e-12
-                g34 = measured_t2[1, shift, i] + censored_dt2[1, shift, i]
-                g44 = (measured_t2[2, shift, i] + censored_dt2[2, shift, i]) * ridge + 1e-12
+                g24 = measured_s[3, shift, d] + mix * measured_s[3, shift, ids + d] \
+                    + mix * censored_dn[3, shift, d] - censored_d[3, shift, d]
+                g33 = (fixed[0] + mix * (2.0 * measured_sn[0, shift, d] + mix * measured_sn[0, shift, ids + d])
+                       + cd0 - mix * (2.0 * censored_dn[0, shift, d] - mix * censored_dnn[0, shift, d])) * ridge + 1e-12
+                g34 = fixed[1] + mix * (2.0 * measured_sn[1, shift, d] + mix * measured_sn[1, shift, ids + d]) \
+                    + cd1 - mix * (2.0 * censored_dn[1, shift, d] - mix * censored_dnn[1, shift, d])
+                g44 = (fixed[2] + mix * (2.0 * measured_sn[2, shift, d] + mix * measured_sn[2, shift, ids + d])
+                       + cd2 - mix * (2.0 * censored_dn[2, shift, d] - mix * censored_dnn[2, shift, d])) * ridge + 1e-12
                 b0 = fixed[5] + censored_d[5, shift, d]
                 b1 = fixed[6] + censored_d[6, shift, d]
                 b2 = fixed[7] + censored_d[7, shift, d]
-                b3 = measured_t[4, shift, i] + censored_dt[4, shift, i]
-                b4 = measured_t[5, shift, i] + censored_dt[5, shift, i]
+                b3 = measured_s[4, shift, d] + mix * measured_s[4, shift, ids + d] \
+                    + mix * censored_dn[4, shift, d] - censored_d[5, shift, d]
+                b4 = measured_s[5, shift, d] + mix * measured_s[5, shift, ids + d] \
+                    + mix * censored_dn[5, shift, d] - censored_d[6, shift, d]
                 a0, a1, a2 = fixed[9] - cd0, fixed[10] - cd1, fixed[11] - cd2
-                a3 = censored_t[0, shift, i] - censored_dt[0, shift, i]
-                a4 = censored_t[1, shift, i] - censored_dt[1, shift, i]
+                a3 = censored_s[0, shift, d] + mix * censored_s[0, shift, ids + d] - dt0
+                a4 = censored_s[1, shift, d] + mix * censored_s[1, shift, ids + d] - dt1
                 squares = fixed[8] + censored_d[8, shift, d]
                 # Cholesky's factor L, then y = L^-1 b and z = L^-1 a.
                 l00 = math.sqrt(g00)
@@ -293,9 +311,9 @@ def _bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np
 
 
 @kernel
-def _sound_bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_t2: np.ndarray,
-                            censored_d: np.ndarray, censored_dt: np.ndarray, censored_dt2: np.ndarray,
-                            censored_t: np.ndarray) -> np.ndarray:
+def _sound_bounds_from_sums(fixed: np.ndarray, mixes: np.ndarray, measured_s: np.ndarray,
+                            measured_sn: np.ndarray, censored_d: np.ndarray, censored_dn: np.ndarray,
+                            censored_dnn: np.ndarray, censored_s: np.ndarray) -> np.ndarray:
     """
     Return an upper bound of every (shift, hypothesis)'s maximised log-likelihood, (L, mixes x ids).
 
@@ -308,8 +326,8 @@ def _sound_bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_
     leaves none consistent, the measured chips' fit alone bounds. Columns, ridge and Cholesky as
     ``_bounds_from_sums``; the contrast unconstrained.
     """
-    length, count, ids = measured_t.shape[1], measured_t.shape[2], censored_d.shape[2]
-    out = np.empty((length, count))
+    length, ids = censored_d.shape[1], censored_d.shape[2]
+    out = np.empty((length, len(mixes) * ids))
     ridge = 1.0 + 1e-9
     g00, g01, g02 = fixed[0] * ridge + 1e-12, fixed[1], fixed[2]
     g11, g12, g22 = fixed[2] * ridge + 1e-12, fixed[3], fixed[4] * ridge + 1e-12
@@ -324,22 +342,31 @@ def _sound_bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_
     y1 = (fixed[6] - l10 * y0) / l11
     y2 = (fixed[7] - l20 * y0 - l21 * y1) / l22
     for shift in range(length):
-        for block in range(count // ids):
+        # Hypothesis i is ID d of the mix's block of ``ids``; its sums with T and T^2 as ``_bounds_from_sums``.
+        for block in range(len(mixes)):
+            mix = mixes[block]
             for d in range(ids):
                 i = block * ids + d
-                g03, g13, g23 = measured_t[0, shift, i], measured_t[1, shift, i], measured_t[2, shift, i]
-                g04, g14, g24 = g13, g23, measured_t[3, shift, i]
-                g33 = measured_t2[0, shift, i] * ridge + 1e-12
-                g34 = measured_t2[1, shift, i]
-                g44 = measured_t2[2, shift, i] * ridge + 1e-12
+                g03 = measured_s[0, shift, d] + mix * measured_s[0, shift, ids + d]
+                g13 = measured_s[1, shift, d] + mix * measured_s[1, shift, ids + d]
+                g23 = measured_s[2, shift, d] + mix * measured_s[2, shift, ids + d]
+                g04, g14 = g13, g23
+                g24 = measured_s[3, shift, d] + mix * measured_s[3, shift, ids + d]
+                square0 = fixed[0] + mix * (2.0 * measured_sn[0, shift, d] + mix * measured_sn[0, shift, ids + d])
+                square2 = fixed[2] + mix * (2.0 * measured_sn[2, shift, d] + mix * measured_sn[2, shift, ids + d])
+                g33 = square0 * ridge + 1e-12
+                g34 = fixed[1] + mix * (2.0 * measured_sn[1, shift, d] + mix * measured_sn[1, shift, ids + d])
+                g44 = square2 * ridge + 1e-12
+                b3 = measured_s[4, shift, d] + mix * measured_s[4, shift, ids + d]
+                b4 = measured_s[5, shift, d] + mix * measured_s[5, shift, ids + d]
                 l30, l40 = g03 / l00, g04 / l00
                 l31, l41 = (g13 - l30 * l10) / l11, (g14 - l40 * l10) / l11
                 l32, l42 = (g23 - l30 * l20 - l31 * l21) / l22, (g24 - l40 * l20 - l41 * l21) / l22
                 l33 = math.sqrt(g33 - l30 * l30 - l31 * l31 - l32 * l32)
                 l43 = (g34 - l40 * l30 - l41 * l31 - l42 * l32) / l33
                 l44 = math.sqrt(g44 - l40 * l40 - l41 * l41 - l42 * l42 - l43 * l43)
-                y3 = (measured_t[4, shift, i] - l30 * y0 - l31 * y1 - l32 * y2) / l33
-                y4 = (measured_t[5, shift, i] - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) / l44
+                y3 = (b3 - l30 * y0 - l31 * y1 - l32 * y2) / l33
+                y4 = (b4 - l40 * y0 - l41 * y1 - l42 * y2 - l43 * y3) / l44
                 value = -0.5 * max(fixed[8] - (y0 * y0 + y1 * y1 + y2 * y2 + y3 * y3 + y4 * y4), 0.0)
                 # The dark group's summed columns and bounds, then the bright one's (all censored chips less dark),
                 # each over the root of its weight (none for a group of next to no weight: no term).
@@ -348,7 +375,12 @@ def _sound_bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_
                 dark_scale = 1.0 / math.sqrt(dark_weight) if dark_weight > 1e-9 * all_weight else 0.0
                 bright_scale = 1.0 / math.sqrt(bright_weight) if bright_weight > 1e-9 * all_weight else 0.0
                 a0, a1, a2 = dark_weight, censored_d[1, shift, d], censored_d[2, shift, d]
-                a3, a4, c = censored_dt[0, shift, i], censored_dt[1, shift, i], censored_d[5, shift, d]
+                a3 = mix * censored_dn[0, shift, d] - a0
+                a4 = mix * censored_dn[1, shift, d] - a1
+                c = censored_d[5, shift, d]
+                # All censored chips' sums with T: the bright group's are these less the dark one's.
+                censored_t0 = censored_s[0, shift, d] + mix * censored_s[0, shift, ids + d]
+                censored_t1 = censored_s[1, shift, d] + mix * censored_s[1, shift, ids + d]
                 # z = L^-1 a, and the shortfall at the measured chips' fit, h = c - a'theta = c - z'y.
                 z0 = a0 * dark_scale / l00
                 z1 = (a1 * dark_scale - l10 * z0) / l11
@@ -359,8 +391,8 @@ def _sound_bounds_from_sums(fixed: np.ndarray, measured_t: np.ndarray, measured_
                 w0 = bright_weight * bright_scale / l00
                 w1 = ((fixed[10] - a1) * bright_scale - l10 * w0) / l11
                 w2 = ((fixed[11] - a2) * bright_scale - l20 * w0 - l21 * w1) / l22
-                w3 = ((censored_t[0, shift, i] - a3) * bright_scale - l30 * w0 - l31 * w1 - l32 * w2) / l33
-                w4 = ((censored_t[1, shift, i] - a4) * bright_scale - l40 * w0 - l41 * w1 - l42 * w2 - l43 * w3) / l44
+                w3 = ((censored_t0 - a3) * bright_scale - l30 * w0 - l31 * w1 - l32 * w2) / l33
+                w4 = ((censored_t1 - a4) * bright_scale - l40 * w0 - l41 * w1 - l42 * w2 - l43 * w3) / l44
                 h1 = (fixed[12] - c) * bright_scale - (w0 * y0 + w1 * y1 + w2 * y2 + w3 * y3 + w4 * y4)
                 bound = _with_one_sided_terms(value, z0 * z0 + z1 * z1 + z2 * z2 + z3 * z3 + z4 * z4,
                                               w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3 + w4 * w4,
@@ -446,7 +478,7 @@ def _fits_that_can_win(bounds: np.ndarray, sums: tuple, x: np.ndarray, v: np.nda
     touched = _positions_read(k, signs.shape[1])
     if first_fit < floor:
         # As (mixes, L, ids), the order of the hypotheses' flat index.
-        sound = _sound_bounds_from_sums(sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6])
+        sound = _sound_bounds_from_sums(sums[0], sums[1], sums[2], sums[3], sums[4], sums[5], sums[6], sums[7])
         lifting = sound.reshape(bounds.shape[1], bounds.shape[0], bounds.shape[2]).transpose(1, 0, 2).copy().ravel()
         # The sound bounds' rounding (the ridge) is far below the slack.
         best = first_fit
