@@ -143,8 +143,7 @@ class Locator(Node):
         self._show_lamps_used(set())
         self._advise_on_camera_settings()
         self._report_frames()
-        self._start_threads()
-        self._wait_for_kernels_unless_compiling()
+        self._start_and_wait_for_kernels()
         self._subscribe()
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
@@ -179,17 +178,19 @@ class Locator(Node):
                 f'{self.settings.base_frame} on a horizontal floor at z = {floor.height:g} m: its height known to '
                 f'{floor.sigma_height:g} m and its tilt to {floor.sigma_tilt:g} rad (planar.*)')
 
-    def _start_threads(self) -> None:
-        for target, name in ((self._work, 'vlp_locator_worker'), (self._decode, 'vlp_locator_decoder')):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+    def _start_and_wait_for_kernels(self) -> None:
+        """
+        Start the worker (which first makes the kernels ready) and the decoder.
 
-    def _wait_for_kernels_unless_compiling(self) -> None:
-        """Wait while the worker loads the kernels from the cache; not while numba compiles them (minutes)."""
+        Return once the kernels are loaded from the cache, or as soon as numba starts compiling one (minutes).
+        """
         watch = _CompileWatch()
         numba.core.event.register('numba:compile', watch)
         try:
+            for target, name in ((self._work, 'vlp_locator_worker'), (self._decode, 'vlp_locator_decoder')):
+                thread = threading.Thread(target=target, name=name, daemon=True)
+                thread.start()
+                self._threads.append(thread)
             while not self._kernels_ready.wait(_WARM_UP_POLL_S):
                 if watch.started.is_set():
                     self.get_logger().warning(
