@@ -307,9 +307,9 @@ class Locator(Node):
         """
         Return the seconds until the decoder should start on the waiting frame; None while there is none.
 
-        Started when the worker is expected to need it (its usual processing time after it took its frame, less
-        the usual decode time), a frame that arrives meanwhile replaces the waiting one: decoding earlier
-        would overlap more, but the decoded frame would wait for the worker and grow old.
+        The decoder starts when the worker is expected to need the frame: its usual processing time after it took
+        its own, less the usual decode time. A frame that arrives meanwhile replaces the waiting one; decoding
+        earlier would overlap more, but the decoded frame would wait for the worker and grow old.
         """
         if self._pending is None or self._decoded is not None:
             return None
