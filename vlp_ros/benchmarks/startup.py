@@ -7,7 +7,9 @@ starts, until its subscription to the image topic is visible over DDS
 (``get_subscriptions_info_by_topic``): what a camera driver waits for before frames are
 used. Warm: the install tree as built (``make build`` filled its numba cache). Cold: a
 copy of it without the cache, as a first start on a fresh install (or every start where
-nothing is writable) pays. Prints the median and range of ``--runs`` starts of each.
+nothing is writable) pays: the locator subscribes as soon as numba starts compiling and
+answers frames only once the kernels are ready, minutes later (its log says when). Prints
+the median and range of ``--runs`` starts of each.
 """
 from __future__ import annotations
 

@@ -8,10 +8,10 @@ builds a few small frames in place and runs them through the pipeline: a camera
 looking straight up at lamps 2 m above it, each a disc whose rows carry its beacon
 (``vlp_ros.beacon.encoding``), with a red marker on its rim, drawn sharp, clipped and
 glowing, without a marker (a steady lamp off the map), and as bare LEDs; in packet
-and tone mode, in colour with gravity and as mono8 without, each as a writable
-array (as a JPEG decoder gives it) and a read-only one (as raw image messages give
-it: numba compiles the two separately). Only the pipeline's public entry points are
-called, so the warm-up follows the kernels wherever they move.
+and tone mode, in colour with gravity and as mono8 without, each as the writable
+C-contiguous array the locator gives the pipeline (``vlp_ros.images.conversion``;
+numba would compile a read-only or strided frame separately). Only the pipeline's
+public entry points are called, so the warm-up follows the kernels wherever they move.
 
 ``make build`` runs this for the installed package and for the source tree the
 tests import, which fills the cache; the locator runs ``warm_up`` before it
@@ -41,7 +41,10 @@ from vlp_ros.solvers.refinement import refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
 WIDTH, HEIGHT, FOCAL = 640, 480, 1600.0
-CAMERA = CameraModel(WIDTH, HEIGHT, [[FOCAL, 0.0, (WIDTH - 1) / 2], [0.0, FOCAL, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]])
+_K = np.array([[FOCAL, 0.0, (WIDTH - 1) / 2], [0.0, FOCAL, (HEIGHT - 1) / 2], [0.0, 0.0, 1.0]])
+# Built from camera_info fields (K, P, no distortion), as the locator builds its camera.
+CAMERA = CameraModel.from_camera_info(WIDTH, HEIGHT, _K.ravel(), np.zeros(5), 'plumb_bob',
+                                      np.hstack([_K, np.zeros((3, 1))]).ravel())
 # The camera looks straight up (its axes those of the map): up is its optical axis.
 UP = np.array([0.0, 0.0, 1.0])
 LAMP_HEIGHT, LAMP_RADIUS, MARKER_DISTANCE = 2.0, 0.055, 0.048
@@ -139,16 +142,15 @@ def tone_lamps(frequencies: Sequence[float], radius: float = LAMP_RADIUS) -> lis
 
 
 def run_frames(parameters: dict[str, Any], frames: Sequence[np.ndarray]) -> None:
-    """Each frame through one pipeline: in colour with gravity and as mono8 without, writable and read-only."""
+    """Each frame through one pipeline: in colour with gravity and as mono8 without."""
     pipeline = Pipeline(settings_from_tree(parameters))
     for stamp, image in enumerate(frames):
         for pixels in (image, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)):
-            for frame in (pixels, read_only(pixels)):
-                pipeline.process(frame, CAMERA, float(stamp), UP if frame.ndim == 3 else None)
+            pipeline.process(pixels, CAMERA, float(stamp), UP if pixels.ndim == 3 else None)
 
 
 def read_only(pixels: np.ndarray) -> np.ndarray:
-    """Return a view of ``pixels`` that cannot be written, like an array over a message's buffer."""
+    """Return a view of ``pixels`` that cannot be written, as the pipeline keeps some of its own arrays."""
     view = pixels.view()
     view.flags.writeable = False
     return view

@@ -51,12 +51,15 @@ class CameraModel:
     def __post_init__(self) -> None:
         if self.model not in COEFFICIENTS:
             raise ValueError(f'camera model {self.model!r} is not one of {", ".join(COEFFICIENTS)}')
-        object.__setattr__(self, 'K', np.asarray(self.K, dtype=float).reshape(3, 3))
+        # C-contiguous whatever it came from (P[:, :3] of a camera_info is not): the kernels that take K are
+        # compiled for one array layout, and another would compile again on a node's first frame.
+        object.__setattr__(self, 'K', np.ascontiguousarray(np.asarray(self.K, dtype=float).reshape(3, 3)))
         d = np.zeros(COEFFICIENTS[self.model])
         given = np.asarray(self.D, dtype=float).ravel()[:d.size]
         d[:given.size] = given
         object.__setattr__(self, 'D', d)
-        object.__setattr__(self, 'rectification', np.asarray(self.rectification, dtype=float).reshape(3, 3))
+        object.__setattr__(self, 'rectification',
+                           np.ascontiguousarray(np.asarray(self.rectification, dtype=float).reshape(3, 3)))
 
     @classmethod
     def from_horizontal_fov(cls, width: int, height: int, hfov_rad: float,

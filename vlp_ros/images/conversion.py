@@ -31,7 +31,13 @@ class ImageConversionError(ValueError):
 
 
 def pixels_of(msg: ImageMessage) -> np.ndarray:
-    """Return the message's pixels as bgr8 or mono8; a view where no conversion is needed."""
+    """
+    Return the message's pixels as bgr8 or mono8, a writable C-contiguous array of their own.
+
+    The message's bytes are read-only (and strided where ``step`` pads the rows): numba compiles each kernel
+    once per array kind, so frames are given as the JPEG decoder gives them, at the cost of one copy where no
+    conversion makes one.
+    """
     encoding = msg.encoding.lower()
     channels = _CHANNELS.get(encoding)
     if channels is None:
@@ -50,8 +56,8 @@ def pixels_of(msg: ImageMessage) -> np.ndarray:
             f'needs {msg.step * msg.height}')
     rows = np.lib.stride_tricks.as_strided(
         msg.data, shape=(msg.height, row_bytes), strides=(msg.step, 1), writeable=False)
-    image = rows.reshape(msg.height, msg.width, channels)
-    return _to_bgr_or_mono(image, encoding)
+    image = _to_bgr_or_mono(rows.reshape(msg.height, msg.width, channels), encoding)
+    return image if image.flags.writeable and image.flags.c_contiguous else np.array(image, order='C')
 
 
 def _to_bgr_or_mono(image: np.ndarray, encoding: str) -> np.ndarray:

@@ -10,8 +10,13 @@ AMBIGUITY_OUTCOMES = ('ambiguous', 'conflicting_hints', 'no_candidate_agrees', '
 
 
 def diagnostic_array(stats: FrameStats, has_camera_info: bool, image_topic: str,
-                     track_restarts: int = 0) -> DiagnosticArray:
-    """``track_restarts``: poses published against continuity (``Pipeline.track_restarts``)."""
+                     track_restarts: int = 0, kernels_ready: bool = True) -> DiagnosticArray:
+    """
+    Return the locator's state as one status.
+
+    ``track_restarts``: poses published against continuity (``Pipeline.track_restarts``); ``kernels_ready``:
+    whether the compiled kernels are ready (numba may still be compiling them, frames dropped meanwhile).
+    """
     input_rate, processed_rate = stats.rates()
     latency_median, latency_max = stats.latency_ms()
     values = {
@@ -28,16 +33,20 @@ def diagnostic_array(stats: FrameStats, has_camera_info: bool, image_topic: str,
         'unknown ids': stats.unknown_ids,
         'ambiguity rejections': sum(n for r, n in stats.no_pose.items() if r in AMBIGUITY_OUTCOMES),
         'track restarts': track_restarts,
+        'kernels ready': kernels_ready,
     }
     values.update({f'no pose: {reason}': n for reason, n in sorted(stats.no_pose.items())})
     values.update({f'dropped: {reason}': n for reason, n in sorted(stats.dropped.items())})
     status = DiagnosticStatus(name='vlp_ros: locator', hardware_id=image_topic)
-    status.level, status.message = _level_and_message(stats, has_camera_info, input_rate)
+    status.level, status.message = _level_and_message(stats, has_camera_info, input_rate, kernels_ready)
     status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
     return DiagnosticArray(status=[status])
 
 
-def _level_and_message(stats: FrameStats, has_camera_info: bool, input_rate: float) -> tuple[bytes, str]:
+def _level_and_message(stats: FrameStats, has_camera_info: bool, input_rate: float,
+                       kernels_ready: bool) -> tuple[bytes, str]:
+    if not kernels_ready:
+        return DiagnosticStatus.WARN, 'compiling the numba kernels: frames are dropped until they are ready'
     if stats.received and not has_camera_info:
         return DiagnosticStatus.WARN, 'waiting for a valid camera_info'
     if stats.received == 0:

@@ -1,16 +1,27 @@
 """
 The `locator` node: camera images in, camera poses out.
 
-Callbacks only keep the newest frame; one worker thread decodes it, hands it to
-the ROS-free pipeline (vlp_ros.pipeline.frame) and publishes. Frames that arrive while
-the worker is busy replace the waiting one, so latency never grows. Before it
-subscribes, the node loads the pipeline's compiled kernels (vlp_ros.compiled.warm_up),
-so its first frames take no longer than later ones.
+Callbacks only keep the newest frame. A decoder thread parses and decodes it while the
+worker thread runs the frame before it through the ROS-free pipeline
+(vlp_ros.pipeline.frame) and publishes: on two cores a frame's JPEG decode (cv2.imdecode
+releases the GIL) overlaps the previous frame's processing. Each stage holds at most one
+waiting frame, the newest: a frame that arrives while the stages are busy replaces the
+waiting one (counted as superseded), so latency never grows.
+
+The worker first makes the pipeline's compiled kernels ready (vlp_ros.compiled.warm_up),
+so the first frames take no longer than later ones. The node subscribes when they are
+loaded from numba's cache; if numba has to compile them (no cache: minutes), it
+subscribes at once, drops frames as ``kernels_compiling`` and says so in its
+diagnostics, and answers frames from the moment the kernels are ready.
 """
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
 import ctypes
+from dataclasses import dataclass
 import os
+import statistics
 import sys
 import threading
 import time
@@ -18,6 +29,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import Pose as PoseMsg
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+import numba.core.event
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
@@ -48,6 +60,46 @@ THROTTLE_S = 5.0
 # glibc's mallopt parameters (malloc.h).
 _M_MMAP_THRESHOLD, _M_ARENA_MAX = -3, -8
 _MMAP_THRESHOLD_BYTES = 1 << 20
+# How often the start checks whether the kernels are ready or being compiled.
+_WARM_UP_POLL_S = 0.05
+
+
+class RecentDurations:
+    """The median of a stage's last few durations (s): how long its next run is expected to take."""
+
+    def __init__(self, count: int = 15) -> None:
+        self._durations: deque[float] = deque(maxlen=count)
+
+    def add(self, seconds: float) -> None:
+        self._durations.append(seconds)
+
+    def median(self) -> float:
+        """Return the median; 0 before the first run."""
+        return statistics.median(self._durations) if self._durations else 0.0
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """A frame the decoder has made ready for the pipeline: its pixels, camera, stamp, frame_id and arrival time."""
+
+    pixels: np.ndarray
+    camera: CameraModel
+    stamp_ns: int
+    frame_id: str
+    received: float
+
+
+class _CompileWatch(numba.core.event.Listener):
+    """Sets ``started`` when numba starts compiling a kernel (a kernel not found in its cache)."""
+
+    def __init__(self) -> None:
+        self.started = threading.Event()
+
+    def on_start(self, event: numba.core.event.Event) -> None:
+        self.started.set()
+
+    def on_end(self, event: numba.core.event.Event) -> None:
+        pass
 
 
 class Locator(Node):
@@ -55,9 +107,14 @@ class Locator(Node):
     def __init__(self) -> None:
         # Before anything that can fail: rclpy destroys a node that failed to start, and destroy_node reads these.
         self._pending: tuple[bytes, float] | None = None
+        self._decoded: DecodedFrame | None = None
+        # When the worker took its frame (None while it waits), and the usual time of each stage.
+        self._busy_since: float | None = None
+        self._process_times, self._decode_times = RecentDurations(), RecentDurations()
         self._wake = threading.Condition()
         self._running = True
-        self._worker: threading.Thread | None = None
+        self._kernels_ready = threading.Event()
+        self._threads: list[threading.Thread] = []
         # Overrides declared on arrival, so that misspelt parameters can be named (nodes.parameters).
         super().__init__('vlp_locator', automatically_declare_parameters_from_overrides=True)
         self.settings = settings_from_parameters(declare_locator_parameters(self))
@@ -85,12 +142,10 @@ class Locator(Node):
         self.debug_images_drawn = 0
         self._show_lamps_used(set())
         self._advise_on_camera_settings()
-        self._warm_up()
         self._report_frames()
+        self._start_and_wait_for_kernels()
         self._subscribe()
         self.create_timer(1.0, self._publish_diagnostics)
-        self._worker = threading.Thread(target=self._work, name='vlp_locator_worker', daemon=True)
-        self._worker.start()
         self.get_logger().info(
             f'locating with {len(self.settings.lamps)} lamps ({self.settings.beacon.mode} beacon, '
             f'{self.settings.solver} solver) on {self._image_topic}')
@@ -123,6 +178,28 @@ class Locator(Node):
                 f'{self.settings.base_frame} on a horizontal floor at z = {floor.height:g} m: its height known to '
                 f'{floor.sigma_height:g} m and its tilt to {floor.sigma_tilt:g} rad (planar.*)')
 
+    def _start_and_wait_for_kernels(self) -> None:
+        """
+        Start the worker (which first makes the kernels ready) and the decoder.
+
+        Return once the kernels are loaded from the cache, or as soon as numba starts compiling one (minutes).
+        """
+        watch = _CompileWatch()
+        numba.core.event.register('numba:compile', watch)
+        try:
+            for target, name in ((self._work, 'vlp_locator_worker'), (self._decode, 'vlp_locator_decoder')):
+                thread = threading.Thread(target=target, name=name, daemon=True)
+                thread.start()
+                self._threads.append(thread)
+            while not self._kernels_ready.wait(_WARM_UP_POLL_S):
+                if watch.started.is_set():
+                    self.get_logger().warning(
+                        'compiling the numba kernels (no cache for them: minutes); frames are dropped until they '
+                        'are ready')
+                    return
+        finally:
+            numba.core.event.unregister('numba:compile', watch)
+
     def _warm_up(self) -> None:
         """Load (or, without the build's cache, compile) the kernels a frame needs."""
         started = time.monotonic()
@@ -130,8 +207,10 @@ class Locator(Node):
             warm_up()
         except Exception as err:  # frames are still processed; the first ones only take longer
             self.get_logger().warning(f'loading the compiled kernels failed: {err!r}')
-            return
-        self.get_logger().info(f'compiled kernels ready in {time.monotonic() - started:.1f} s')
+        else:
+            self.get_logger().info(f'compiled kernels ready in {time.monotonic() - started:.1f} s')
+        finally:
+            self._kernels_ready.set()
 
     def _subscribe(self) -> None:
         reliability = (ReliabilityPolicy.RELIABLE if self.settings.qos_reliability == 'reliable'
@@ -165,6 +244,9 @@ class Locator(Node):
 
     def _on_frame(self, raw: bytes) -> None:
         self.stats.frame_received()
+        if not self._kernels_ready.is_set():
+            self.stats.frame_dropped('kernels_compiling')
+            return
         if self._camera is None:
             # Decided on arrival: a camera_info that arrives while the frame waits is not its camera's.
             self.stats.frame_dropped('no_camera_info')
@@ -175,7 +257,7 @@ class Locator(Node):
             if self._pending is not None:
                 self.stats.superseded += 1
             self._pending = (raw, time.monotonic())
-            self._wake.notify()
+            self._wake.notify_all()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
@@ -197,23 +279,72 @@ class Locator(Node):
             time.sleep(0.002)
         return self._gravity.up_at(stamp_ns)
 
-    def _work(self) -> None:
+    def _next(self, ready: Callable[[], bool]) -> bool:
+        """Wait, holding ``_wake``, until ``ready()`` or the node stops; whether the node still runs."""
+        while self._running and not ready():
+            self._wake.wait(0.5)
+        return self._running
+
+    def _decode(self) -> None:
+        """Decode the newest frame so that it is ready when the worker is expected to be free."""
         while True:
             with self._wake:
-                while self._pending is None and self._running:
-                    self._wake.wait(0.5)
+                while self._running and (delay := self._decode_delay()) != 0.0:
+                    self._wake.wait(0.5 if delay is None else delay)
                 if not self._running:
                     return
-                raw, received = self._pending
-                self._pending = None
-            try:
-                self._process(raw, received)
-            except Exception as err:  # a bad frame must never take the node down
-                self.stats.frame_dropped('internal_error')
-                self.get_logger().error(f'frame dropped after an internal error: {err!r}',
-                                        throttle_duration_sec=THROTTLE_S)
+                (raw, received), self._pending = self._pending, None
+            started = time.monotonic()
+            decoded = self._guarded(self._decoded_frame, raw, received)
+            self._decode_times.add(time.monotonic() - started)
+            if decoded is None:
+                continue
+            with self._wake:
+                self._decoded = decoded
+                self._wake.notify_all()
 
-    def _process(self, raw: bytes, received: float) -> None:
+    def _decode_delay(self) -> float | None:
+        """
+        Return the seconds until the decoder should start on the waiting frame; None while there is none.
+
+        The decoder starts when the worker is expected to need the frame: its usual processing time after it took
+        its own, less the usual decode time. A frame that arrives meanwhile replaces the waiting one; decoding
+        earlier would overlap more, but the decoded frame would wait for the worker and grow old.
+        """
+        if self._pending is None or self._decoded is not None:
+            return None
+        if self._busy_since is None:
+            return 0.0
+        due = self._busy_since + self._process_times.median() - self._decode_times.median()
+        return max(0.0, due - time.monotonic())
+
+    def _work(self) -> None:
+        self._warm_up()
+        while True:
+            with self._wake:
+                if not self._next(lambda: self._decoded is not None):
+                    return
+                frame, self._decoded = self._decoded, None
+                self._busy_since = time.monotonic()
+                self._wake.notify_all()
+            self._guarded(self._process, frame)
+            with self._wake:
+                self._process_times.add(time.monotonic() - self._busy_since)
+                self._busy_since = None
+                self._wake.notify_all()
+
+    def _guarded(self, step: Callable, *args):
+        """Return ``step(*args)``; None, the frame dropped and counted, after an internal error."""
+        try:
+            return step(*args)
+        except Exception as err:  # a bad frame must never take the node down
+            self.stats.frame_dropped('internal_error')
+            self.get_logger().error(f'frame dropped after an internal error: {err!r}',
+                                    throttle_duration_sec=THROTTLE_S)
+            return None
+
+    def _decoded_frame(self, raw: bytes, received: float) -> DecodedFrame | None:
+        """Return the frame's pixels as the pipeline takes them; None (dropped, counted) for a frame unfit for it."""
         try:
             if self.settings.image_transport == 'compressed':
                 msg = parse_compressed_image(raw)
@@ -225,22 +356,25 @@ class Locator(Node):
         except (MessageFormatError, ImageConversionError) as err:
             self.stats.frame_dropped('bad_frame')
             self.get_logger().error(f'frame dropped: {err}', throttle_duration_sec=THROTTLE_S)
-            return
+            return None
         camera = self._camera
         if (camera.width, camera.height) != (pixels.shape[1], pixels.shape[0]):
             self.stats.frame_dropped('size_mismatch')
             self.get_logger().error(
                 f'frame dropped: image is {pixels.shape[1]}x{pixels.shape[0]} but camera_info says '
                 f'{camera.width}x{camera.height}', throttle_duration_sec=THROTTLE_S)
-            return
-        result = self.pipeline.process(pixels, camera, msg.stamp_ns * 1e-9, self._up_at(msg.stamp_ns))
-        self._publish(result, msg.stamp_ns)
+            return None
+        return DecodedFrame(pixels, camera, msg.stamp_ns, msg.frame_id, received)
+
+    def _process(self, frame: DecodedFrame) -> None:
+        result = self.pipeline.process(frame.pixels, frame.camera, frame.stamp_ns * 1e-9, self._up_at(frame.stamp_ns))
+        self._publish(result, frame.stamp_ns)
         self.stats.ids_seen(result.decoded_ids, result.unknown_ids)
-        self.stats.frame_processed(result.outcome, time.monotonic() - received)
+        self.stats.frame_processed(result.outcome, time.monotonic() - frame.received)
         # After the pose is out, so that neither adds to its latency.
         if result.pose is not None:
             self._show_lamps_used({seen.lamp_id for seen in result.seen if seen.lamp_id is not None})
-        self._publish_debug_image(pixels, result, msg.stamp_ns, msg.frame_id)
+        self._publish_debug_image(frame.pixels, result, frame.stamp_ns, frame.frame_id)
 
     def _show_lamps_used(self, lamp_ids: set[int]) -> None:
         if lamp_ids != self._lamps_in_pose:
@@ -280,18 +414,18 @@ class Locator(Node):
 
     def _publish_diagnostics(self) -> None:
         array = diagnostic_array(self.stats, self._camera is not None, self._image_topic,
-                                 self.pipeline.track_restarts)
+                                 self.pipeline.track_restarts, self._kernels_ready.is_set())
         array.status[0].values.append(KeyValue(key='debug images drawn', value=str(self.debug_images_drawn)))
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 
     def destroy_node(self) -> None:
-        """Stop the worker thread (letting its frame finish), then destroy the node."""
+        """Stop the decoder and worker threads (letting their frames finish), then destroy the node."""
         with self._wake:
             self._running = False
-            self._wake.notify()
-        if self._worker is not None:
-            self._worker.join(timeout=5.0)
+            self._wake.notify_all()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
         super().destroy_node()
 
 
