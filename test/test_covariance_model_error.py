@@ -155,3 +155,28 @@ def test_one_lamp_whose_rim_the_optics_bend_yields_its_tilt_to_a_good_imu() -> N
 def _tilt(pose: Pose, truth: Pose) -> float:
     """Return the angle (rad) between the pose's up direction and the truth's."""
     return float(np.arccos(np.clip(pose.up_in_camera() @ truth.up_in_camera(), -1.0, 1.0)))
+
+
+def test_a_bent_rim_and_an_imu_of_like_accuracy_are_each_weighed_by_what_it_knows() -> None:
+    # The rim 0.1 px wider along a random axis (its tilt 0.65 degree off), its edge's prior of such patterns
+    # 0.1 px, and gravity to half a degree: neither may override the other. The fused tilt lies between the
+    # rim's and the IMU's (never further off than the worse of them), closer on average than either, and
+    # its covariance covers it.
+    rng = np.random.default_rng(47)
+    lamp = small_lamp((0.3, 0.2, 2.0))
+    truth = looking_up((0.0, 0.0, 0.0), (0.12, -0.1, 0.4))
+    sigma = np.radians(0.5)
+    rim_only, gravity, fused, nees_fused = [], [], [], []
+    for _ in range(16):
+        observation = observe(lamp, truth, camera_4k(), rim_count=200, rim_sigma=0.1, marker_sigma=0.3, rng=rng)
+        observation = replace(_warped(observation, 0.1, rng.uniform(0.0, np.pi)), rim_model_sigma=0.1)
+        up = UpMeasurement(measured_up(truth, sigma, rng), sigma)
+        alone = min(solve_lamp(observation, lamp, camera_4k()), key=lambda c: c.pose.position_error(truth))
+        best = min(solve_lamp(observation, lamp, camera_4k(), [up]), key=lambda c: c.pose.position_error(truth))
+        rim_only.append(_tilt(alone.pose, truth))
+        gravity.append(float(np.arccos(np.clip(up.direction @ truth.up_in_camera(), -1.0, 1.0))))
+        fused.append(_tilt(best.pose, truth))
+        nees_fused.append(nees(best.pose, truth))
+    assert all(f <= max(r, g) + np.radians(0.02) for f, r, g in zip(fused, rim_only, gravity))
+    assert np.mean(fused) < min(np.mean(rim_only), np.mean(gravity))
+    assert 2.0 <= np.mean(nees_fused) <= 10.0 and sum(e > 22.46 for e in nees_fused) <= 1

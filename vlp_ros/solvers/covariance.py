@@ -177,8 +177,8 @@ def _add_rotation_curvature(covariance, lever):
 # of the prior's). One lamp's marker would fix the scale too, but too noisily and with a bias near
 # frontal views (measured: 2 mm at 0.3 m, 5 standard errors): there it only widens the covariance
 # along range by ``RIM_OFFSET_PRIOR`` times the rim's scatter, or by the lamp's own measured prior
-# if that is less. With an up direction, one lamp's second harmonic is free under that prior in
-# the step (``_harmonics_step``): its tilt and the up direction's are weighed by what each knows.
+# if that is less. With an up direction, one lamp's pose (its modes marginalised under that prior)
+# and the up direction's tilt are weighed by what each knows (``_up_fused_step``).
 # The rim points' scatter beyond their stated sigma, and a marker that the pose cannot place within
 # ``MARKER_CONSISTENT`` sigmas, widen their own information by what their residuals show.
 RIM_OFFSET_PRIOR = 1.5
@@ -230,9 +230,9 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     ``mode_prior_sigma`` (px, per lamp; None: 0) is what each lamp's edge shows of its modes
     (``LampObservation.rim_model_sigma``): where the frame's lamps cannot estimate the modes' sigma (one
     lamp), the modes are marginalised with it, widening the covariance along what they trade with; the
-    pose stays where the fit put it unless an up direction was fitted too, when the second harmonic is
-    free under the prior in the step; with several lamps, a lamp's prior over the estimated sigma
-    widens the covariance alike, the pose left in place.
+    pose stays where the fit put it unless an up direction was fitted too, when the lamp's tilt and the up
+    direction's are weighed by their covariances in the step (``_up_fused_step``); with several lamps, a
+    lamp's prior over the estimated sigma widens the covariance alike, the pose left in place.
     """
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
@@ -325,14 +325,10 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
         inverse = _marginalised_modes(design, width, count, residuals, weights, lamp_of_point, per_lamp,
                                       mode_prior_sigma, offset_precision)
         if count > rims + 2 * marker_count:
-            # An up direction measures the tilt that the rim's harmonics trade with: the pose goes where
-            # both put it, each by what it knows (the rim under its modes' prior, the up by its sigma).
-            # Only where the edge's model error exceeds its points' scatter (a soft, clipped or glaring
-            # rim: 1.4-2 px against 0.2 px on the independent renderer's realistic frames); below it the
-            # rim's shape is as good as its points, and an up direction it disagrees with widens the
-            # covariance instead (``perspective.widened_where_up_disagrees``).
-            _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
-                            solution)
+            # An up direction measures the tilt that the rim's modes trade with: the pose goes where
+            # both put it, each by what it knows (the lamp under its modes' prior, the up by its sigma).
+            _up_fused_step(design, width, count, rims + 2 * marker_count, residuals, weights, lamp_of_point,
+                           per_lamp, mode_prior_sigma, offset_precision, offset_sigma, solution)
     if estimated:
         # The fit with each lamp's modes, from the weights the fit without them ended with (the
         # modes take up part of that scatter), their prior sigma estimated at each reweighting.
@@ -413,20 +409,47 @@ def _marginalised_modes(design, width, count, residuals, weights, lamp_of_point,
 
 
 @kernel
-def _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma, solution):
+def _up_fused_step(design, width, count, lamp_rows, residuals, weights, lamp_of_point, per_lamp, mode_prior_sigma,
+                   offset_precision, offset_sigma, solution):
     """
-    Write into ``solution`` the Gauss-Newton step of the pose and each lamp's rim harmonics under their prior.
+    Write into ``solution`` the pose step that weighs the lamp's tilt and the up directions' by what each knows.
 
-    The second harmonic (modes ``_TILT_MODES``: the ellipse's elongation and its direction, which trade
-    with the tilt) is free under ``mode_prior_sigma``, so a rim whose shape the optics bend yields to what
-    an up direction says of the tilt. The offsets and the first harmonic stay at 0: they trade with the
-    range and the bearing, which no up direction measures, and freed they would only let the marker pull
-    the bearing and the yaw (3.6 deg on a frame of the independent renderer's hand-held set).
+    The tilt (the rotation about the map's x and y) is the lamp's own least-squares pose (rows before
+    ``lamp_rows``: the rim points and marker), with the covariance of its modes marginalised under their
+    prior, updated linearly by the up rows (Kalman: S = J P J^T + W^-1, step -P J^T S^-1 (r + J step)).
+    The rest of the pose is then the lamp's at that tilt, its second harmonic (the ellipse's elongation
+    and direction, which trade with the tilt: ``_TILT_MODES``) free under the prior.
+
+    A rim whose shape the optics bend thus yields to a good up direction by what its modes' prior allows,
+    and no more. Freeing the harmonics in one joint step with the up rows let the rest of the rim's
+    shape and its marker pull the tilt (0.3 degrees off both the rim's and the IMU's tilt on a frame of
+    the independent renderer's hand-held set); the linear update alone left the range and bearing where
+    the lamp's own wrong tilt had put them (4 cm off on soft rims 2 degrees off).
     """
+    gram, gradient = _normal_equations_of(design, 7, lamp_rows, residuals, weights, lamp_of_point)
+    lamp_step, _ = _offset_rule_solution(gram, gradient, offset_precision, offset_sigma, False)
+    lamp_covariance = np.ascontiguousarray(_marginalised_modes(design, width, lamp_rows, residuals, weights,
+                                                               lamp_of_point, per_lamp, mode_prior_sigma,
+                                                               offset_precision)[:6, :6])
+    ups = count - lamp_rows
+    jacobian = np.empty((ups, 6))
+    innovation = np.empty(ups)
+    for a in range(ups):
+        root = math.sqrt(weights[lamp_rows + a])
+        total = residuals[lamp_rows + a]
+        for i in range(6):
+            jacobian[a, i] = root * design[lamp_rows + a, i]
+            total += design[lamp_rows + a, i] * lamp_step[i]
+        innovation[a] = root * total
+    projected = jacobian @ lamp_covariance
+    gain = np.linalg.solve(projected @ jacobian.T + np.eye(ups), projected)
+    correction = gain.T @ innovation
+    tilt = (lamp_step[3] - correction[3], lamp_step[4] - correction[4])
     upper, gradient = np.zeros((width, width)), np.zeros(width)
-    _weighted_normal_equations(design, width, 0, count, residuals, weights, lamp_of_point, per_lamp, upper, gradient)
+    _weighted_normal_equations(design, width, 0, lamp_rows, residuals, weights, lamp_of_point, per_lamp, upper,
+                               gradient)
     information = _symmetric(upper)
-    free = list(range(6))
+    free = [0, 1, 2, 5]
     for lamp in range(mode_prior_sigma.shape[0]):
         sigma = mode_prior_sigma[lamp]
         if not sigma > 0.0:
@@ -438,7 +461,7 @@ def _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per
     size = len(free)
     reduced, right = np.empty((size, size)), np.empty(size)
     for a in range(size):
-        right[a] = -gradient[free[a]]
+        right[a] = -(gradient[free[a]] + information[free[a], 3] * tilt[0] + information[free[a], 4] * tilt[1])
         for b in range(size):
             reduced[a, b] = information[free[a], free[b]]
     stepped = np.linalg.solve(reduced, right)
@@ -447,6 +470,7 @@ def _harmonics_step(design, width, count, residuals, weights, lamp_of_point, per
     for a in range(size):
         if free[a] < solution.shape[0]:
             solution[free[a]] = stepped[a]
+    solution[3], solution[4] = tilt
 
 
 @kernel
