@@ -439,8 +439,8 @@ def _radial_fit(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray
     """
     penalty = _curvature_penalty(int(np.ceil(reach / _KNOT_PX)) + 2)
     try:
-        found, fitted, covariance, level = _levenberg_marquardt(x, y, row, value, float(centre[0]), float(centre[1]),
-                                                               rows, penalty)
+        found, fitted, covariance, level = _levenberg_marquardt(x, y, row, value, float(centre[0]),
+                                                                float(centre[1]), rows, penalty)
     except np.linalg.LinAlgError:
         return None
     if not found:
@@ -478,8 +478,8 @@ def _levenberg_marquardt(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: n
         shape = _shape(x, y, row, value, cx, cy, level, penalty)
         level = _row_levels(x, y, row, value, cx, cy, shape, rows)
     damping = 1e-3
-    cost, diagonal, mixed, spans, block, level_gradient, gradient = _linearised(x, y, row, value, cx, cy, level, shape,
-                                                                         penalty)
+    linearised = _linearised(x, y, row, value, cx, cy, level, shape, penalty)
+    cost, diagonal, mixed, spans, block, level_gradient, gradient = linearised
     for _ in range(_MAX_ITERATIONS):
         level_step, step = _damped_step(diagonal, mixed, spans, block, level_gradient, gradient, damping)
         tx, ty = cx + step[knots], cy + step[knots + 1]
@@ -541,7 +541,7 @@ def _reduced(diagonal: np.ndarray, mixed: np.ndarray, spans: np.ndarray, block: 
 
 @kernel
 def _span(first: int, last: int, m: int) -> np.ndarray:
-    """The columns of ``mixed`` a row touches: its knots ``first``-``last`` and the centre's two."""
+    """Return the columns of ``mixed`` a row touches: its knots ``first``-``last`` and the centre's two."""
     columns = np.empty(last - first + 3, np.int64)
     columns[:last - first + 1] = np.arange(first, last + 1)
     columns[-2], columns[-1] = m - 2, m - 1
