@@ -57,6 +57,12 @@ _CORE_LEVEL = 0.9
 # Shares of the distances between the estimates taken as the centre's sigma (per axis).
 _DISAGREEMENT_SHARE = 0.5
 _ASYMMETRY_SHARE = 0.25
+# A clipped glow's plateau hides the emitter: its centre is off it by up to ~14 % of the plateau's radius
+# (simulated LEDs 2-8x over, coma 0-0.6, rough cores, tails), ~5 % per axis on average. The light in a
+# ring this far (px) outside the plateau, as a share of the clip, tells a clipped glow from a clipped core.
+_HIDDEN_SHARE = 0.06
+_EDGE_GAP_PX = (8.0, 11.0)
+_GLOW_CLIPS = (0.8, 1.0)
 _MIN_LIGHT_PIXELS = 200
 _KNOT_PX = 1.0
 _SMOOTHNESS = 2.0
@@ -348,8 +354,34 @@ def measure_light_centre(image: np.ndarray, start: np.ndarray, core_radius: floa
     centre = 0.5 * (fine.center + area[0])
     disagreement = float(np.linalg.norm(fine.center - area[0]))
     asymmetry = float(np.linalg.norm(fine.center - coarse.center))
-    sigma = math.sqrt(fine.sigma ** 2 + (_DISAGREEMENT_SHARE * disagreement) ** 2 + (_ASYMMETRY_SHARE * asymmetry) ** 2)
+    sigma = math.sqrt(fine.sigma ** 2 + (_DISAGREEMENT_SHARE * disagreement) ** 2 + (_ASYMMETRY_SHARE * asymmetry) ** 2
+                      + hidden_emitter_sigma(coarse, centre) ** 2)
     return LightCentre(centre, sigma, fine.reach, fine.clipped_share)
+
+
+def hidden_emitter_sigma(fit: _Fit, centre: np.ndarray) -> float:
+    """
+    Return the centre's sigma (px, per axis) from a clipped glow that hides the emitter.
+
+    Where the glow clips too, the plateau is a contour of the glow, and a real glow is not symmetric
+    (coma, flare): the contour's centre is off the emitter by a share of its radius that no fit of the
+    flank or the plateau can see. The glow clips where the light just outside the plateau is still near
+    the clip (a clipped core drops to its glow within a few pixels); the sigma grows from nothing to
+    ``_HIDDEN_SHARE`` of the plateau's radius as that light rises from ``_GLOW_CLIPS[0]`` to
+    ``_GLOW_CLIPS[1]`` of the clip.
+    """
+    plateau = fit.inside & fit.clipped
+    radius = math.sqrt(np.count_nonzero(plateau) / math.pi)
+    if radius == 0.0:
+        return 0.0
+    ys, xs = np.mgrid[0:plateau.shape[0], 0:plateau.shape[1]]
+    distance = np.hypot(xs + fit.origin[0] - centre[0], ys + fit.origin[1] - centre[1])
+    ring = fit.inside & ~fit.clipped & (distance > radius + _EDGE_GAP_PX[0]) & (distance <= radius + _EDGE_GAP_PX[1])
+    if not np.any(ring):
+        return 0.0
+    edge = float(np.median(fit.destriped[ring])) / fit.clip
+    weight = min(max((edge - _GLOW_CLIPS[0]) / (_GLOW_CLIPS[1] - _GLOW_CLIPS[0]), 0.0), 1.0)
+    return weight * _HIDDEN_SHARE * radius
 
 
 def level_centroids(fit: _Fit, shares: tuple[float, ...]) -> np.ndarray | None:
