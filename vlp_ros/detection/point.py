@@ -61,6 +61,7 @@ _ASYMMETRY_SHARE = 0.25
 # (simulated LEDs 2-8x over, coma 0-0.6, rough cores, tails), ~5 % per axis on average. The light in a
 # ring this far (px) outside the plateau, as a share of the clip, tells a clipped glow from a clipped core.
 _HIDDEN_SHARE = 0.06
+_PLATEAU_OFFSET_SHARE = 0.5
 _EDGE_GAP_PX = (8.0, 11.0)
 _GLOW_CLIPS = (0.8, 1.0)
 _MIN_LIGHT_PIXELS = 200
@@ -367,21 +368,24 @@ def hidden_emitter_sigma(fit: _Fit, centre: np.ndarray) -> float:
     (coma, flare): the contour's centre is off the emitter by a share of its radius that no fit of the
     flank or the plateau can see. The glow clips where the light just outside the plateau is still near
     the clip (a clipped core drops to its glow within a few pixels); the sigma grows from nothing to
-    ``_HIDDEN_SHARE`` of the plateau's radius as that light rises from ``_GLOW_CLIPS[0]`` to
+    ``_HIDDEN_SHARE`` of the plateau's radius, and ``_PLATEAU_OFFSET_SHARE`` of its centroid's distance
+    from ``centre`` (how lopsided the glow shows itself), as that light rises from ``_GLOW_CLIPS[0]`` to
     ``_GLOW_CLIPS[1]`` of the clip.
     """
     plateau = fit.inside & fit.clipped
     radius = math.sqrt(np.count_nonzero(plateau) / math.pi)
     if radius == 0.0:
         return 0.0
-    ys, xs = np.mgrid[0:plateau.shape[0], 0:plateau.shape[1]]
+    ys, xs = np.ogrid[0:plateau.shape[0], 0:plateau.shape[1]]
     distance = np.hypot(xs + fit.origin[0] - centre[0], ys + fit.origin[1] - centre[1])
     ring = fit.inside & ~fit.clipped & (distance > radius + _EDGE_GAP_PX[0]) & (distance <= radius + _EDGE_GAP_PX[1])
     if not np.any(ring):
         return 0.0
     edge = float(np.median(fit.destriped[ring])) / fit.clip
     weight = min(max((edge - _GLOW_CLIPS[0]) / (_GLOW_CLIPS[1] - _GLOW_CLIPS[0]), 0.0), 1.0)
-    return weight * _HIDDEN_SHARE * radius
+    rows, columns = np.nonzero(plateau)
+    offset = math.hypot(columns.mean() + fit.origin[0] - centre[0], rows.mean() + fit.origin[1] - centre[1])
+    return weight * math.hypot(_HIDDEN_SHARE * radius, _PLATEAU_OFFSET_SHARE * offset)
 
 
 def level_centroids(fit: _Fit, shares: tuple[float, ...]) -> np.ndarray | None:
