@@ -61,3 +61,29 @@ def test_a_map_of_point_lamps_measures_every_light_as_a_point(look, seed, tolera
         assert not observation.rim_usable and observation.center_sigma is not None
         nearest = min(np.linalg.norm(observation.center - t.center_pixel) for t in frame.lamps)
         assert nearest < tolerance_px
+
+
+@pytest.mark.parametrize('look, seed', [
+    (PointLampLook(overexposure=2.5, coma=0.2, tail_level=0.03, core_roughness=0.1), 4),
+    (PointLampLook(overexposure=4.0, coma=0.45, tail_level=0.08, core_roughness=0.2, glow_level=0.3), 5),
+    (PointLampLook(overexposure=7.0, coma=0.35, tail_level=0.1, tail_scale=100.0, core_roughness=0.2,
+                   glow_level=0.25), 6),
+    (PointLampLook(overexposure=5.0, coma=0.0, tail_level=0.05, core_roughness=0.25), 7),
+])
+def test_a_clipped_glow_that_hides_the_emitter_widens_the_sigma_to_cover_the_centre(look, seed) -> None:
+    """Overexposed, comatic, rough LEDs: the centre is off by pixels and its sigma says so, LED by LED."""
+    scenario, frame, image = rendered(look, 85, seed=seed)
+    squared = []
+    for observation in detect_lamps(image):
+        truth = min(frame.lamps, key=lambda t: np.linalg.norm(observation.center - t.center_pixel))
+        if not truth.fully_inside:
+            continue
+        light = measure_light_centre(image, observation.center, float(observation.ellipse[2]))
+        if light is None:
+            continue
+        error = light.center - truth.center_pixel
+        squared.append(float(error @ error) / light.sigma ** 2)
+    assert len(squared) >= 3
+    # Two axes: chi-square with 2 dof; none beyond its 99.9 % bound (13.8), the mean not far above 2.
+    assert max(squared) < 13.8
+    assert np.mean(squared) < 5.0

@@ -18,7 +18,6 @@ import math
 
 import cv2
 import numpy as np
-from scipy.sparse import csr_matrix
 
 from vlp_ros.compiled import kernel
 from vlp_ros.compiled.small_arrays import median
@@ -58,6 +57,13 @@ _CORE_LEVEL = 0.9
 # Shares of the distances between the estimates taken as the centre's sigma (per axis).
 _DISAGREEMENT_SHARE = 0.5
 _ASYMMETRY_SHARE = 0.25
+# A clipped glow's plateau hides the emitter: its centre is off it by up to ~14 % of the plateau's radius
+# (simulated LEDs 2-8x over, coma 0-0.6, rough cores, tails), ~5 % per axis on average. The light in a
+# ring this far (px) outside the plateau, as a share of the clip, tells a clipped glow from a clipped core.
+_HIDDEN_SHARE = 0.06
+_PLATEAU_OFFSET_SHARE = 0.5
+_EDGE_GAP_PX = (8.0, 11.0)
+_GLOW_CLIPS = (0.8, 1.0)
 _MIN_LIGHT_PIXELS = 200
 _KNOT_PX = 1.0
 _SMOOTHNESS = 2.0
@@ -349,8 +355,37 @@ def measure_light_centre(image: np.ndarray, start: np.ndarray, core_radius: floa
     centre = 0.5 * (fine.center + area[0])
     disagreement = float(np.linalg.norm(fine.center - area[0]))
     asymmetry = float(np.linalg.norm(fine.center - coarse.center))
-    sigma = math.sqrt(fine.sigma ** 2 + (_DISAGREEMENT_SHARE * disagreement) ** 2 + (_ASYMMETRY_SHARE * asymmetry) ** 2)
+    sigma = math.sqrt(fine.sigma ** 2 + (_DISAGREEMENT_SHARE * disagreement) ** 2 + (_ASYMMETRY_SHARE * asymmetry) ** 2
+                      + hidden_emitter_sigma(coarse, centre) ** 2)
     return LightCentre(centre, sigma, fine.reach, fine.clipped_share)
+
+
+def hidden_emitter_sigma(fit: _Fit, centre: np.ndarray) -> float:
+    """
+    Return the centre's sigma (px, per axis) from a clipped glow that hides the emitter.
+
+    Where the glow clips too, the plateau is a contour of the glow, and a real glow is not symmetric
+    (coma, flare): the contour's centre is off the emitter by a share of its radius that no fit of the
+    flank or the plateau can see. The glow clips where the light just outside the plateau is still near
+    the clip (a clipped core drops to its glow within a few pixels); the sigma grows from nothing to
+    ``_HIDDEN_SHARE`` of the plateau's radius, and ``_PLATEAU_OFFSET_SHARE`` of its centroid's distance
+    from ``centre`` (how lopsided the glow shows itself), as that light rises from ``_GLOW_CLIPS[0]`` to
+    ``_GLOW_CLIPS[1]`` of the clip.
+    """
+    plateau = fit.inside & fit.clipped
+    radius = math.sqrt(np.count_nonzero(plateau) / math.pi)
+    if radius == 0.0:
+        return 0.0
+    ys, xs = np.ogrid[0:plateau.shape[0], 0:plateau.shape[1]]
+    distance = np.hypot(xs + fit.origin[0] - centre[0], ys + fit.origin[1] - centre[1])
+    ring = fit.inside & ~fit.clipped & (distance > radius + _EDGE_GAP_PX[0]) & (distance <= radius + _EDGE_GAP_PX[1])
+    if not np.any(ring):
+        return 0.0
+    edge = float(np.median(fit.destriped[ring])) / fit.clip
+    weight = min(max((edge - _GLOW_CLIPS[0]) / (_GLOW_CLIPS[1] - _GLOW_CLIPS[0]), 0.0), 1.0)
+    rows, columns = np.nonzero(plateau)
+    offset = math.hypot(columns.mean() + fit.origin[0] - centre[0], rows.mean() + fit.origin[1] - centre[1])
+    return weight * math.hypot(_HIDDEN_SHARE * radius, _PLATEAU_OFFSET_SHARE * offset)
 
 
 def level_centroids(fit: _Fit, shares: tuple[float, ...]) -> np.ndarray | None:
@@ -428,106 +463,271 @@ def _fit_within(image: np.ndarray, start: np.ndarray, reach: float, saturation_l
 
 
 def _radial_fit(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, centre: np.ndarray, reach: float,
-                rows: int) -> tuple[np.ndarray, float] | None:
+                rows: int) -> tuple[np.ndarray, float, np.ndarray] | None:
     """
     Centre and its sigma of s(row) f(r) fitted to the pixels (``x``, ``y``) of ``value``, ``row`` their rows' index.
 
-    f is piecewise linear on knots ``_KNOT_PX`` apart (smoothed by a penalty on its curvature), s one
-    level per row. A few alternating linear steps (f, then s) start it; then Levenberg-Marquardt on all
-    of them and the centre together, since a centre moved up or down is nearly undone by the rows'
-    levels alone. The centre's sigma is its marginal from that fit, the rows' levels and the shape free.
+    Also each row's level. f is piecewise linear on knots ``_KNOT_PX`` apart (smoothed by a penalty on its
+    curvature), s one level per row. A few alternating linear steps (f, then s) start it; then
+    Levenberg-Marquardt on all of them and the centre together, since a centre moved up or down is nearly
+    undone by the rows' levels alone. The centre's sigma is its marginal from that fit, the rows' levels
+    and the shape free.
     """
-    knots = int(np.ceil(reach / _KNOT_PX)) + 2
-    curvature = np.diff(np.eye(knots), 2, axis=0)
-    penalty = _SMOOTHNESS * curvature.T @ curvature
+    penalty = _curvature_penalty(int(np.ceil(reach / _KNOT_PX)) + 2)
+    try:
+        found, fitted, covariance, level = _levenberg_marquardt(x, y, row, value, float(centre[0]),
+                                                                float(centre[1]), rows, penalty)
+    except np.linalg.LinAlgError:
+        return None
+    if not found:
+        return None
+    sigma = _LIGHT_CORRELATION * math.sqrt(max(covariance[0], covariance[1], 0.0))
+    return fitted, max(sigma, _LIGHT_SIGMA_FLOOR), level
+
+
+@kernel
+def _curvature_penalty(knots: int) -> np.ndarray:
+    """Return ``_SMOOTHNESS`` C^T C, C the knots' second differences (rows 1 -2 1): five diagonals."""
+    penalty = np.zeros((knots, knots))
+    for i in range(knots - 2):
+        for a, wa in ((0, 1.0), (1, -2.0), (2, 1.0)):
+            for b, wb in ((0, 1.0), (1, -2.0), (2, 1.0)):
+                penalty[i + a, i + b] += _SMOOTHNESS * wa * wb
+    return penalty
+
+
+@kernel
+def _levenberg_marquardt(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, cx: float, cy: float,
+                         rows: int, penalty: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
+    """
+    ``_radial_fit``'s start and iterations: whether it converged, the centre, its variances and the levels.
+
+    Each row's level enters the model linearly and meets only its own row's pixels, so the levels'
+    block of the normal matrix is diagonal but for the gauge's rank-one term: the levels are eliminated
+    in closed form (a Schur complement, Sherman-Morrison for the gauge), leaving a system the size of the
+    shape. The steps and the centre's marginal are those of the whole system, to rounding.
+    """
+    knots = penalty.shape[0]
     level = np.ones(rows)
+    shape = np.zeros(knots)
     for _ in range(_START_STEPS):
-        k, t, _, _, _ = _radii(x, y, centre, knots)
-        shape = _shape(k, t, level[row], value, knots, penalty)
-        level = _row_levels(row, (1.0 - t) * shape[k] + t * shape[k + 1], value, rows)
-    size = rows + knots + 2
-    pixels = np.arange(len(value))
+        shape = _shape(x, y, row, value, cx, cy, level, penalty)
+        level = _row_levels(x, y, row, value, cx, cy, shape, rows)
     damping = 1e-3
-    cost, normal, gradient = _linearised(x, y, row, value, centre, level, shape, penalty, pixels, size)
+    linearised = _linearised(x, y, row, value, cx, cy, level, shape, penalty)
+    cost, diagonal, mixed, spans, block, level_gradient, gradient = linearised
     for _ in range(_MAX_ITERATIONS):
-        try:
-            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
-        except np.linalg.LinAlgError:
-            return None
-        trial = (centre + step[-2:], level + step[:rows], shape + step[rows:rows + knots])
-        if not np.all(np.isfinite(trial[0])):
-            return None
-        linearised = _linearised(x, y, row, value, *trial, penalty, pixels, size)
-        if linearised[0] > cost:
+        level_step, step = _damped_step(diagonal, mixed, spans, block, level_gradient, gradient, damping)
+        tx, ty = cx + step[knots], cy + step[knots + 1]
+        if not (math.isfinite(tx) and math.isfinite(ty)):
+            return False, np.zeros(2), np.zeros(2), level
+        trial_level, trial_shape = level + level_step, shape + step[:knots]
+        if _cost(x, y, row, value, tx, ty, trial_level, trial_shape, penalty) > cost:
             damping *= 10.0
             if damping > 1e6:
                 break
             continue
         damping = max(damping / 10.0, 1e-7)
-        moved = float(np.linalg.norm(step[-2:]))
-        (centre, level, shape), (cost, normal, gradient) = trial, linearised
+        moved = math.hypot(step[knots], step[knots + 1])
+        cx, cy, level, shape = tx, ty, trial_level, trial_shape
+        cost, diagonal, mixed, spans, block, level_gradient, gradient = _linearised(x, y, row, value, cx, cy, level,
+                                                                                    shape, penalty)
         if moved < _CONVERGED_PX:
             break
-    variance = cost / max(len(value) - size, 1)
-    try:
-        covariance = variance * np.linalg.inv(normal)[-2:, -2:]
-    except np.linalg.LinAlgError:
-        return None
-    sigma = _LIGHT_CORRELATION * math.sqrt(max(covariance[0, 0], covariance[1, 1], 0.0))
-    return centre, max(sigma, _LIGHT_SIGMA_FLOOR), level
+    size = rows + knots + 2
+    variance = cost / max(value.size - size, 1)
+    if not np.all(diagonal > 0.0):
+        return False, np.zeros(2), np.zeros(2), level
+    inverse = np.linalg.inv(_reduced(diagonal, mixed, spans, block, 0.0))
+    return (True, np.array([cx, cy]), variance * np.array([inverse[knots, knots], inverse[knots + 1, knots + 1]]),
+            level)
 
 
-def _linearised(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, centre: np.ndarray,
-                level: np.ndarray, shape: np.ndarray, penalty: np.ndarray, pixels: np.ndarray,
-                size: int) -> tuple[float, np.ndarray, np.ndarray]:
-    """Return the cost of ``_radial_fit``'s model, its Gauss-Newton normal matrix and gradient."""
-    rows, knots = len(level), len(shape)
-    k, t, dx, dy, r = _radii(x, y, centre, knots)
-    s = level[row]
-    g = (1.0 - t) * shape[k] + t * shape[k + 1]
-    residual = value - s * g
-    # d(model)/d(centre): the shape's slope along the pixel's direction from the centre, reversed.
-    slope = (shape[k + 1] - shape[k]) / _KNOT_PX
-    columns = np.concatenate([row, rows + k, rows + k + 1, np.full(len(value), size - 2),
-                              np.full(len(value), size - 1)])
-    entries = np.concatenate([g, s * (1.0 - t), s * t, -s * slope * dx / r, -s * slope * dy / r])
-    jacobian = csr_matrix((entries, (np.tile(pixels, 5), columns)), shape=(len(value), size))
-    normal = (jacobian.T @ jacobian).toarray()
-    gradient = jacobian.T @ residual
-    normal[rows:rows + knots, rows:rows + knots] += penalty
-    gradient[rows:rows + knots] -= penalty @ shape
+@kernel
+def _reduced(diagonal: np.ndarray, mixed: np.ndarray, spans: np.ndarray, block: np.ndarray, damping: float
+             ) -> np.ndarray:
+    """
+    Return the Schur complement of the (damped) levels' block in the normal matrix.
+
+    That block is diag(``diagonal``) + gauge 1 1^T, ``mixed`` (rows, m) the levels' rows against the
+    rest, nonzero only in each row's ``spans`` of knots (rows, 2) and the centre's last two columns;
+    ``block`` (m, m) the rest's own.
+    """
+    m = block.shape[0]
+    complement = block.copy()
+    for j in range(m):
+        complement[j, j] += damping * (block[j, j] + 1e-12)
+    u = 1.0 / (diagonal + damping * (diagonal + _GAUGE + 1e-12))
+    column = np.zeros(m)
+    for i in range(diagonal.size):
+        columns = _span(spans[i, 0], spans[i, 1], m)
+        for p in range(columns.size):
+            a = columns[p]
+            weighted = u[i] * mixed[i, a]
+            column[a] += weighted
+            for q in range(p, columns.size):
+                complement[a, columns[q]] -= weighted * mixed[i, columns[q]]
+    gauge = _GAUGE / (1.0 + _GAUGE * u.sum())
+    for a in range(m):
+        for b in range(a, m):
+            complement[a, b] += gauge * column[a] * column[b]
+            complement[b, a] = complement[a, b]
+    return complement
+
+
+@kernel
+def _span(first: int, last: int, m: int) -> np.ndarray:
+    """Return the columns of ``mixed`` a row touches: its knots ``first``-``last`` and the centre's two."""
+    columns = np.empty(last - first + 3, np.int64)
+    columns[:last - first + 1] = np.arange(first, last + 1)
+    columns[-2], columns[-1] = m - 2, m - 1
+    return columns
+
+
+@kernel
+def _levels_solve(diagonal: np.ndarray, damping: float, right: np.ndarray) -> np.ndarray:
+    """Return the (damped) levels' block, diag(``diagonal``) + gauge 1 1^T, solved for ``right``."""
+    u = 1.0 / (diagonal + damping * (diagonal + _GAUGE + 1e-12))
+    solved = u * right
+    return solved - u * (_GAUGE * solved.sum() / (1.0 + _GAUGE * u.sum()))
+
+
+@kernel
+def _damped_step(diagonal: np.ndarray, mixed: np.ndarray, spans: np.ndarray, block: np.ndarray,
+                 level_gradient: np.ndarray, gradient: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the Levenberg-Marquardt step of the levels and of the rest (shape, centre)."""
+    complement = _reduced(diagonal, mixed, spans, block, damping)
+    right = gradient - _levels_solve(diagonal, damping, level_gradient) @ mixed
+    step = np.linalg.solve(complement, right)
+    return _levels_solve(diagonal, damping, level_gradient - mixed @ step), step
+
+
+@kernel
+def _linearised(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, cx: float, cy: float,
+                level: np.ndarray, shape: np.ndarray, penalty: np.ndarray
+                ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return the cost of ``_radial_fit``'s model and its Gauss-Newton normal equations, by blocks.
+
+    The levels' block's diagonal (the gauge's 1 1^T left implicit), the levels against the shape's knots
+    and the centre (rows, knots + 2) and the span of knots each row touches, the knots' and centre's own
+    block and the gradients of both.
+    """
+    rows, knots = level.size, shape.size
+    diagonal = np.zeros(rows)
+    level_gradient = np.zeros(rows)
+    mixed = np.zeros((rows, knots + 2))
+    spans = np.empty((rows, 2), np.int64)
+    spans[:, 0], spans[:, 1] = knots, 0
+    block = np.zeros((knots + 2, knots + 2))
+    gradient = np.zeros(knots + 2)
+    cost = 0.0
+    for i in range(value.size):
+        dx, dy = x[i] - cx, y[i] - cy
+        r = max(math.hypot(dx, dy), 1e-9)
+        k = min(int(r / _KNOT_PX), knots - 2)
+        t = r / _KNOT_PX - k
+        j = row[i]
+        s = level[j]
+        g = (1.0 - t) * shape[k] + t * shape[k + 1]
+        residual = value[i] - s * g
+        # d(model)/d(centre): the shape's slope along the pixel's direction from the centre, reversed.
+        slope = (shape[k + 1] - shape[k]) / _KNOT_PX
+        a0, a1 = s * (1.0 - t), s * t
+        ax, ay = -s * slope * dx / r, -s * slope * dy / r
+        cost += residual * residual
+        diagonal[j] += g * g
+        level_gradient[j] += g * residual
+        spans[j, 0], spans[j, 1] = min(spans[j, 0], k), max(spans[j, 1], k + 1)
+        mixed[j, k] += g * a0
+        mixed[j, k + 1] += g * a1
+        mixed[j, knots] += g * ax
+        mixed[j, knots + 1] += g * ay
+        block[k, k] += a0 * a0
+        block[k + 1, k + 1] += a1 * a1
+        block[k, k + 1] += a0 * a1
+        block[k, knots] += a0 * ax
+        block[k, knots + 1] += a0 * ay
+        block[k + 1, knots] += a1 * ax
+        block[k + 1, knots + 1] += a1 * ay
+        block[knots, knots] += ax * ax
+        block[knots, knots + 1] += ax * ay
+        block[knots + 1, knots + 1] += ay * ay
+        gradient[k] += a0 * residual
+        gradient[k + 1] += a1 * residual
+        gradient[knots] += ax * residual
+        gradient[knots + 1] += ay * residual
+    for k in range(knots - 1):
+        block[k + 1, k] = block[k, k + 1]
+    for k in range(knots):
+        block[knots, k] = block[k, knots]
+        block[knots + 1, k] = block[k, knots + 1]
+    block[knots + 1, knots] = block[knots, knots + 1]
+    block[:knots, :knots] += penalty
+    smoothing = penalty @ shape
+    gradient[:knots] -= smoothing
     # The product s f keeps its scale free: the levels' sum is held.
-    normal[:rows, :rows] += _GAUGE
-    gradient[:rows] -= _GAUGE * (level.sum() - rows)
-    cost = float(residual @ residual + shape @ penalty @ shape + _GAUGE * (level.sum() - rows) ** 2)
-    return cost, normal, gradient
+    excess = level.sum() - rows
+    level_gradient -= _GAUGE * excess
+    cost += shape @ smoothing + _GAUGE * excess ** 2
+    return cost, diagonal, mixed, spans, block, level_gradient, gradient
 
 
-def _radii(x: np.ndarray, y: np.ndarray, centre: np.ndarray, knots: int
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each pixel's knot interval and place in it, its offset from the centre and its distance."""
-    dx, dy = x - centre[0], y - centre[1]
-    r = np.maximum(np.hypot(dx, dy), 1e-9)
-    k = np.minimum((r / _KNOT_PX).astype(int), knots - 2)
-    return k, r / _KNOT_PX - k, dx, dy, r
+@kernel
+def _cost(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, cx: float, cy: float, level: np.ndarray,
+          shape: np.ndarray, penalty: np.ndarray) -> float:
+    """Return the cost of ``_radial_fit``'s model alone, as ``_linearised`` sums it."""
+    knots = shape.size
+    cost = 0.0
+    for i in range(value.size):
+        r = max(math.hypot(x[i] - cx, y[i] - cy), 1e-9)
+        k = min(int(r / _KNOT_PX), knots - 2)
+        t = r / _KNOT_PX - k
+        residual = value[i] - level[row[i]] * ((1.0 - t) * shape[k] + t * shape[k + 1])
+        cost += residual * residual
+    return cost + shape @ (penalty @ shape) + _GAUGE * (level.sum() - level.size) ** 2
 
 
-def _shape(k: np.ndarray, t: np.ndarray, s: np.ndarray, value: np.ndarray, knots: int,
-           penalty: np.ndarray) -> np.ndarray:
-    """Least squares of ``value`` = s (interpolated shape): the shape's knots."""
+@kernel
+def _shape(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, cx: float, cy: float,
+           level: np.ndarray, penalty: np.ndarray) -> np.ndarray:
+    """Least squares of ``value`` = level (interpolated shape) about (``cx``, ``cy``): the shape's knots."""
+    knots = penalty.shape[0]
     # Each pixel touches two knots: the normal equations' three diagonals, summed pixel by pixel.
-    a0, a1 = s * (1.0 - t), s * t
-    normal = penalty + np.diag(np.bincount(k, a0 * a0, minlength=knots) + np.bincount(k + 1, a1 * a1, minlength=knots))
-    off = np.bincount(k, a0 * a1, minlength=knots)[:-1]
-    normal[np.arange(knots - 1), np.arange(1, knots)] += off
-    normal[np.arange(1, knots), np.arange(knots - 1)] += off
-    rhs = np.bincount(k, a0 * value, minlength=knots) + np.bincount(k + 1, a1 * value, minlength=knots)
-    return np.linalg.solve(normal + 1e-9 * np.eye(knots), rhs)
+    normal = penalty.copy()
+    right = np.zeros(knots)
+    for i in range(value.size):
+        r = max(math.hypot(x[i] - cx, y[i] - cy), 1e-9)
+        k = min(int(r / _KNOT_PX), knots - 2)
+        t = r / _KNOT_PX - k
+        s = level[row[i]]
+        a0, a1 = s * (1.0 - t), s * t
+        normal[k, k] += a0 * a0
+        normal[k + 1, k + 1] += a1 * a1
+        normal[k, k + 1] += a0 * a1
+        normal[k + 1, k] += a0 * a1
+        right[k] += a0 * value[i]
+        right[k + 1] += a1 * value[i]
+    for k in range(knots):
+        normal[k, k] += 1e-9
+    return np.linalg.solve(normal, right)
 
 
-def _row_levels(row: np.ndarray, g: np.ndarray, light: np.ndarray, rows: int) -> np.ndarray:
-    """Each row's level: the least-squares scale of the shape ``g`` to the row's ``light``, the brightest 1."""
-    level = np.bincount(row, g * light, minlength=rows) / np.maximum(np.bincount(row, g * g, minlength=rows), 1e-12)
+@kernel
+def _row_levels(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray, cx: float, cy: float,
+                shape: np.ndarray, rows: int) -> np.ndarray:
+    """Each row's level: the least-squares scale of the shape about (``cx``, ``cy``) to the row's light, the top 1."""
+    knots = shape.size
+    along = np.zeros(rows)
+    power = np.zeros(rows)
+    for i in range(value.size):
+        r = max(math.hypot(x[i] - cx, y[i] - cy), 1e-9)
+        k = min(int(r / _KNOT_PX), knots - 2)
+        t = r / _KNOT_PX - k
+        g = (1.0 - t) * shape[k] + t * shape[k + 1]
+        along[row[i]] += g * value[i]
+        power[row[i]] += g * g
+    level = along / np.maximum(power, 1e-12)
     top = level.max()
     return level / top if top > 0.0 else np.ones(rows)
 
