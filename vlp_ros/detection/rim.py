@@ -199,31 +199,31 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
     The model is v = A Phi((-edge - t) / S), S^2 = s^2 + ``_PIXEL_VARIANCE``, with its analytic
     Jacobian; censored values count only where the model stays below them. Bounds: A in ``clip`` to
     ``_MAX_FITTED_OVEREXPOSURE`` clips, s in [0.2, 2 max_blur], edge in [-1, 4 max_blur], kept by projecting
-    each step onto them.
+    each step onto them. A trial step costs only the model's values (``_edge_cost``); its Jacobian's normal
+    equations (``_edge_normal``) are formed once it is taken.
     """
     lower = np.array([clip, 0.2, -1.0])
     upper = np.array([_MAX_FITTED_OVEREXPOSURE * clip, 2.0 * max_blur, 4.0 * max_blur])
     params = np.array([2.0 * clip, 0.5 * max_blur, 0.5])
-    n = t.size
-    residual, jacobian = np.empty(n), np.empty((n, 3))
-    cost = _edge_model(params, t, v, censored, residual, jacobian)
+    # The model's values at the parameters last evaluated: those taken, whenever the normal equations are formed.
+    below = np.empty(t.size)
+    cost = _edge_cost(params, t, v, censored, below)
+    normal, gradient, damped, trial = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3)
     damping = 1e-3
     converged = False
     pinned = 0
     for _ in range(_EDGE_FIT_ITERATIONS):
-        normal = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        trial = np.empty(3)
+        _edge_normal(params, t, v, censored, below, normal, gradient)
         improved = False
+        trial_cost = cost
         while damping < 1e10:
-            damped = normal.copy()
+            damped[:] = normal
             for k in range(3):
                 damped[k, k] += damping * max(normal[k, k], 1e-12)
             step = np.linalg.solve(damped, -gradient)
             for k in range(3):
                 trial[k] = min(max(params[k] + step[k], lower[k]), upper[k])
-            trial_residual, trial_jacobian = np.empty(n), np.empty((n, 3))
-            trial_cost = _edge_model(trial, t, v, censored, trial_residual, trial_jacobian)
+            trial_cost = _edge_cost(trial, t, v, censored, below)
             if trial_cost <= cost:
                 improved = True
                 break
@@ -235,7 +235,8 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
         for k in range(3):
             change = max(change, abs(trial[k] - params[k]) / (abs(params[k]) + 1e-3))
         relative = (cost - trial_cost) / max(cost, 1e-300)
-        params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
+        params[:] = trial
+        cost = trial_cost
         damping = max(damping / 10.0, 1e-12)
         pinned = pinned + 1 if params[0] >= upper[0] else 0
         # An amplitude held at its bound is a lamp too overexposed for any edge: no need to refine the rest.
@@ -246,27 +247,51 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
 
 
 @kernel
-def _edge_model(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, residual: np.ndarray,
-                jacobian: np.ndarray) -> float:
-    """``_censored_edge_fit``'s residuals and Jacobian (into the arrays) at ``params``; returns half their squares."""
+def _edge_cost(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, below: np.ndarray) -> float:
+    """``_censored_edge_fit``'s half sum of squared residuals at ``params``; Phi of each sample into ``below``."""
     amplitude, blur, edge = params[0], params[1], params[2]
     spread = math.sqrt(blur * blur + _PIXEL_VARIANCE)
     cost = 0.0
     for i in range(t.size):
         z = (-edge - t[i]) / spread
-        below = 0.5 * math.erfc(-z / math.sqrt(2.0))
-        density = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
-        difference = amplitude * below - v[i]
-        if censored[i] and difference > 0.0:
-            residual[i] = 0.0
-            jacobian[i, 0] = jacobian[i, 1] = jacobian[i, 2] = 0.0
-            continue
-        residual[i] = difference
-        jacobian[i, 0] = below
-        jacobian[i, 1] = -amplitude * density * z * blur / (spread * spread)
-        jacobian[i, 2] = -amplitude * density / spread
-        cost += 0.5 * difference * difference
+        below[i] = 0.5 * math.erfc(-z / math.sqrt(2.0))
+        difference = amplitude * below[i] - v[i]
+        if not (censored[i] and difference > 0.0):
+            cost += 0.5 * difference * difference
     return cost
+
+
+@kernel
+def _edge_normal(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, below: np.ndarray,
+                 normal: np.ndarray, gradient: np.ndarray) -> None:
+    """
+    The normal equations J^T J, J^T r (into the arrays) of ``_censored_edge_fit``'s model at ``params``.
+
+    ``below`` holds ``_edge_cost``'s Phi at ``params``; censored samples whose model lies above them count none.
+    """
+    amplitude, blur, edge = params[0], params[1], params[2]
+    spread = math.sqrt(blur * blur + _PIXEL_VARIANCE)
+    normal[:] = 0.0
+    gradient[:] = 0.0
+    for i in range(t.size):
+        difference = amplitude * below[i] - v[i]
+        if censored[i] and difference > 0.0:
+            continue
+        z = (-edge - t[i]) / spread
+        density = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+        j0 = below[i]
+        j1 = -amplitude * density * z * blur / (spread * spread)
+        j2 = -amplitude * density / spread
+        normal[0, 0] += j0 * j0
+        normal[0, 1] += j0 * j1
+        normal[0, 2] += j0 * j2
+        normal[1, 1] += j1 * j1
+        normal[1, 2] += j1 * j2
+        normal[2, 2] += j2 * j2
+        gradient[0] += j0 * difference
+        gradient[1] += j1 * difference
+        gradient[2] += j2 * difference
+    normal[1, 0], normal[2, 0], normal[2, 1] = normal[0, 1], normal[0, 2], normal[1, 2]
 
 
 def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
