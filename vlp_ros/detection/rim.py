@@ -265,7 +265,7 @@ def _edge_cost(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.nd
 def _edge_normal(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, below: np.ndarray,
                  normal: np.ndarray, gradient: np.ndarray) -> None:
     """
-    The normal equations J^T J, J^T r (into the arrays) of ``_censored_edge_fit``'s model at ``params``.
+    Form the normal equations J^T J, J^T r (into the arrays) of ``_censored_edge_fit``'s model at ``params``.
 
     ``below`` holds ``_edge_cost``'s Phi at ``params``; censored samples whose model lies above them count none.
     """
