@@ -130,7 +130,10 @@ class Pipeline:
         Returns the observations, this frame's readings and each lamp's ID certain so far (None if not yet),
         by the beacon alone: ``process`` then holds the IDs to the map's geometry.
         """
-        observations = detect_lamps(image)
+        # A steady lamp (not in the map) is measured as the centre of its light when its rim needs clipped rows.
+        observations = detect_lamps(image, steady=lambda bbox, ellipse: shows_no_modulation(
+            image, LampObservation(ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
+                                   marker_sigma=float('inf'), bbox=bbox, disc_mask=np.zeros((0, 0), bool))))
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp) if observations else []
         if self._point_lamps:
