@@ -18,6 +18,7 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps, DetectionOptions
 from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
+from vlp_ros.pipeline.frame import steady_test
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import render_frame, SimLamp
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
@@ -127,6 +128,22 @@ def test_fully_clipped_lamp_keeps_its_centre_and_edge():
 def test_grossly_overexposed_lamp_gives_no_rim():
     frame, truth = single(depth=1.0, peak_dn=2000.0)
     assert all(not o.rim_usable and len(o.rim_points) == 0 and o.marker is None for o in detect_lamps(frame.image))
+
+
+def test_a_clipped_steady_lamp_is_a_point_without_the_clipped_rows_fit_and_a_beacon_keeps_its_rim():
+    for seed in range(2):
+        steady, truth = single(depth=0.0, peak_dn=400.0, seed=seed)
+        assert only(detect_lamps(steady.image)).rim_usable
+        lamp = only(detect_lamps(steady.image, steady=steady_test(steady.image)))
+        # No reading or pose uses a steady lamp's rim: its light's centre places it for the tracker.
+        assert not lamp.rim_usable
+        assert np.linalg.norm(lamp.center - truth.ellipse[:2]) < lamp.center_sigma
+        beacon, _ = single(depth=1.0, peak_dn=400.0, seed=seed)
+        tested, untested = (only(detect_lamps(beacon.image, steady=steady_test(beacon.image))),
+                            only(detect_lamps(beacon.image)))
+        assert tested.rim_usable
+        np.testing.assert_array_equal(tested.ellipse, untested.ellipse)
+        np.testing.assert_array_equal(tested.rim_points, untested.rim_points)
 
 
 def test_every_lamp_of_a_frame_is_found_once():
