@@ -551,8 +551,8 @@ def _edge_profile_fit(t: np.ndarray, value: np.ndarray, rho: np.ndarray,
     converged = False
     covariance = np.zeros((_PROFILE_PARAMETERS, _PROFILE_PARAMETERS))
     for round_ in range(2):
-        converged, params, cost, residual, jacobian = _profile_rounds(t, value, rho, kept, params,
-                                                                       _PROFILE_STEP_SIGMAS[round_])
+        converged, params, cost, residual, jacobian = _profile_rounds(
+            t, value, rho, kept, params, _PROFILE_STEP_SIGMAS[round_])
         if not converged:
             return False, params, 0.0, covariance
         if round_ == 1:
