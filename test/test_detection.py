@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from scipy.special import erfc
 
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.core.camera import CameraModel
@@ -18,6 +19,7 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps, DetectionOptions
 from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
+from vlp_ros.detection.rim import _censored_edge_fit
 from vlp_ros.pipeline.frame import steady_test
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import render_frame, SimLamp
@@ -123,6 +125,20 @@ def test_fully_clipped_lamp_keeps_its_centre_and_edge():
     # Half the clip level lies ~0.4 px outside the edge here; the foot of the blur puts it back.
     assert np.all(np.abs(axis_errors) < 0.25)
     assert np.all(np.abs(np.mean(axis_errors, axis=0)) < 0.12)
+
+
+@pytest.mark.parametrize('spread, max_blur, fitted', [(3.0, 2.0, True), (6.0, 1.0, False)])
+def test_the_clipped_edge_fit_finds_the_edge_of_a_ramp_within_its_blur_and_gives_up_on_a_softer_one(
+        spread, max_blur, fitted):
+    # Twice as bright as the clip, its clipped pixels censored; the fit's blur reaches 2 max_blur.
+    clip, amplitude, edge = 230.0, 500.0, 0.8
+    t = np.repeat(np.arange(-3.0, 12.0, 0.5), 4)
+    v = np.minimum(amplitude * 0.5 * erfc((edge + t) / (spread * np.sqrt(2.0))), clip)
+    converged, fitted_amplitude, fitted_edge = _censored_edge_fit(t, v, v >= clip, clip, max_blur)
+    assert converged == fitted
+    if fitted:
+        assert fitted_amplitude == pytest.approx(amplitude, rel=1e-3)
+        assert fitted_edge == pytest.approx(edge, abs=1e-3)
 
 
 def test_grossly_overexposed_lamp_gives_no_rim():

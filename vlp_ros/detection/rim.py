@@ -185,6 +185,8 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
 # spread; the fit folds it into the blur as a Gaussian of that variance.
 _PIXEL_VARIANCE = 1.0 / 12.0
 _EDGE_FIT_ITERATIONS = 60
+# Steps the clipped edge fit may take with its blur at its bound before it gives up.
+_SOFTEST_STEPS = 10
 # A lamp brighter than this over the clip level is too overexposed for any edge (the detector refuses 2.5):
 # the fit stops there instead of following the amplitude out.
 _MAX_FITTED_OVEREXPOSURE = 4.0
@@ -199,9 +201,9 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
     The model is v = A Phi((-edge - t) / S), S^2 = s^2 + ``_PIXEL_VARIANCE``, with its analytic
     Jacobian; censored values count only where the model stays below them. Bounds: A in ``clip`` to
     ``_MAX_FITTED_OVEREXPOSURE`` clips, s in [0.2, 2 max_blur], edge in [-1, 4 max_blur], kept by projecting
-    each step onto them; a parameter at a bound its gradient pushes against is held out of the step. A trial
-    step costs only the model's values (``_edge_cost``); its Jacobian's normal equations (``_edge_normal``)
-    are formed once it is taken.
+    each step onto them; unconverged after ``_SOFTEST_STEPS`` steps at the blur's bound. A trial step costs
+    only the model's values (``_edge_cost``); its Jacobian's normal equations (``_edge_normal``) are formed
+    once it is taken.
     """
     lower = np.array([clip, 0.2, -1.0])
     upper = np.array([_MAX_FITTED_OVEREXPOSURE * clip, 2.0 * max_blur, 4.0 * max_blur])
@@ -210,30 +212,18 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
     below = np.empty(t.size)
     cost = _edge_cost(params, t, v, censored, below)
     normal, gradient, damped, trial = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3)
-    rhs, held = np.empty(3), np.zeros(3, dtype=np.bool_)
     damping = 1e-3
     converged = False
-    pinned = 0
+    pinned = softest = 0
     for _ in range(_EDGE_FIT_ITERATIONS):
         _edge_normal(params, t, v, censored, below, normal, gradient)
         improved = False
         trial_cost = cost
-        # A parameter at its bound that the gradient pushes further out stays there: left in the step, the
-        # projection would cut the step to a crawl along the bound (a blur held at 2 max_blur took 60 steps).
-        for k in range(3):
-            held[k] = (params[k] <= lower[k] and gradient[k] > 0.0) or (params[k] >= upper[k] and gradient[k] < 0.0)
         while damping < 1e10:
             damped[:] = normal
             for k in range(3):
                 damped[k, k] += damping * max(normal[k, k], 1e-12)
-                rhs[k] = -gradient[k]
-            for k in range(3):
-                if held[k]:
-                    damped[k, :] = 0.0
-                    damped[:, k] = 0.0
-                    damped[k, k] = 1.0
-                    rhs[k] = 0.0
-            step = np.linalg.solve(damped, rhs)
+            step = np.linalg.solve(damped, -gradient)
             for k in range(3):
                 trial[k] = min(max(params[k] + step[k], lower[k]), upper[k])
             trial_cost = _edge_cost(trial, t, v, censored, below)
@@ -255,6 +245,12 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
         # An amplitude held at its bound is a lamp too overexposed for any edge: no need to refine the rest.
         if change < 1e-8 or relative < 1e-12 or pinned >= 3:
             converged = True
+            break
+        softest = softest + 1 if params[1] >= upper[1] else 0
+        # A blur held at its bound is a ramp softer than any edge the fit allows, which then only crawls
+        # along the bound (tone foreign set: all 60 steps, unconverged); fits that converge there do so
+        # within 8 steps.
+        if softest >= _SOFTEST_STEPS:
             break
     return converged, params[0], params[2]
 
