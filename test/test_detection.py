@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from scipy.special import erfc
 
 from vlp_ros.beacon.encoding import packet_waveform
 from vlp_ros.core.camera import CameraModel
@@ -18,6 +19,8 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps, DetectionOptions
 from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
+from vlp_ros.detection.rim import _censored_edge_fit
+from vlp_ros.pipeline.frame import steady_test
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import render_frame, SimLamp
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
@@ -124,9 +127,39 @@ def test_fully_clipped_lamp_keeps_its_centre_and_edge():
     assert np.all(np.abs(np.mean(axis_errors, axis=0)) < 0.12)
 
 
+@pytest.mark.parametrize('spread, max_blur, fitted', [(3.0, 2.0, True), (6.0, 1.0, False)])
+def test_the_clipped_edge_fit_finds_the_edge_of_a_ramp_within_its_blur_and_gives_up_on_a_softer_one(
+        spread, max_blur, fitted):
+    # Twice as bright as the clip, its clipped pixels censored; the fit's blur reaches 2 max_blur.
+    clip, amplitude, edge = 230.0, 500.0, 0.8
+    t = np.repeat(np.arange(-3.0, 12.0, 0.5), 4)
+    v = np.minimum(amplitude * 0.5 * erfc((edge + t) / (spread * np.sqrt(2.0))), clip)
+    converged, fitted_amplitude, fitted_edge = _censored_edge_fit(t, v, v >= clip, clip, max_blur)
+    assert converged == fitted
+    if fitted:
+        assert fitted_amplitude == pytest.approx(amplitude, rel=1e-3)
+        assert fitted_edge == pytest.approx(edge, abs=1e-3)
+
+
 def test_grossly_overexposed_lamp_gives_no_rim():
     frame, truth = single(depth=1.0, peak_dn=2000.0)
     assert all(not o.rim_usable and len(o.rim_points) == 0 and o.marker is None for o in detect_lamps(frame.image))
+
+
+def test_a_clipped_steady_lamp_is_a_point_without_the_clipped_rows_fit_and_a_beacon_keeps_its_rim():
+    for seed in range(2):
+        steady, truth = single(depth=0.0, peak_dn=400.0, seed=seed)
+        assert only(detect_lamps(steady.image)).rim_usable
+        lamp = only(detect_lamps(steady.image, steady=steady_test(steady.image)))
+        # No reading or pose uses a steady lamp's rim: its light's centre places it for the tracker.
+        assert not lamp.rim_usable
+        assert np.linalg.norm(lamp.center - truth.ellipse[:2]) < lamp.center_sigma
+        beacon, _ = single(depth=1.0, peak_dn=400.0, seed=seed)
+        tested, untested = (only(detect_lamps(beacon.image, steady=steady_test(beacon.image))),
+                            only(detect_lamps(beacon.image)))
+        assert tested.rim_usable
+        np.testing.assert_array_equal(tested.ellipse, untested.ellipse)
+        np.testing.assert_array_equal(tested.rim_points, untested.rim_points)
 
 
 def test_every_lamp_of_a_frame_is_found_once():

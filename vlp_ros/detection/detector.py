@@ -6,6 +6,7 @@ compiled kernels (``vlp_ros.compiled``) in the modules they belong to, and here.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 import math
 from typing import NamedTuple
@@ -122,7 +123,13 @@ class DetectionOptions:
         return _light_reach(self.max_blur)
 
 
-def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> list[LampObservation]:
+# Whether a lamp, seen in a box (x0, y0, x1, y1) of the frame around an ellipse (cx, cy, a, b, theta), shows no
+# modulation (``beacon.steady.shows_no_modulation``, which the pipeline passes in).
+SteadyTest = Callable[[tuple[int, int, int, int], np.ndarray], bool]
+
+
+def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None,
+                 steady: SteadyTest | None = None) -> list[LampObservation]:
     """
     Every whole lamp in a bgr8 (H, W, 3) or mono8 (H, W) uint8 frame.
 
@@ -130,13 +137,16 @@ def detect_lamps(image: np.ndarray, options: DetectionOptions | None = None) -> 
     OpenCV). A lamp cut by the frame border, or whose rim is not an ellipse, is
     left out. The marker is found by colour, so mono8 frames give ``marker=None``
     (``marker_sigma`` is then infinite), as does a lamp whose marker is not seen.
+    ``steady``, when given, spares a lamp whose rim needs its clipped rows the fit that moves them
+    onto the edge when the lamp shows no modulation (a steady lamp, which no beacon reading or pose
+    uses): it is measured as the centre of its light, as a lamp too overexposed for that fit is.
     """
     _check_image(image)
     options = options or DetectionOptions()
     blobs = find_blobs(image, options.step, options.threshold_fraction, options.min_contrast,
                        options.noise_factor, options.max_stripe_rows, options.min_diameter,
                        margin=options.blur_margin + int(np.ceil(0.2 * options.min_diameter)))
-    observations = [o for o in (_observe(image, blob, options) or _observe_point(image, blob, options)
+    observations = [o for o in (_observe(image, blob, options, steady) or _observe_point(image, blob, options)
                                 for blob in blobs) if o is not None]
     return _distinct(observations)
 
@@ -155,9 +165,7 @@ def _observe_point(image: np.ndarray, blob: Blob, options: DetectionOptions) -> 
         return None
     centre = fit.center + np.array([x0, y0], dtype=float)
     ellipse = np.array([centre[0], centre[1], fit.radius, fit.radius, 0.0])
-    lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
-    bbox = (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
-            min(math.ceil(hi_x) + 2, image.shape[1]), min(math.ceil(hi_y) + 2, image.shape[0]))
+    bbox = _box_around(ellipse, image.shape[:2])
     if bbox[0] <= 0 or bbox[1] <= 0 or bbox[2] >= image.shape[1] or bbox[3] >= image.shape[0]:
         return None
     return LampObservation(ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
@@ -209,17 +217,19 @@ class _LampBox:
     rim: RimFit | None = None
 
 
-def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampObservation | None:
+def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions,
+             steady: SteadyTest | None = None) -> LampObservation | None:
     """
     Return the observation of the lamp in ``blob``, or None if it is not a whole, elliptic lamp.
 
     A lamp whose lower or upper part is dark (a long dark stripe) may be found as a
     smaller blob: its box grows to hold the fitted ellipse, once, and is measured again.
+    None too for a steady lamp (``steady``) whose rim needs its clipped rows.
     """
     bbox = blob.bbox
     margin = options.blur_margin + 1
     for _ in range(2):
-        box = _measure(image, bbox, blob.noise, options)
+        box = _measure(image, bbox, blob.noise, options, steady)
         if box is None:
             return None
         extent = _extent(box.rim.ellipse)
@@ -239,8 +249,8 @@ def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions) -> LampOb
 
 
 def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
-             options: DetectionOptions) -> _LampBox | None:
-    """Rim fit (and marker seed) of the lamp in ``bbox``; None if no ellipse fits."""
+             options: DetectionOptions, steady: SteadyTest | None = None) -> _LampBox | None:
+    """Rim fit (and marker seed) of the lamp in ``bbox``; None if no ellipse fits, or if ``steady`` spares it."""
     x0, y0, x1, y1 = bbox
     roi = image[y0:y1, x0:x1]
     colour = roi.ndim == 3
@@ -269,6 +279,8 @@ def _measure(image: np.ndarray, bbox: tuple[int, int, int, int], noise: float,
         return None
     try:
         rim = fit_rim(points, options.max_slope, options.outlier_sigmas, _MIN_RIM_SIGMA)
+        if clipped.any() and steady is not None and _shows_no_modulation(rim, (x0, y0), image.shape[:2], steady):
+            return None
         if clipped.any():
             rim = _unclip(rim, points, clipped, brightness, background, options)
         else:
@@ -358,6 +370,14 @@ def _row_span(points: np.ndarray) -> float:
     if points.shape[0] == 0:
         return 0.0
     return float(points[:, 1].max() - points[:, 1].min())
+
+
+def _shows_no_modulation(rim: RimFit, origin: tuple[int, int], frame_shape: tuple[int, int],
+                         steady: SteadyTest) -> bool:
+    """Return ``steady``'s answer for the lamp box's ``rim`` (its crossings' ellipse, before clipped rows move)."""
+    ellipse = rim.ellipse.copy()
+    ellipse[:2] += np.asarray(origin, dtype=float)
+    return steady(_box_around(ellipse, frame_shape), ellipse)
 
 
 def _unclip(rim: RimFit, points: np.ndarray, clipped: np.ndarray, brightness: np.ndarray, background: float,
@@ -615,15 +635,20 @@ def _extent(ellipse: np.ndarray) -> tuple[float, float, float, float]:
     return cx - half_x, cy - half_y, cx + half_x, cy + half_y
 
 
+def _box_around(ellipse: np.ndarray, frame_shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Return the box (x0, y0, x1, y1) of the frame that holds the ellipse (frame pixels) with a pixel to spare."""
+    lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
+    return (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
+            min(math.ceil(hi_x) + 2, frame_shape[1]), min(math.ceil(hi_y) + 2, frame_shape[0]))
+
+
 def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],
                  frame_shape: tuple[int, int]) -> LampObservation:
     """Move the lamp-box results to full-frame pixels and draw the masks."""
     shift = np.asarray(origin, dtype=float)
     ellipse = rim.ellipse.copy()
     ellipse[:2] += shift
-    lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
-    bbox = (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
-            min(math.ceil(hi_x) + 2, frame_shape[1]), min(math.ceil(hi_y) + 2, frame_shape[0]))
+    bbox = _box_around(ellipse, frame_shape)
     disc_mask = _chord_mask(conic_of(ellipse), *bbox)
     marker_centre, marker_sigma, marker_covariance, marker_mask = None, float('inf'), None, None
     if marker is not None:

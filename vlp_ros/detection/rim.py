@@ -185,6 +185,8 @@ def clipped_edge_offset(brightness: np.ndarray, points: np.ndarray, ellipse: np.
 # spread; the fit folds it into the blur as a Gaussian of that variance.
 _PIXEL_VARIANCE = 1.0 / 12.0
 _EDGE_FIT_ITERATIONS = 60
+# Steps the clipped edge fit may take with its blur at its bound before it gives up.
+_SOFTEST_STEPS = 10
 # A lamp brighter than this over the clip level is too overexposed for any edge (the detector refuses 2.5):
 # the fit stops there instead of following the amplitude out.
 _MAX_FITTED_OVEREXPOSURE = 4.0
@@ -199,31 +201,32 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
     The model is v = A Phi((-edge - t) / S), S^2 = s^2 + ``_PIXEL_VARIANCE``, with its analytic
     Jacobian; censored values count only where the model stays below them. Bounds: A in ``clip`` to
     ``_MAX_FITTED_OVEREXPOSURE`` clips, s in [0.2, 2 max_blur], edge in [-1, 4 max_blur], kept by projecting
-    each step onto them.
+    each step onto them; unconverged after ``_SOFTEST_STEPS`` steps at the blur's bound. A trial step costs
+    only the model's values (``_edge_cost``); its Jacobian's normal equations (``_edge_normal``) are formed
+    once it is taken.
     """
     lower = np.array([clip, 0.2, -1.0])
     upper = np.array([_MAX_FITTED_OVEREXPOSURE * clip, 2.0 * max_blur, 4.0 * max_blur])
     params = np.array([2.0 * clip, 0.5 * max_blur, 0.5])
-    n = t.size
-    residual, jacobian = np.empty(n), np.empty((n, 3))
-    cost = _edge_model(params, t, v, censored, residual, jacobian)
+    # The model's values at the parameters last evaluated: those taken, whenever the normal equations are formed.
+    below = np.empty(t.size)
+    cost = _edge_cost(params, t, v, censored, below)
+    normal, gradient, damped, trial = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3)
     damping = 1e-3
     converged = False
-    pinned = 0
+    pinned = softest = 0
     for _ in range(_EDGE_FIT_ITERATIONS):
-        normal = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        trial = np.empty(3)
+        _edge_normal(params, t, v, censored, below, normal, gradient)
         improved = False
+        trial_cost = cost
         while damping < 1e10:
-            damped = normal.copy()
+            damped[:] = normal
             for k in range(3):
                 damped[k, k] += damping * max(normal[k, k], 1e-12)
             step = np.linalg.solve(damped, -gradient)
             for k in range(3):
                 trial[k] = min(max(params[k] + step[k], lower[k]), upper[k])
-            trial_residual, trial_jacobian = np.empty(n), np.empty((n, 3))
-            trial_cost = _edge_model(trial, t, v, censored, trial_residual, trial_jacobian)
+            trial_cost = _edge_cost(trial, t, v, censored, below)
             if trial_cost <= cost:
                 improved = True
                 break
@@ -235,38 +238,69 @@ def _censored_edge_fit(t: np.ndarray, v: np.ndarray, censored: np.ndarray, clip:
         for k in range(3):
             change = max(change, abs(trial[k] - params[k]) / (abs(params[k]) + 1e-3))
         relative = (cost - trial_cost) / max(cost, 1e-300)
-        params, cost, residual, jacobian = trial, trial_cost, trial_residual, trial_jacobian
+        params[:] = trial
+        cost = trial_cost
         damping = max(damping / 10.0, 1e-12)
         pinned = pinned + 1 if params[0] >= upper[0] else 0
         # An amplitude held at its bound is a lamp too overexposed for any edge: no need to refine the rest.
         if change < 1e-8 or relative < 1e-12 or pinned >= 3:
             converged = True
             break
+        softest = softest + 1 if params[1] >= upper[1] else 0
+        # A blur held at its bound is a ramp softer than any edge the fit allows, which then only crawls
+        # along the bound (tone foreign set: all 60 steps, unconverged); fits that converge there do so
+        # within 8 steps.
+        if softest >= _SOFTEST_STEPS:
+            break
     return converged, params[0], params[2]
 
 
 @kernel
-def _edge_model(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, residual: np.ndarray,
-                jacobian: np.ndarray) -> float:
-    """``_censored_edge_fit``'s residuals and Jacobian (into the arrays) at ``params``; returns half their squares."""
+def _edge_cost(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, below: np.ndarray) -> float:
+    """``_censored_edge_fit``'s half sum of squared residuals at ``params``; Phi of each sample into ``below``."""
     amplitude, blur, edge = params[0], params[1], params[2]
     spread = math.sqrt(blur * blur + _PIXEL_VARIANCE)
     cost = 0.0
     for i in range(t.size):
         z = (-edge - t[i]) / spread
-        below = 0.5 * math.erfc(-z / math.sqrt(2.0))
-        density = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
-        difference = amplitude * below - v[i]
-        if censored[i] and difference > 0.0:
-            residual[i] = 0.0
-            jacobian[i, 0] = jacobian[i, 1] = jacobian[i, 2] = 0.0
-            continue
-        residual[i] = difference
-        jacobian[i, 0] = below
-        jacobian[i, 1] = -amplitude * density * z * blur / (spread * spread)
-        jacobian[i, 2] = -amplitude * density / spread
-        cost += 0.5 * difference * difference
+        below[i] = 0.5 * math.erfc(-z / math.sqrt(2.0))
+        difference = amplitude * below[i] - v[i]
+        if not (censored[i] and difference > 0.0):
+            cost += 0.5 * difference * difference
     return cost
+
+
+@kernel
+def _edge_normal(params: np.ndarray, t: np.ndarray, v: np.ndarray, censored: np.ndarray, below: np.ndarray,
+                 normal: np.ndarray, gradient: np.ndarray) -> None:
+    """
+    Form the normal equations J^T J, J^T r (into the arrays) of ``_censored_edge_fit``'s model at ``params``.
+
+    ``below`` holds ``_edge_cost``'s Phi at ``params``; censored samples whose model lies above them count none.
+    """
+    amplitude, blur, edge = params[0], params[1], params[2]
+    spread = math.sqrt(blur * blur + _PIXEL_VARIANCE)
+    normal[:] = 0.0
+    gradient[:] = 0.0
+    for i in range(t.size):
+        difference = amplitude * below[i] - v[i]
+        if censored[i] and difference > 0.0:
+            continue
+        z = (-edge - t[i]) / spread
+        density = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+        j0 = below[i]
+        j1 = -amplitude * density * z * blur / (spread * spread)
+        j2 = -amplitude * density / spread
+        normal[0, 0] += j0 * j0
+        normal[0, 1] += j0 * j1
+        normal[0, 2] += j0 * j2
+        normal[1, 1] += j1 * j1
+        normal[1, 2] += j1 * j2
+        normal[2, 2] += j2 * j2
+        gradient[0] += j0 * difference
+        gradient[1] += j1 * difference
+        gradient[2] += j2 * difference
+    normal[1, 0], normal[2, 0], normal[2, 1] = normal[0, 1], normal[0, 2], normal[1, 2]
 
 
 def blur_variance(brightness: np.ndarray, points: np.ndarray, plateaus: np.ndarray, background: float,
@@ -410,6 +444,11 @@ def clipped_mix_sigma(clipped_share: float, blur_px: float, radius_px: float) ->
 _PROFILE_BLURS = 4.5
 _PROFILE_PARAMETERS = 7
 _PROFILE_ITERATIONS = 40
+# A round has converged when its next step would move the parameters by less than this share of their
+# standard errors (the step's Mahalanobis length at the residuals' variance): far below their noise. The
+# first round's residuals pick the outliers; a sample near the cut flips with a change of 0.01 standard
+# errors, moving the result by up to 0.2 (tone foreign set), so that round goes ten times further.
+_PROFILE_STEP_SIGMAS = (0.001, 0.01)
 # Samples further than this many robust sigmas off the model (a neighbouring lamp, a stripe the blur
 # mixed unevenly) are left out of the second round.
 _PROFILE_OUTLIER_SIGMAS = 4.0
@@ -508,7 +547,8 @@ def _edge_profile_fit(t: np.ndarray, value: np.ndarray, rho: np.ndarray,
     converged = False
     covariance = np.zeros((_PROFILE_PARAMETERS, _PROFILE_PARAMETERS))
     for round_ in range(2):
-        converged, params, cost, residual, jacobian = _profile_rounds(t, value, rho, kept, params)
+        converged, params, cost, residual, jacobian = _profile_rounds(
+            t, value, rho, kept, params, _PROFILE_STEP_SIGMAS[round_])
         if not converged:
             return False, params, 0.0, covariance
         if round_ == 1:
@@ -550,17 +590,19 @@ def _smooth_misfit(t: np.ndarray, rho: np.ndarray, kept: np.ndarray, residual: n
 
 
 @kernel
-def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.ndarray,
-                    params: np.ndarray) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray]:
+def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.ndarray, params: np.ndarray,
+                    step_sigmas: float) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray]:
     """
     One Levenberg-Marquardt fit of ``_edge_profile_fit``'s model on the ``kept`` samples, from ``params``.
 
     Returns (converged, parameters) and the model's cost, residuals and Jacobian at those parameters
-    (``_profile_model``), so that the caller need not evaluate it again.
+    (``_profile_model``), so that the caller need not evaluate it again. Converged once the next step
+    would move the parameters by under ``step_sigmas`` standard errors, without evaluating it.
     """
     n = t.size
     residual, jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
     cost = _profile_model(params, t, value, rho, kept, residual, jacobian)
+    degrees = max(np.count_nonzero(kept) - _PROFILE_PARAMETERS, 1)
     # Trials are evaluated into a second pair of arrays, swapped with the first when one is taken.
     trial_residual, trial_jacobian = np.empty(n), np.empty((n, _PROFILE_PARAMETERS))
     damping = 1e-3
@@ -575,6 +617,9 @@ def _profile_rounds(t: np.ndarray, value: np.ndarray, rho: np.ndarray, kept: np.
             for k in range(_PROFILE_PARAMETERS):
                 damped[k, k] += damping * max(normal[k, k], 1e-12)
             step = np.linalg.solve(damped, -gradient)
+            # Checked on a lightly damped step only: a heavily damped one is short for want of trust, not of gain.
+            if damping <= 1e-3 and step @ (normal @ step) * degrees < 2.0 * cost * step_sigmas * step_sigmas:
+                return True, params, cost, residual, jacobian
             trial = params + step
             trial[1] = max(trial[1], -0.9)
             trial[6] = max(trial[6], 0.2)

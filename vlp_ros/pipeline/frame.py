@@ -22,6 +22,7 @@ from vlp_ros.core.lamp_map import Lamp, LampMap
 from vlp_ros.core.observation import LampObservation
 from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps
+from vlp_ros.detection.detector import SteadyTest
 from vlp_ros.detection.point import measured_as_point
 from vlp_ros.pipeline.config import LocatorSettings
 from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints, UpHint
@@ -130,7 +131,8 @@ class Pipeline:
         Returns the observations, this frame's readings and each lamp's ID certain so far (None if not yet),
         by the beacon alone: ``process`` then holds the IDs to the map's geometry.
         """
-        observations = detect_lamps(image)
+        # A steady lamp (not in the map) is measured as the centre of its light when its rim needs clipped rows.
+        observations = detect_lamps(image, steady=steady_test(image))
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp) if observations else []
         if self._point_lamps:
@@ -283,6 +285,15 @@ class Pipeline:
             # The paper's two mirror solutions are told apart by the same hints as ours (by default).
             return self.paper_choice(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up), self.settings.floor)
+
+
+def steady_test(image: np.ndarray) -> SteadyTest:
+    """Return ``detect_lamps``' test of whether a lamp of ``image`` (its box and ellipse) shows no modulation."""
+    def steady(bbox: tuple[int, int, int, int], ellipse: np.ndarray) -> bool:
+        return shows_no_modulation(image, LampObservation(
+            ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
+            marker_sigma=float('inf'), bbox=bbox, disc_mask=np.zeros((0, 0), bool)))
+    return steady
 
 
 def _key(pairs: list[tuple[LampObservation, Lamp]]) -> tuple:
