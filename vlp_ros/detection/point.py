@@ -72,6 +72,8 @@ _MAX_ITERATIONS = 30
 _GAUGE = 1.0
 _MAX_STEP_PX = 2.0
 _CONVERGED_PX = 1e-3
+_CONVERGED_SIGMA = 0.05
+_CONVERGED_COST_SHARE = 1e-4
 # The fit's sigma counts pixels as independent; neighbours share their errors (the lens, JPEG's blocks,
 # the shape's asymmetry), so it is taken as this many times that.
 _LIGHT_CORRELATION = 1.7
@@ -469,8 +471,9 @@ def _radial_fit(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: np.ndarray
 
     Also each row's level. f is piecewise linear on knots ``_KNOT_PX`` apart (smoothed by a penalty on its
     curvature), s one level per row. A few alternating linear steps (f, then s) start it; then
-    Levenberg-Marquardt on all of them and the centre together, since a centre moved up or down is nearly
-    undone by the rows' levels alone. The centre's sigma is its marginal from that fit, the rows' levels
+    Levenberg-Marquardt (Nielsen's damping schedule) on all of them and the centre together, since a centre
+    moved up or down is nearly undone by the rows' levels alone, until a step moves the centre by a small
+    share of its sigma and hardly lowers the cost. The centre's sigma is its marginal from that fit, the rows' levels
     and the shape free.
     """
     penalty = _curvature_penalty(int(np.ceil(reach / _KNOT_PX)) + 2)
@@ -513,26 +516,39 @@ def _levenberg_marquardt(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: n
     for _ in range(_START_STEPS):
         shape = _shape(x, y, row, value, cx, cy, level, penalty)
         level = _row_levels(x, y, row, value, cx, cy, shape, rows)
-    damping = 1e-3
+    damping, growth = 1e-3, 2.0
     linearised = _linearised(x, y, row, value, cx, cy, level, shape, penalty)
     cost, diagonal, mixed, spans, block, level_gradient, gradient = linearised
+    if not np.all(diagonal > 0.0):
+        return False, np.zeros(2), np.zeros(2), level
+    # Converged once a step moves the centre by a small share of its own sigma (as the start's linearisation
+    # gives it) and the cost hardly falls: a slow valley of the shape and levels still carries the centre.
+    marginal = _centre_marginal(diagonal, mixed, spans, block)
+    converged = max(_CONVERGED_SIGMA * math.sqrt(max(cost / max(value.size - rows - knots - 2, 1) * marginal, 0.0)),
+                    _CONVERGED_PX)
     for _ in range(_MAX_ITERATIONS):
         level_step, step = _damped_step(diagonal, mixed, spans, block, level_gradient, gradient, damping)
         tx, ty = cx + step[knots], cy + step[knots + 1]
         if not (math.isfinite(tx) and math.isfinite(ty)):
             return False, np.zeros(2), np.zeros(2), level
         trial_level, trial_shape = level + level_step, shape + step[:knots]
-        if _cost(x, y, row, value, tx, ty, trial_level, trial_shape, penalty) > cost:
-            damping *= 10.0
+        trial = _cost(x, y, row, value, tx, ty, trial_level, trial_shape, penalty)
+        predicted = _predicted_reduction(diagonal, block, level_gradient, gradient, level_step, step, damping)
+        if not trial < cost or predicted <= 0.0:
+            # Nielsen's schedule: the damping grows ever faster while steps fail.
+            damping *= growth
+            growth *= 2.0
             if damping > 1e6:
                 break
             continue
-        damping = max(damping / 10.0, 1e-7)
-        moved = math.hypot(step[knots], step[knots + 1])
+        ratio = (cost - trial) / predicted
+        damping = max(damping * max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3), 1e-7)
+        growth = 2.0
+        settled = math.hypot(step[knots], step[knots + 1]) < converged and cost - trial < _CONVERGED_COST_SHARE * trial
         cx, cy, level, shape = tx, ty, trial_level, trial_shape
         cost, diagonal, mixed, spans, block, level_gradient, gradient = _linearised(x, y, row, value, cx, cy, level,
                                                                                     shape, penalty)
-        if moved < _CONVERGED_PX:
+        if settled:
             break
     size = rows + knots + 2
     variance = cost / max(value.size - size, 1)
@@ -541,6 +557,27 @@ def _levenberg_marquardt(x: np.ndarray, y: np.ndarray, row: np.ndarray, value: n
     inverse = np.linalg.inv(_reduced(diagonal, mixed, spans, block, 0.0))
     return (True, np.array([cx, cy]), variance * np.array([inverse[knots, knots], inverse[knots + 1, knots + 1]]),
             level)
+
+
+@kernel
+def _centre_marginal(diagonal: np.ndarray, mixed: np.ndarray, spans: np.ndarray, block: np.ndarray) -> float:
+    """Return the larger of the centre's two diagonal entries in the inverse normal matrix (per unit variance)."""
+    m = block.shape[0]
+    unit = np.zeros((m, 2))
+    unit[m - 2, 0], unit[m - 1, 1] = 1.0, 1.0
+    columns = np.linalg.solve(_reduced(diagonal, mixed, spans, block, 0.0), unit)
+    return max(columns[m - 2, 0], columns[m - 1, 1])
+
+
+@kernel
+def _predicted_reduction(diagonal: np.ndarray, block: np.ndarray, level_gradient: np.ndarray, gradient: np.ndarray,
+                         level_step: np.ndarray, step: np.ndarray, damping: float) -> float:
+    """Return the cost's drop the linearised model predicts for a damped step: step . (damping D step + gradient)."""
+    levels = level_step @ (damping * (diagonal + _GAUGE + 1e-12) * level_step + level_gradient)
+    rest = 0.0
+    for j in range(step.size):
+        rest += step[j] * (damping * (block[j, j] + 1e-12) * step[j] + gradient[j])
+    return levels + rest
 
 
 @kernel
