@@ -132,20 +132,7 @@ def test_one_lamp_whose_rim_the_optics_bend_yields_its_tilt_to_a_good_imu() -> N
     # The rim 0.5 px wider along a random axis than across it tilts one lamp's fit by about a degree;
     # with its edge's prior of such patterns, gravity to 0.1 degree sets the tilt, and the pose comes
     # out several times closer than the rim alone puts it, with a covariance that covers it.
-    rng = np.random.default_rng(43)
-    lamp = small_lamp((0.3, 0.2, 2.0))
-    truth = looking_up((0.0, 0.0, 0.0), (0.12, -0.1, 0.4))
-    sigma = np.radians(0.1)
-    rim_only, with_up, nees_with_up = [], [], []
-    for _ in range(12):
-        observation = observe(lamp, truth, camera_4k(), rim_count=200, rim_sigma=0.1, marker_sigma=0.3, rng=rng)
-        observation = replace(_warped(observation, 0.5, rng.uniform(0.0, np.pi)), rim_model_sigma=0.5)
-        up = UpMeasurement(measured_up(truth, sigma, rng), sigma)
-        alone = min(solve_lamp(observation, lamp, camera_4k()), key=lambda c: c.pose.position_error(truth))
-        best = min(solve_lamp(observation, lamp, camera_4k(), [up]), key=lambda c: c.pose.position_error(truth))
-        rim_only.append(_tilt(alone.pose, truth))
-        with_up.append(_tilt(best.pose, truth))
-        nees_with_up.append(nees(best.pose, truth))
+    rim_only, _, with_up, nees_with_up = _bent_rims_with_and_without_up(43, 12, 0.5, np.radians(0.1))
     # Gravity's 0.1 degree about each horizontal axis is 0.125 degree of tilt on average.
     assert np.mean(with_up) < 0.1 * np.mean(rim_only)
     assert np.mean(with_up) < np.radians(0.25)
@@ -157,26 +144,37 @@ def _tilt(pose: Pose, truth: Pose) -> float:
     return float(np.arccos(np.clip(pose.up_in_camera() @ truth.up_in_camera(), -1.0, 1.0)))
 
 
-def test_a_bent_rim_and_an_imu_of_like_accuracy_are_each_weighed_by_what_it_knows() -> None:
-    # The rim 0.1 px wider along a random axis (its tilt 0.65 degree off), its edge's prior of such patterns
-    # 0.1 px, and gravity to half a degree: neither may override the other. The fused tilt lies between the
-    # rim's and the IMU's (never further off than the worse of them), closer on average than either, and
-    # its covariance covers it.
-    rng = np.random.default_rng(47)
+def _bent_rims_with_and_without_up(seed: int, count: int, warp: float, up_sigma: float
+                                   ) -> tuple[list[float], list[float], list[float], list[float]]:
+    """
+    Solve one lamp whose rim is ``warp`` px wider along a random axis (its prior of such patterns as wide).
+
+    Return, per frame, the tilt error (rad) of the rim alone, of gravity measured to ``up_sigma``, and of
+    the two fused, and the fused pose's NEES.
+    """
+    rng = np.random.default_rng(seed)
     lamp = small_lamp((0.3, 0.2, 2.0))
     truth = looking_up((0.0, 0.0, 0.0), (0.12, -0.1, 0.4))
-    sigma = np.radians(0.5)
     rim_only, gravity, fused, nees_fused = [], [], [], []
-    for _ in range(16):
+    for _ in range(count):
         observation = observe(lamp, truth, camera_4k(), rim_count=200, rim_sigma=0.1, marker_sigma=0.3, rng=rng)
-        observation = replace(_warped(observation, 0.1, rng.uniform(0.0, np.pi)), rim_model_sigma=0.1)
-        up = UpMeasurement(measured_up(truth, sigma, rng), sigma)
+        observation = replace(_warped(observation, warp, rng.uniform(0.0, np.pi)), rim_model_sigma=warp)
+        up = UpMeasurement(measured_up(truth, up_sigma, rng), up_sigma)
         alone = min(solve_lamp(observation, lamp, camera_4k()), key=lambda c: c.pose.position_error(truth))
         best = min(solve_lamp(observation, lamp, camera_4k(), [up]), key=lambda c: c.pose.position_error(truth))
         rim_only.append(_tilt(alone.pose, truth))
         gravity.append(float(np.arccos(np.clip(up.direction @ truth.up_in_camera(), -1.0, 1.0))))
         fused.append(_tilt(best.pose, truth))
         nees_fused.append(nees(best.pose, truth))
+    return rim_only, gravity, fused, nees_fused
+
+
+def test_a_bent_rim_and_an_imu_of_like_accuracy_are_each_weighed_by_what_it_knows() -> None:
+    # The rim 0.1 px wider along a random axis (its tilt 0.65 degree off), its edge's prior of such patterns
+    # 0.1 px, and gravity to half a degree: neither may override the other. The fused tilt lies between the
+    # rim's and the IMU's (never further off than the worse of them), closer on average than either, and
+    # its covariance covers it.
+    rim_only, gravity, fused, nees_fused = _bent_rims_with_and_without_up(47, 16, 0.1, np.radians(0.5))
     assert all(f <= max(r, g) + np.radians(0.02) for f, r, g in zip(fused, rim_only, gravity))
     assert np.mean(fused) < min(np.mean(rim_only), np.mean(gravity))
     assert 2.0 <= np.mean(nees_fused) <= 10.0 and sum(e > 22.46 for e in nees_fused) <= 1
