@@ -38,14 +38,20 @@ ORDER = 2
 
 
 def shows_no_modulation(image: np.ndarray, observation: LampObservation) -> bool:
-    """
-    Whether the rows of the lamp in ``observation`` vary no more than its shape and pixel noise explain.
+    """Whether the rows of the lamp in ``observation`` vary no more than its shape and pixel noise explain."""
+    return box_shows_no_modulation(image, observation.bbox, observation.ellipse)
 
-    ``image`` is the full bgr8 or mono8 frame; colour frames are tested on the channel that is brightest
-    on the lamp's middle row. False where the test cannot tell (too few rows, no noise: every pixel clipped).
+
+def box_shows_no_modulation(image: np.ndarray, bbox: tuple[int, int, int, int], ellipse: np.ndarray) -> bool:
     """
-    x0, y0, x1, y1 = (int(v) for v in observation.bbox)
-    cx, cy, a, b, theta = (float(v) for v in observation.ellipse)
+    Whether the rows of the lamp in ``bbox`` around ``ellipse`` vary no more than its shape and noise explain.
+
+    ``bbox`` is (x0, y0, x1, y1), ``ellipse`` (cx, cy, a, b, theta), in frame pixels. ``image`` is the
+    full bgr8 or mono8 frame; colour frames are tested on the channel that is brightest on the lamp's
+    middle row. False where the test cannot tell (too few rows, no noise: every pixel clipped).
+    """
+    x0, y0, x1, y1 = (int(v) for v in bbox)
+    cx, cy, a, b, theta = (float(v) for v in ellipse)
     half_height = math.hypot(a * math.sin(theta), b * math.cos(theta))
     top = max(math.ceil(cy - BAND * half_height), y0)
     bottom = min(math.floor(cy + BAND * half_height) + 1, y1)

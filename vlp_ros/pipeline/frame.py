@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -15,7 +16,7 @@ from vlp_ros.beacon.decoding import (BeaconReading, decode_clipped_packet, decod
                                      read_lamp, RowProfile)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import no_packet
-from vlp_ros.beacon.steady import shows_no_modulation
+from vlp_ros.beacon.steady import box_shows_no_modulation, shows_no_modulation
 from vlp_ros.beacon.tone import agreeing, no_tone, point_light_profile
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp, LampMap
@@ -289,11 +290,7 @@ class Pipeline:
 
 def steady_test(image: np.ndarray) -> SteadyTest:
     """Return ``detect_lamps``' test of whether a lamp of ``image`` (its box and ellipse) shows no modulation."""
-    def steady(bbox: tuple[int, int, int, int], ellipse: np.ndarray) -> bool:
-        return shows_no_modulation(image, LampObservation(
-            ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
-            marker_sigma=float('inf'), bbox=bbox, disc_mask=np.zeros((0, 0), bool)))
-    return steady
+    return partial(box_shows_no_modulation, image)
 
 
 def _key(pairs: list[tuple[LampObservation, Lamp]]) -> tuple:
