@@ -8,7 +8,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
 from vlp_ros.images.conversion import decode_compressed, ImageConversionError, pixels_of
-from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
+from vlp_ros.images.message import CompressedImageMessage, MessageFormatError, parse_compressed_image, parse_image
 
 
 def _image_bytes(pixels: np.ndarray, encoding: str, step: int | None = None, frame_id: str = 'cam',
@@ -136,3 +136,46 @@ def test_corrupt_compressed_image_is_an_error() -> None:
     msg = CompressedImage(format='jpeg', data=b'\xff\xd8garbage')
     with pytest.raises(ImageConversionError, match='corrupt'):
         decode_compressed(parse_compressed_image(serialize_message(msg)))
+
+
+def _jpeg_message(pixels: np.ndarray, *params: int) -> CompressedImageMessage:
+    ok, buf = cv2.imencode('.jpg', pixels, list(params))
+    assert ok
+    return CompressedImageMessage(0, 'cam', 'jpeg', np.frombuffer(buf.tobytes(), np.uint8))
+
+
+def _lamp_photo(height: int, width: int, seed: int) -> np.ndarray:
+    """Return a bright striped disc with a red mark on a noisy grey background: edges, saturation, colour."""
+    rng = np.random.default_rng(seed)
+    image = rng.normal(40, 12, (height, width, 3))
+    rows, cols = np.mgrid[:height, :width]
+    disc = (rows - height / 2) ** 2 + (cols - width / 2) ** 2 < (0.3 * min(height, width)) ** 2
+    image[disc] = (255 * (np.sin(rows[disc] / 2.7) > 0) + rng.normal(0, 20, disc.sum()))[:, None]
+    image[height // 3:height // 3 + 9, width // 2:width // 2 + 9] = (30, 40, 250)
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize('params', [
+    (cv2.IMWRITE_JPEG_QUALITY, 92),
+    (cv2.IMWRITE_JPEG_QUALITY, 60, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422),
+    (cv2.IMWRITE_JPEG_QUALITY, 100, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444),
+    (cv2.IMWRITE_JPEG_PROGRESSIVE, 1),
+    (cv2.IMWRITE_JPEG_RST_INTERVAL, 3),
+])
+@pytest.mark.parametrize('grey', [False, True])
+def test_jpeg_pixels_are_opencvs(params: tuple[int, ...], grey: bool) -> None:
+    # The locator's JPEG decoder must give the pixels OpenCV gives, bit for bit, whatever the encoder's settings.
+    for seed, (height, width) in enumerate(((121, 203), (480, 640), (1080, 1920))):
+        pixels = _lamp_photo(height, width, seed)
+        msg = _jpeg_message(cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY) if grey else pixels, *params)
+        decoded = decode_compressed(msg)
+        expected = cv2.imdecode(msg.data, cv2.IMREAD_UNCHANGED)
+        assert decoded.shape == expected.shape and np.array_equal(decoded, expected)
+        assert decoded.flags.writeable and decoded.flags.c_contiguous
+
+
+def test_damaged_jpeg_is_refused() -> None:
+    whole = _jpeg_message(_lamp_photo(240, 320, 0))
+    cut = CompressedImageMessage(0, 'cam', 'jpeg', whole.data[:whole.data.size // 2])
+    with pytest.raises(ImageConversionError, match='corrupt'):
+        decode_compressed(cut)
