@@ -4,9 +4,10 @@ The `locator` node: camera images in, camera poses out.
 Callbacks only keep the newest frame. A decoder thread parses and decodes it while the
 worker thread runs the frame before it through the ROS-free pipeline
 (vlp_ros.pipeline.frame) and publishes: on two cores a frame's JPEG decode (libjpeg-turbo,
-which runs without the GIL, as the pipeline's numba kernels do) overlaps the previous frame's processing. Each stage holds at most one
-waiting frame, the newest: a frame that arrives while the stages are busy replaces the
-waiting one (counted as superseded), so latency never grows.
+which runs without the GIL, as the pipeline's numba kernels do) overlaps the previous
+frame's processing. Each stage holds at most one waiting frame, the newest: a frame that
+arrives while the stages are busy replaces the waiting one (counted as superseded), so
+latency never grows.
 
 The worker first makes the pipeline's compiled kernels ready (vlp_ros.compiled.warm_up),
 so the first frames take no longer than later ones. The node subscribes when they are
