@@ -7,6 +7,7 @@ import pytest
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
+from vlp_ros.images.buffers import FrameBuffers
 from vlp_ros.images.conversion import decode_compressed, ImageConversionError, pixels_of
 from vlp_ros.images.message import CompressedImageMessage, MessageFormatError, parse_compressed_image, parse_image
 
@@ -179,3 +180,42 @@ def test_damaged_jpeg_is_refused() -> None:
     cut = CompressedImageMessage(0, 'cam', 'jpeg', whole.data[:whole.data.size // 2])
     with pytest.raises(ImageConversionError, match='corrupt'):
         decode_compressed(cut)
+
+
+def test_frame_buffers_hand_out_again_only_arrays_nothing_holds() -> None:
+    buffers = FrameBuffers(2)
+    first = buffers.array((4, 5, 3))
+    view = first[1:3]
+    first_id = id(first)
+    del first
+    second = buffers.array((4, 5, 3))
+    # Seen through ``view``: never handed out while it is alive.
+    assert not np.shares_memory(second, view)
+    second_id = id(second)
+    del second
+    assert id(buffers.array((4, 5, 3))) == second_id
+    del view
+    assert id(buffers.array((4, 5, 3))) == first_id
+    # Both pooled arrays are free and of the old size: a new size replaces them.
+    smaller = buffers.array((2, 2))
+    assert smaller.shape == (2, 2) and smaller.flags.writeable and smaller.flags.c_contiguous
+    smaller_id = id(smaller)
+    del smaller
+    assert id(buffers.array((2, 2))) == smaller_id
+
+
+def test_jpeg_decoded_into_reused_buffers_leaves_held_frames_alone() -> None:
+    buffers = FrameBuffers(3)
+    messages = [_jpeg_message(_lamp_photo(120, 160, seed)) for seed in range(6)]
+    held = decode_compressed(messages[0], buffers)[10:50]
+    addresses = set()
+    for msg in messages[1:]:
+        decoded = decode_compressed(msg, buffers)
+        assert np.array_equal(decoded, cv2.imdecode(msg.data, cv2.IMREAD_UNCHANGED))
+        addresses.add(decoded.__array_interface__['data'][0])
+        del decoded
+    # One array serves every later frame, while the held one keeps its own.
+    assert len(addresses) == 1
+    assert np.array_equal(held, cv2.imdecode(messages[0].data, cv2.IMREAD_UNCHANGED)[10:50])
+    raw = parse_image(_image_bytes(_scene(), 'bgr8'))
+    assert np.array_equal(pixels_of(raw, buffers), _scene())

@@ -46,6 +46,7 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import GravityBuffer
 from vlp_ros.core.mounting import publishable_covariance
 from vlp_ros.core.pose import Pose
+from vlp_ros.images.buffers import FrameBuffers
 from vlp_ros.images.conversion import decode_compressed, ImageConversionError, pixels_of
 from vlp_ros.images.message import MessageFormatError, parse_compressed_image, parse_image
 from vlp_ros.nodes.diagnostics import diagnostic_array
@@ -112,6 +113,9 @@ class Locator(Node):
         # When the worker took its frame (None while it waits), and the usual time of each stage.
         self._busy_since: float | None = None
         self._process_times, self._decode_times = RecentDurations(), RecentDurations()
+        # The decoder's output arrays, written again once nothing holds their frame: one frame being decoded, one
+        # waiting and one being processed.
+        self._buffers = FrameBuffers(3)
         self._wake = threading.Condition()
         self._running = True
         self._kernels_ready = threading.Event()
@@ -353,7 +357,7 @@ class Locator(Node):
             else:
                 msg = parse_image(raw)
                 decode = pixels_of
-            pixels = decode(msg)
+            pixels = decode(msg, self._buffers)
         except (MessageFormatError, ImageConversionError) as err:
             self.stats.frame_dropped('bad_frame')
             self.get_logger().error(f'frame dropped: {err}', throttle_duration_sec=THROTTLE_S)
