@@ -59,9 +59,8 @@ from vlp_ros.pipeline.frame import FrameResult, Pipeline
 from vlp_ros.pipeline.frame_stats import FrameStats
 
 THROTTLE_S = 5.0
-# glibc's mallopt parameters (malloc.h).
-_M_MMAP_THRESHOLD, _M_ARENA_MAX = -3, -8
-_MMAP_THRESHOLD_BYTES = 1 << 20
+# glibc's mallopt parameter (malloc.h).
+_M_ARENA_MAX = -8
 # How often the start checks whether the kernels are ready or being compiled.
 _WARM_UP_POLL_S = 0.05
 
@@ -442,26 +441,26 @@ def _pose_message(pose: Pose) -> PoseMsg:
     return msg
 
 
-def return_large_buffers_to_the_system() -> None:
+def bound_malloc_arenas() -> None:
     """
-    Make glibc give a frame's buffers back when they are freed, before rclpy starts its threads.
+    Let glibc keep two malloc arenas, before rclpy starts its threads, instead of one per thread that allocates.
 
-    glibc raises its mmap threshold to the size of each large block freed (up to 32 MB), so that 4K frames
-    (25 MB, several per frame: the message, its bytes, the decoded pixels) are then carved from heap arenas, one
-    per thread that allocates (DDS's, the executor's, the worker's), which keep the freed memory as resident
-    fragments. A fixed threshold keeps every frame-sized block mapped on its own; two arenas bound the rest.
+    glibc raises its mmap threshold to the size of each large block freed (up to 32 MB), so frame-sized blocks
+    (the message's bytes, DDS's reassembled sample, the pipeline's temporaries) are reused from the heap without
+    the page faults of a fresh mapping; each arena keeps what it freed resident, so two bound it. Mapping every
+    block of 1 MB or more on its own instead (a fixed threshold) saved 20-45 MB of peak resident memory under raw
+    4K frames but lost half of those frames to the page faults (docs/benchmarks.md, "Camera rate through the
+    locator").
     """
     try:
-        libc = ctypes.CDLL(None)
-        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_BYTES)
-        libc.mallopt(_M_ARENA_MAX, 2)
+        ctypes.CDLL(None).mallopt(_M_ARENA_MAX, 2)
     except (OSError, AttributeError):  # not glibc: its allocator is left as it is
         pass
 
 
 def main(args: list[str] | None = None) -> int:
     """Run the locator until Ctrl-C; exit status 2 after a parameter error."""
-    return_large_buffers_to_the_system()
+    bound_malloc_arenas()
     return run_node(Locator, args=args, start_errors=(ConfigError,), on_start_error=_report_parameter_error)
 
 
