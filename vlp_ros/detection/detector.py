@@ -279,7 +279,8 @@ def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions,
 
     A lamp whose lower or upper part is dark (a long dark stripe) may be found as a
     smaller blob: its box grows to hold the fitted ellipse, once, and is measured again.
-    A steady lamp (``steady``) whose rim needs its clipped rows is ``_steady_observation``'s.
+    A steady lamp (``steady``) whose rim needs its clipped rows is ``_steady_observation``'s when its
+    crossings' ellipse is a lamp's (``_is_elliptic``).
     """
     bbox = blob.bbox
     margin = options.blur_margin + 1
@@ -288,7 +289,9 @@ def _observe(image: np.ndarray, blob: Blob, options: DetectionOptions,
         if box is None:
             return None
         if box.steady:
-            return _SteadyLamp(_steady_observation(box.rim, box.origin, image.shape[:2]))
+            # A steady light whose crossings are no lamp's ellipse (a window, a bar) is left to the light's fit.
+            return _SteadyLamp(_steady_observation(box.rim, box.origin, image.shape[:2])) \
+                if _is_elliptic(box.rim, options) else None
         extent = _extent(box.rim.ellipse)
         lo_x, lo_y = extent[0] + box.origin[0], extent[1] + box.origin[1]
         hi_x, hi_y = extent[2] + box.origin[0], extent[3] + box.origin[1]
@@ -666,14 +669,7 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
     the blurs its ramps measured (up to ``max_blur``'s, which stands where they do not tell) beyond the
     rim, where the light has reached the ceiling's level.
     """
-    cx, _, a, b, _ = rim.ellipse.tolist()
-    count = len(rim.points)
-    if (count < options.min_rim_points or rim.sigma > options.max_rim_sigma
-            or count < _MIN_INLIER_FRACTION * rim.candidates
-            or 2.0 * a < options.min_diameter or b < options.min_axis_ratio * a):
-        return False
-    left = int(np.count_nonzero(rim.points[:, 0] < cx))
-    if min(left, count - left) < _MIN_SIDE_FRACTION * count:
+    if not _is_elliptic(rim, options):
         return False
     lo_x, lo_y, hi_x, hi_y = extent
     margin = options.blur_margin if rim.blur is None else min(options.blur_margin, _light_reach(rim.blur))
@@ -681,6 +677,18 @@ def _is_whole_lamp(rim: RimFit, extent: tuple[float, float, float, float], roi_s
         return False
     return (lo_x + origin[0] >= margin and lo_y + origin[1] >= margin
             and hi_x + origin[0] <= frame_shape[1] - 1 - margin and hi_y + origin[1] <= frame_shape[0] - 1 - margin)
+
+
+def _is_elliptic(rim: RimFit, options: DetectionOptions) -> bool:
+    """Tell whether the rim is elliptic, big enough, and seen on both sides of its centre."""
+    cx, _, a, b, _ = rim.ellipse.tolist()
+    count = len(rim.points)
+    if (count < options.min_rim_points or rim.sigma > options.max_rim_sigma
+            or count < _MIN_INLIER_FRACTION * rim.candidates
+            or 2.0 * a < options.min_diameter or b < options.min_axis_ratio * a):
+        return False
+    left = int(np.count_nonzero(rim.points[:, 0] < cx))
+    return min(left, count - left) >= _MIN_SIDE_FRACTION * count
 
 
 def _light_reach(blur: float) -> int:
