@@ -97,7 +97,7 @@ class PointFit:
 
 
 def fit_point(brightness: np.ndarray, background: float, noise: float, min_radius: float,
-              noise_factor: float, saturation_level: float) -> PointFit | None:
+              noise_factor: float, saturation_level: float, whole: bool = True) -> PointFit | None:
     """
     Return the centre of the light in ``brightness`` (one lamp's box, one channel).
 
@@ -107,6 +107,9 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
     far its stripe overexposes it: clipped rows are used only when the unclipped ones give
     too few crossings or no round core (the dark stripes alone may span too few of its rows),
     and their scatter (stripe by stripe) then widens the centre's sigma.
+
+    ``whole=False`` says that the box cuts the light (the frame's border does): a light that clips its
+    glow too then gives None, since its centre (``_overexposed_fit``) is that of the whole light.
     """
     points, rows, clipped = _half_maximum_crossings(brightness, background, noise_factor * noise,
                                                     saturation_level)
@@ -119,7 +122,9 @@ def fit_point(brightness: np.ndarray, background: float, noise: float, min_radiu
     fit = _core_fit(points, rows, unclipped, min_radius) if np.count_nonzero(unclipped) >= _MIN_POINTS // 2 else None
     if fit is None and np.any(core & clipped):
         fit = _core_fit(points, rows, core, min_radius)
-    return fit if fit is not None else _overexposed_fit(brightness, background, min_radius, saturation_level)
+    if fit is not None or not whole:
+        return fit
+    return _overexposed_fit(brightness, background, min_radius, saturation_level)
 
 
 def _overexposed_fit(brightness: np.ndarray, background: float, min_radius: float,
