@@ -38,8 +38,11 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
     clips, its bright rows are seen on the glow alone, and summed over frames such readings leaned to wrong IDs (the
     accuracy benchmark's realistic robot row).
 
-    A disc that is uncertain (a lamp showing less than a packet) takes the light profile's reading only where
-    that is certain and names the disc's own most probable ID (``confirmed_by_light``).
+    A disc that is uncertain (a lamp showing less than a packet) and does not clip is read again to its edge
+    (``row_profile`` with no margin: its top and bottom rows, which the margin drops, hold the end chips), and
+    takes that reading where it is certain and names the disc's own most probable ID. Otherwise it takes the
+    light profile's reading only where that is certain and names the disc's most probable ID
+    (``confirmed_by_light``).
 
     Tone mode reads the disc only (``glow=False``, docs/beacon.md): blur across rows rounds the stripes
     that the glow shows unclipped, and the square wave fitted with the given exposure then misplaces the
@@ -54,6 +57,10 @@ def read_lamp(image: np.ndarray, observation: LampObservation, decode: Callable[
     disc = decode(disc_profile)
     if disc.lamp_id is not None or disc.unknown:
         return disc
+    if has_evidence(disc) and not np.any(disc_profile.saturated):
+        whole = confirmed_by_light(disc, decode(row_profile(image, observation, edge_margin=0)))
+        if whole.lamp_id is not None:
+            return whole
     censored = disc
     if decode_clipped is not None:
         clipped = decode_clipped(disc_profile)
