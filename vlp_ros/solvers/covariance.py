@@ -198,7 +198,7 @@ _MODE_REWEIGHTINGS = 1
 # The modes of ``measurement.rim_error_modes`` (first, past the last) that trade with the tilt: cos 2t, sin 2t.
 _TILT_MODES = (3, 5)
 # The deviance (twice the log-likelihood) by which the modes' sigma bound lies off the likeliest: 99 % for
-# one parameter (95 %, 3.84, left 1 of 30 poses beyond the bound on three of the synthetic several-lamp
+# one parameter (95 %, 3.84, left 1 pose of 30-39 beyond the bound on each of three synthetic several-lamp
 # cases that 99 % keeps within it).
 MODE_SIGMA_BOUND_DEVIANCE = 6.63
 MIN_BOUNDING_LAMPS = 3
