@@ -68,3 +68,50 @@ def test_each_lamps_prior_of_its_rim_patterns_bounds_what_two_lamps_claim() -> N
     assert 1.0 <= np.mean([nees(b, TRUTH) for _, b in solved]) <= 9.0
     # Only the covariance widens: the poses stay where the fit put them.
     assert np.allclose([c.position for c, _ in solved], [b.position for _, b in solved], atol=1e-6)
+
+
+def _poses_of_lamps(count: int, pattern_px: list[float], prior_px: list[float], seed: int) -> list:
+    """
+    Return (pose, truth) of 30 frames of ``count`` lamps, lamp i's rim warped by ``pattern_px[i]`` per pattern.
+
+    Each lamp has 30 rim points (0.3 px noise) and states ``prior_px[i]`` as its prior of such
+    patterns; the camera's position and tilt vary from frame to frame, and lamps it does not see
+    whole are left out.
+    """
+    rng = np.random.default_rng(seed)
+    solved = []
+    for _ in range(30):
+        truth = looking_up((0.4 + rng.uniform(-0.2, 0.2), 0.4 + rng.uniform(-0.2, 0.2), 0.45),
+                           rng.normal(0.0, 0.05, 3))
+        pairs = []
+        for lamp, pattern, prior in zip(grid_lamps(count), pattern_px, prior_px):
+            try:
+                observation = observe(lamp, truth, camera_wide(), rim_count=30, rim_sigma=0.3, marker_sigma=0.2,
+                                      rng=rng)
+            except ValueError:
+                continue
+            pairs.append((replace(_smoothly_warped(observation, pattern, rng), rim_model_sigma=prior), lamp))
+        assert len(pairs) >= 3
+        pose = solve_lamps(pairs, camera_wide(), DisambiguationHints()).pose
+        if pose is not None:
+            solved.append((pose, truth))
+    return solved
+
+
+def test_lamps_that_agree_bound_priors_that_overstate_their_patterns() -> None:
+    # Priors four times the patterns' true sigma: their sandwich alone put the mean NEES at 0.8-0.9;
+    # bounded by what three or more lamps show, 3.2-4.9.
+    for count, pattern in ((3, 0.1), (4, 0.25), (6, 0.1)):
+        solved = _poses_of_lamps(count, [pattern] * count, [4.0 * pattern] * count, 61 + count)
+        assert len(solved) >= 25
+        assert 2.0 <= np.mean([nees(p, t) for p, t in solved]) <= 10.0
+
+
+def test_the_bound_leaves_an_odd_lamp_covered() -> None:
+    # One lamp's patterns eight times the others', each stated right: the lamps' common estimate
+    # must not cut the odd lamp's prior below what it shows (mean NEES 4.0-6.6, none beyond the bound).
+    for count in (3, 4, 6):
+        solved = _poses_of_lamps(count, [0.25] + [0.03] * (count - 1), [0.25] + [0.03] * (count - 1), 71 + count)
+        assert len(solved) >= 25
+        assert sum(nees(p, t) > BOUND for p, t in solved) <= 1
+        assert np.mean([nees(p, t) for p, t in solved]) <= 10.0

@@ -170,7 +170,14 @@ def _add_rotation_curvature(covariance, lever):
 # a lamp's own prior (``mode_prior_sigma``, from its edge) bounds what the fit may claim: the
 # covariance is that of the fit's estimate with the lamp's modes spread by that prior (the sandwich
 # of ``_add_mode_prior_excess``), and the pose stays where the estimated sigma put it (a floor on
-# the sigma itself moved the independent renderer's robot poses, doubling their errors). Besides,
+# the sigma itself moved the independent renderer's robot poses, doubling their errors). A lamp's prior
+# can overstate its patterns (the independent renderer's tone lamps showed 0.21 of theirs at the true
+# pose): with ``MIN_BOUNDING_LAMPS`` or more lamps, no lamp's prior counts beyond the largest sigma the
+# frame's restricted likelihood leaves plausible (within ``MODE_SIGMA_BOUND_DEVIANCE`` of its best; on
+# synthetic frames of 3-6 lamps whose priors were four times their patterns, the mean NEES went from
+# 0.8-0.9 to 3.2-4.9, and one lamp eight times worse than the others, stated right, stayed covered).
+# Two lamps' estimate is too loose to bound by (0-0.2 px on the simulator's realistic robot row, whose
+# modes were 0.3-0.6 px). Besides,
 # a common rim offset (all lamps alike) is a parameter with a prior of ``RIM_OFFSET_FLOOR_PX``
 # (or ``RIM_OFFSET_PRIOR`` times the rim's scatter, if more); with several lamps, which fix the
 # scale, it moves the pose where the data determine it (its variance below ``OFFSET_DETERMINED``
@@ -190,6 +197,11 @@ _REWEIGHTINGS = 2
 _MODE_REWEIGHTINGS = 1
 # The modes of ``measurement.rim_error_modes`` (first, past the last) that trade with the tilt: cos 2t, sin 2t.
 _TILT_MODES = (3, 5)
+# The deviance (twice the log-likelihood) by which the modes' sigma bound lies off the likeliest: 99 % for
+# one parameter (95 %, 3.84, left 1 pose of 30-39 beyond the bound on each of three synthetic several-lamp
+# cases that 99 % keeps within it).
+MODE_SIGMA_BOUND_DEVIANCE = 6.63
+MIN_BOUNDING_LAMPS = 3
 # Candidate prior sigmas (px) of the rim modes: none, then 0.005 to 5 px a factor sqrt(2) apart
 # (a likelihood this flat near its maximum costs nothing at that spacing).
 _MODE_SIGMA_GRID_PX = np.concatenate([[1e-4], 0.005 * 2.0 ** (np.arange(21) / 2.0)])
@@ -232,7 +244,8 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     lamp), the modes are marginalised with it, widening the covariance along what they trade with; the
     pose stays where the fit put it unless an up direction was fitted too, when the lamp's tilt and the up
     direction's are weighed by their covariances in the step (``_up_fused_step``); with several lamps, a
-    lamp's prior over the estimated sigma widens the covariance alike, the pose left in place.
+    lamp's prior over the estimated sigma (up to the sigma's plausible bound, with three or more) widens
+    the covariance alike, the pose left in place.
     """
     covariance_from_jacobian(jacobian)  # raises where no first-order covariance exists
     rim_count = len(rim_sigma)
@@ -340,7 +353,7 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
             upper, gradient = np.zeros((width, width)), np.zeros(width)
             _weighted_normal_equations(design, width, 0, lamp_rows, residuals, weights, lamp_of_point, per_lamp, upper,
                                        gradient)
-            mode_sigma = _likeliest_mode_sigma(_symmetric(upper), gradient, offset_precision, mode_sigma_grid)
+            mode_sigma, bound = _likeliest_mode_sigma(_symmetric(upper), gradient, offset_precision, mode_sigma_grid)
             _weighted_normal_equations(design, width, lamp_rows, count, residuals, weights, lamp_of_point, per_lamp,
                                        upper, gradient)
             gram = _symmetric(upper)
@@ -350,13 +363,15 @@ def _model_error_fit(residuals, jacobian, rim_sigma, modes, lamp_of_point, lamp_
             _predict(design, residuals, solution, predicted)
             if reweighting < _MODE_REWEIGHTINGS:
                 _reweight(predicted, weights, rims, marker_count, rim_dof)
-        if mode_prior_sigma.max() > mode_sigma:
+        spread = np.minimum(mode_prior_sigma, max(bound, mode_sigma)) if lamp_count >= MIN_BOUNDING_LAMPS \
+            else mode_prior_sigma
+        if spread.max() > mode_sigma:
             # Candidates are told apart and up directions judged by the fit's own covariance, as for one lamp.
             for i in range(6):
                 for j in range(6):
                     fit_covariance[i, j] = 0.5 * (inverse[i, j] + inverse[j, i])
             marginalised = True
-            _add_mode_prior_excess(inverse, mode_sigma, mode_prior_sigma, per_lamp)
+            _add_mode_prior_excess(inverse, mode_sigma, spread, per_lamp)
     for i in range(6):
         step[i] = solution[i]
         for j in range(6):
@@ -563,7 +578,8 @@ def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
     """
     Return the modes' prior sigma on ``grid`` that maximises the restricted likelihood of the weighted residuals.
 
-    The pose is flat and the offset at its prior: with the pose and offset profiled out
+    Also the largest on the grid within ``MODE_SIGMA_BOUND_DEVIANCE`` of its maximum (inf where that is
+    the grid's last). The pose is flat and the offset at its prior: with the pose and offset profiled out
     (information M and gradient h of the modes), it minimises
     log det(I + sigma^2 M) - h^T (M + I / sigma^2)^-1 h.
     """
@@ -577,16 +593,20 @@ def _likeliest_mode_sigma(gram, gradient, offset_precision, grid):
     profiled_gradient = gradient[7:] - cross.T @ np.ascontiguousarray(solved[:, width - 7])
     values, vectors = np.linalg.eigh(0.5 * (profiled + profiled.T))
     projected = vectors.T @ profiled_gradient
-    best, best_sigma = np.inf, grid[0]
-    for sigma in grid:
-        variance = sigma * sigma
+    objectives = np.empty(grid.shape[0])
+    for g in range(grid.shape[0]):
+        variance = grid[g] * grid[g]
         objective = 0.0
         for k in range(values.shape[0]):
             value = max(values[k], 0.0)
             objective += math.log(1.0 + variance * value) - projected[k] ** 2 * variance / (1.0 + variance * value)
-        if objective < best:
-            best, best_sigma = objective, sigma
-    return best_sigma
+        objectives[g] = objective
+    best = int(np.argmin(objectives))
+    bound = best
+    while bound + 1 < grid.shape[0] and objectives[bound + 1] - objectives[best] <= MODE_SIGMA_BOUND_DEVIANCE:
+        bound += 1
+    # Past the grid's end the bound is unknown: no bound.
+    return grid[best], grid[bound] if bound + 1 < grid.shape[0] else np.inf
 
 
 @kernel
