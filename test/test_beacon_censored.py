@@ -10,8 +10,8 @@ misfits such a disc and refuses it (main read an ID on 1 of the benchmark's 9 re
 import numpy as np
 import pytest
 
-from vlp_ros.beacon.censored import (_bounds_from_sums, _fits_that_can_win, _hypothesis_sums, _packet_masks,
-                                     _signs, _sound_bounds_from_sums, censored_log_likelihoods)
+from vlp_ros.beacon.censored import (_bounds_from_sums, _fits_that_can_win, _folded, _hypothesis_sums, _packet_masks,
+                                     _signs, _sound_bounds_from_sums, _template_tables, censored_log_likelihoods)
 from vlp_ros.beacon.encoding import packet_chips, packet_length, packet_waveform
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import BLUR_MIXES, decode_clipped_packet, decode_packet
@@ -195,3 +195,23 @@ def test_a_window_is_refused_exactly_when_no_hypothesis_fits_within_the_limit(la
     assert refused is None and deviance > below
     read, deviance = censored_log_likelihoods(x, v, k, censored, 8, BLUR_MIXES, above)
     assert read is not None and deviance == best
+
+
+@pytest.mark.parametrize('id_bits', [1, 3, 8, 12])
+def test_the_hypothesis_sums_are_every_ids_table_sums(id_bits):
+    """The sums through the tables' factors are the chips' folds times every ID's tables, to rounding."""
+    rng = np.random.default_rng(id_bits)
+    length = packet_length(id_bits)
+    k = np.sort(rng.choice(2 * length, size=length + 3, replace=False))
+    x, v, censored = rng.uniform(0.2, 1.0, len(k)), rng.uniform(0.5, 2.0, len(k)), rng.uniform(size=len(k)) < 0.5
+    sums = _hypothesis_sums(x, v, k, censored, id_bits, BLUR_MIXES)
+    t = (k - 0.5 * (k[0] + k[-1])) / (0.5 * (k[-1] - k[0]))
+    powers = t[None, :] ** np.arange(5)[:, None]
+    vm, vc = v * ~censored, v * censored
+    measured = _folded(np.vstack([powers[:4] * vm, powers[:2] * (vm * x)]), k, length)
+    clipped = _folded(np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]]), k, length)
+    signs, squares, dark, dark_neighbours, dark_squares = _template_tables(id_bits)
+    expected = [measured @ signs, measured[:3] @ squares, clipped @ dark, clipped[[0, 1, 2, 3, 5, 6]] @ dark_neighbours,
+                clipped[:3] @ dark_squares, clipped[:2] @ signs]
+    for got, want in zip(sums[2:], expected):
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12 * np.abs(want).max())

@@ -157,6 +157,46 @@ def _template_tables(id_bits: int) -> tuple[np.ndarray, ...]:
     return tables
 
 
+@lru_cache(maxsize=4)
+def _factored_tables(id_bits: int) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """
+    Return the tables of ``_template_tables`` factored exactly as coefficients (L, blocks x r) times a basis (r, ids).
+
+    A packet's chips are its preamble's and its bits' (Manchester), so each table holds a few independent rows
+    (10 to 18 of the 24 positions of 8-bit IDs): the basis is such rows, the coefficients small integers, so
+    a fold times a table is taken in fewer products. One basis for the two blocks of [s | n] and [s n | n^2].
+    """
+    factored = []
+    for table in _template_tables(id_bits):
+        blocks = table.shape[1] // 2 ** id_bits
+        parts = np.hsplit(table, blocks)
+        basis = _independent_rows(np.vstack(parts))
+        coefficients = [np.round(np.linalg.lstsq(basis.T, part.T, rcond=None)[0].T) for part in parts]
+        if not all(np.array_equal(c @ basis, part) for c, part in zip(coefficients, parts)):
+            raise AssertionError('a template table is not a small-integer combination of its rows')
+        pair = (np.hstack(coefficients), basis)
+        for array in pair:
+            array.flags.writeable = False
+        factored.append(pair)
+    return tuple(factored)
+
+
+def _independent_rows(rows: np.ndarray) -> np.ndarray:
+    """
+    Return the rows that each add a direction to the ones before them.
+
+    Written out (Gram-Schmidt) to keep the first such rows: a pivoted QR's choice left fractional coefficients.
+    """
+    kept, directions = [], []
+    for row in rows:
+        residual = row - sum((direction @ row) * direction for direction in directions)
+        norm = float(np.linalg.norm(residual))
+        if norm > 1e-6 * max(float(np.linalg.norm(row)), 1.0):
+            kept.append(row)
+            directions.append(residual / norm)
+    return np.ascontiguousarray(np.array(kept))
+
+
 def _hypothesis_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.ndarray, id_bits: int,
                      mixes: tuple[float, ...]) -> tuple[np.ndarray, ...]:
     """
@@ -169,7 +209,8 @@ def _hypothesis_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.n
     (rows, L, [s | n] of ids each) or (rows, L, ids).
 
     All hypotheses at once: every sum over the chips is a fold of the chips by packet position for each shift
-    (``_folded``) times a table of every ID's signs; the mixes are combined per hypothesis by the bounds.
+    (``_folded``) times a table of every ID's signs (``_factored_tables``); the mixes are combined per hypothesis
+    by the bounds.
     """
     length = packet_length(id_bits)
     middle, half = 0.5 * (k[0] + k[-1]), max(0.5 * float(k[-1] - k[0]), 1.0)
@@ -184,10 +225,12 @@ def _hypothesis_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, censored: np.n
     # (i < 3), x^2.
     measured_fold = _folded(np.vstack([powers[:4] * vm, powers[:2] * (vm * x)]), k, length)
     censored_fold = _folded(np.vstack([powers * vc, powers[:3] * (vc * x), (vc * x * x)[None, :]]), k, length)
-    signs, squares, dark, dark_neighbours, dark_squares = _template_tables(id_bits)
+    signs, squares, dark, dark_neighbours, dark_squares = _factored_tables(id_bits)
 
-    def times(fold: np.ndarray, table: np.ndarray) -> np.ndarray:
-        return (fold.reshape(-1, length) @ table).reshape(fold.shape[0], length, -1)
+    def times(fold: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        coefficients, basis = table
+        combined = (fold.reshape(-1, length) @ coefficients).reshape(-1, len(basis))
+        return (combined @ basis).reshape(fold.shape[0], length, -1)
 
     return (fixed, np.asarray(mixes, dtype=float), times(measured_fold, signs), times(measured_fold[:3], squares),
             times(censored_fold, dark), times(censored_fold[[0, 1, 2, 3, 5, 6]], dark_neighbours),
