@@ -130,7 +130,7 @@ class DetectionOptions:
 
 
 # Whether a lamp, seen in a box (x0, y0, x1, y1) of the frame around an ellipse (cx, cy, a, b, theta), shows no
-# modulation (``beacon.steady.shows_no_modulation``, which the pipeline passes in).
+# modulation (``beacon.steady.box_shows_no_modulation``, which the pipeline passes in).
 SteadyTest = Callable[[tuple[int, int, int, int], np.ndarray], bool]
 
 
@@ -194,7 +194,7 @@ def _observe_point(image: np.ndarray, blob: Blob, options: DetectionOptions) -> 
     centre = fit.center + np.array([x0, y0], dtype=float)
     ellipse = np.array([centre[0], centre[1], fit.radius, fit.radius, 0.0])
     bbox = _box_around(ellipse, image.shape[:2])
-    if bbox[0] <= 0 or bbox[1] <= 0 or bbox[2] >= image.shape[1] or bbox[3] >= image.shape[0]:
+    if _touches_frame_border(bbox, image.shape[:2]):
         return None
     return LampObservation(ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
                            marker_sigma=float('inf'), bbox=bbox, disc_mask=_chord_mask(conic_of(ellipse), *bbox),
@@ -221,7 +221,7 @@ def _steady_observation(rim: RimFit, origin: tuple[int, int], frame_shape: tuple
     ellipse = rim.ellipse.copy()
     ellipse[:2] += np.asarray(origin, dtype=float)
     bbox = _box_around(ellipse, frame_shape)
-    if bbox[0] <= 0 or bbox[1] <= 0 or bbox[2] >= frame_shape[1] or bbox[3] >= frame_shape[0]:
+    if _touches_frame_border(bbox, frame_shape):
         return None
     return LampObservation(ellipse=ellipse, rim_points=np.zeros((0, 2)), rim_sigma=float('inf'), marker=None,
                            marker_sigma=float('inf'), bbox=bbox, disc_mask=_chord_mask(conic_of(ellipse), *bbox),
@@ -710,6 +710,11 @@ def _box_around(ellipse: np.ndarray, frame_shape: tuple[int, int]) -> tuple[int,
     lo_x, lo_y, hi_x, hi_y = _extent(ellipse)
     return (max(math.floor(lo_x) - 1, 0), max(math.floor(lo_y) - 1, 0),
             min(math.ceil(hi_x) + 2, frame_shape[1]), min(math.ceil(hi_y) + 2, frame_shape[0]))
+
+
+def _touches_frame_border(bbox: tuple[int, int, int, int], frame_shape: tuple[int, int]) -> bool:
+    """Whether the box (x0, y0, x1, y1) reaches the frame's border: the lamp in it may not be whole."""
+    return bbox[0] <= 0 or bbox[1] <= 0 or bbox[2] >= frame_shape[1] or bbox[3] >= frame_shape[0]
 
 
 def _observation(rim: RimFit, marker: MarkerFit | None, origin: tuple[int, int],

@@ -132,7 +132,7 @@ class Pipeline:
         Returns the observations, this frame's readings and each lamp's ID certain so far (None if not yet),
         by the beacon alone: ``process`` then holds the IDs to the map's geometry.
         """
-        # A steady lamp (not in the map) is measured as the centre of its light when its rim needs clipped rows.
+        # A steady lamp (no beacon) whose rim needs its clipped rows is placed at its crossings' centre.
         observations = detect_lamps(image, steady=steady_test(image))
         readings = [self._read_beacon(image, obs) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp) if observations else []
