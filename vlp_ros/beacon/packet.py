@@ -311,69 +311,38 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     """
     design, chip_weights = _codebook(id_bits)
     length = len(chip_weights)
-    gains, misfit = [], np.inf
-    # The neighbours' products summed by weight do not depend on the mix: taken once for all mixes.
-    products = None
-    for mix in mixes:
-        per_bit, baseline_rss, by_weight = _per_bit_sums(x, v, k, chip_weights, mix)
-        # Every (ID, shift): the sums over its bright minus its dark chips, each hypothesis along the last axis.
-        sums = per_bit @ design
-        if products is None and mix != 0.0:
-            products = _neighbour_sums(by_weight, id_bits)
-        energy = _template_energy(products, mix, id_bits, float(v.sum()), length)
-        half_gain, best = _half_gains(sums, energy, length)
-        gains.append((half_gain, best, baseline_rss))
-        misfit = min(misfit, baseline_rss - 2.0 * float(best.max()))
+    mixes = np.array(mixes, dtype=float)
+    per_bit, baseline_rss, by_weight, before = _per_bit_sums(x, v, k, chip_weights, mixes)
+    # Every (mix, shift, ID): the sums over its bright minus its dark chips, each hypothesis along the last axis.
+    sums = (per_bit.reshape(-1, per_bit.shape[2]) @ design).reshape(len(mixes), 4 * length, -1)
+    if mixes.any():
+        # The neighbours' products summed by weight do not depend on the mix: taken once for all mixes.
+        next_products, second_products = _neighbour_products(id_bits)
+        neighbours, seconds = (by_weight + before) @ next_products, before @ second_products
+    else:
+        neighbours = seconds = np.zeros((0, 0))
+    half_gains, best, misfit = _half_gains(sums, mixes, float(v.sum()), neighbours, seconds, baseline_rss)
     if misfit > misfit_limit:
         return None, misfit
-    per_mix = []
-    for half_gain, best, baseline_rss in gains:
-        # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
-        spread = np.log(np.exp(half_gain - best, out=half_gain).sum(axis=0) / length)
-        per_mix.append(best.astype(float) + spread - 0.5 * baseline_rss)
+    # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
+    spread = np.log(np.exp(half_gains - best[:, None, :], out=half_gains).sum(axis=1) / length)
+    per_mix = best.astype(float) + spread - 0.5 * baseline_rss
     if len(per_mix) == 1:
         return per_mix[0], misfit
-    stacked = np.array(per_mix)
-    top = stacked.max(axis=0)
-    return top + np.log(np.exp(stacked - top).mean(axis=0)), misfit
-
-
-def _neighbour_sums(by_weight: np.ndarray, id_bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Every (shift, ID)'s weighted sums of its sign products s_k s_k+1 + s_k s_k-1 and s_k-1 s_k+1, (L, ids) each.
-
-    ``by_weight`` (L, L) holds the weights v summed by packet position for each shift.
-    """
-    next_products, second_products = _neighbour_products(id_bits)
-    # s_k s_k+1 and s_k s_k-1 (the product one back, at position p - 1), and s_k-1 s_k+1 (at p - 1).
-    before = np.roll(by_weight, -1, axis=1)
-    return (by_weight + before) @ next_products, before @ second_products
-
-
-def _template_energy(products: tuple[np.ndarray, np.ndarray] | None, mix: float, id_bits: int, total: float,
-                     length: int) -> np.ndarray:
-    """
-    sum(v t^2) of every (shift, ID)'s template t_k = s_k + mix (s_k-1 + s_k+1), (L, ids) float32.
-
-    ``products`` are ``_neighbour_sums`` (not needed without a mix); ``total`` is sum(v).
-    """
-    if mix == 0.0:
-        return np.full((length, 2 ** id_bits), total, dtype=np.float32)
-    neighbours, seconds = products
-    energy = (1.0 + 2.0 * mix * mix) * total + 2.0 * mix * neighbours + 2.0 * mix * mix * seconds
-    return energy.astype(np.float32)
+    top = per_mix.max(axis=0)
+    return top + np.log(np.exp(per_mix - top).mean(axis=0)), misfit
 
 
 @kernel
 def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.ndarray,
-                  mix: float) -> tuple[np.ndarray, float, np.ndarray]:
+                  mixes: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """
-    Return what each hypothesis's fit needs, factored by bit: (4 L, 2 + id_bits) float32, row f L + shift.
+    Return what each hypothesis's fit needs, factored by bit: (mixes, 4 L, 2 + id_bits) float32, row f L + shift.
 
-    The baseline's weighted squared residual; and the weights v summed by packet position for each
-    shift (L, L).
+    The baseline's weighted squared residual; the weights v summed by packet position for each
+    shift (L, L); and the same one position on (each row rolled back by one).
 
-    With ``mix``, chip j's template also holds mix times its neighbours' signs: what it puts on its own
+    With a mix, chip j's template also holds mix times its neighbours' signs: what it puts on its own
     position goes on the neighbouring positions too, times mix.
 
     Per packet position: sums of v times each orthonormal baseline column over the chips that land
@@ -392,66 +361,84 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
         for f in range(3):
             baseline[f] += basis[f, j] * vx
     baseline_rss = vx_x - (baseline[0] * baseline[0] + baseline[1] * baseline[1] + baseline[2] * baseline[2])
-    # Twice over, so that position - shift + L indexes (position - shift) % L.
-    by_position = np.zeros((4, 2 * length))
     half = math.sqrt(0.5)
     weight_at = np.zeros(2 * length)
     for j in range(n):
-        position = k[j] % length
-        earlier, later = (position - 1) % length, (position + 1) % length
-        weight_at[position] += v[j]
-        explained = 0.0
-        for f in range(3):
-            vbasis = basis[f, j] * v[j]
-            explained += baseline[f] * vbasis
-            by_position[f, position] += vbasis
-            by_position[f, earlier] += mix * vbasis
-            by_position[f, later] += mix * vbasis
-        residual = (v[j] * x[j] - explained) * half
-        by_position[3, position] += residual
-        by_position[3, earlier] += mix * residual
-        by_position[3, later] += mix * residual
-    by_position[:, length:] = by_position[:, :length]
+        weight_at[k[j] % length] += v[j]
     weight_at[length:] = weight_at[:length]
-    by_weight = np.empty((length, length))
+    by_weight, before = np.empty((length, length)), np.empty((length, length))
     for shift in range(length):
         for position in range(length):
             by_weight[shift, position] = weight_at[position - shift + length]
-    per_bit = np.empty((4 * length, bits), dtype=np.float32)
+            before[shift, position] = weight_at[(position + 1) % length - shift + length]
+    per_bit = np.empty((len(mixes), 4 * length, bits), dtype=np.float32)
     totals = np.empty(bits)
-    for f in range(4):
-        for shift in range(length):
-            totals[:] = 0.0
-            for position in range(length):
-                folded = by_position[f, position - shift + length]
-                for b in range(bits):
-                    totals[b] += folded * chip_weights[position, b]
-            per_bit[f * length + shift] = totals
-    return per_bit, baseline_rss, by_weight
+    for m in range(len(mixes)):
+        mix = mixes[m]
+        # Twice over, so that position - shift + L indexes (position - shift) % L.
+        by_position = np.zeros((4, 2 * length))
+        for j in range(n):
+            position = k[j] % length
+            earlier, later = (position - 1) % length, (position + 1) % length
+            explained = 0.0
+            for f in range(3):
+                vbasis = basis[f, j] * v[j]
+                explained += baseline[f] * vbasis
+                by_position[f, position] += vbasis
+                by_position[f, earlier] += mix * vbasis
+                by_position[f, later] += mix * vbasis
+            residual = (v[j] * x[j] - explained) * half
+            by_position[3, position] += residual
+            by_position[3, earlier] += mix * residual
+            by_position[3, later] += mix * residual
+        by_position[:, length:] = by_position[:, :length]
+        for f in range(4):
+            for shift in range(length):
+                totals[:] = 0.0
+                for position in range(length):
+                    folded = by_position[f, position - shift + length]
+                    for b in range(bits):
+                        totals[b] += folded * chip_weights[position, b]
+                per_bit[m, f * length + shift] = totals
+    return per_bit, baseline_rss, by_weight, before
 
 
 @kernel
-def _half_gains(sums: np.ndarray, energy: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
+def _half_gains(sums: np.ndarray, mixes: np.ndarray, total: float, neighbours: np.ndarray, seconds: np.ndarray,
+                baseline_rss: float) -> tuple[np.ndarray, np.ndarray, float]:
     """
-    Return half the gain of each (shift, ID)'s best-fitting contrast, and each ID's best.
+    Return half the gain of each (mix, shift, ID)'s best-fitting contrast, each (mix, ID)'s best, and the best misfit.
 
-    The gains are (L, ids), from ``sums`` (4 L, ids), in float32 arithmetic like the sums.
+    The gains are (mixes, L, ids), from ``sums`` (mixes, 4 L, ids), in float32 arithmetic like the sums. The
+    misfit is the least weighted squared residual of any hypothesis, ``baseline_rss`` less twice the best gain.
 
-    With an orthonormal baseline, what the signs add beyond it is their part orthogonal to it; the
-    contrast must be positive.
+    A template t_k = s_k + mix (s_k-1 + s_k+1) has the energy sum(v t^2) (1 + 2 mix^2) ``total`` (sum(v)) +
+    2 mix ``neighbours`` + 2 mix^2 ``seconds`` (the weighted sums of the signs' products, ``_neighbour_products``:
+    (L, ids) each, not needed without a mix), taken in float64 and rounded to float32. With an orthonormal
+    baseline, what the signs add beyond it is their part orthogonal to it; the contrast must be positive.
     """
-    ids = sums.shape[1]
-    gains = np.empty((length, ids), dtype=np.float32)
-    best = np.full(ids, -np.inf, dtype=np.float32)
-    for shift in range(length):
-        for i in range(ids):
-            a, b, c = sums[shift, i], sums[length + shift, i], sums[2 * length + shift, i]
-            total = energy[shift, i]
-            schur = max(total - (a * a + b * b + c * c), np.float32(1e-6) * total)
-            target = max(sums[3 * length + shift, i], np.float32(0.0))
-            gains[shift, i] = target * target / schur
-            best[i] = max(best[i], gains[shift, i])
-    return gains, best
+    count, length, ids = sums.shape[0], sums.shape[1] // 4, sums.shape[2]
+    gains = np.empty((count, length, ids), dtype=np.float32)
+    best = np.full((count, ids), -np.inf, dtype=np.float32)
+    misfit = np.inf
+    for m in range(count):
+        mix = mixes[m]
+        scale, twice, square = 1.0 + 2.0 * mix * mix, 2.0 * mix, 2.0 * mix * mix
+        for shift in range(length):
+            for i in range(ids):
+                a, b, c = sums[m, shift, i], sums[m, length + shift, i], sums[m, 2 * length + shift, i]
+                if mix == 0.0:
+                    energy = np.float32(total)
+                else:
+                    energy = np.float32(scale * total + twice * neighbours[shift, i] + square * seconds[shift, i])
+                schur = max(energy - (a * a + b * b + c * c), np.float32(1e-6) * energy)
+                target = max(sums[m, 3 * length + shift, i], np.float32(0.0))
+                gains[m, shift, i] = target * target / schur
+                best[m, i] = max(best[m, i], gains[m, shift, i])
+        fit = baseline_rss - 2.0 * float(best[m].max())
+        if fit < misfit:
+            misfit = fit
+    return gains, best, misfit
 
 
 @kernel
