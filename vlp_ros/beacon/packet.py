@@ -325,7 +325,8 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     if misfit > misfit_limit:
         return None, misfit
     # numpy's float32 exp and log, as the likelihoods have always been taken (numba's differ in the last bit).
-    spread = np.log(np.exp(half_gains - best[:, None, :], out=half_gains).sum(axis=1) / length)
+    np.subtract(half_gains, best[:, None, :], out=half_gains)
+    spread = np.log(np.exp(half_gains, out=half_gains).sum(axis=1) / length)
     per_mix = best.astype(float) + spread - 0.5 * baseline_rss
     if len(per_mix) == 1:
         return per_mix[0], misfit
