@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 
@@ -16,7 +15,7 @@ from vlp_ros.beacon.decoding import (BeaconReading, decode_clipped_packet, decod
                                      read_lamp, RowProfile)
 from vlp_ros.beacon.evidence import EvidenceTracker
 from vlp_ros.beacon.packet import no_packet
-from vlp_ros.beacon.steady import box_shows_no_modulation, shows_no_modulation
+from vlp_ros.beacon.steady import box_shows_no_modulation
 from vlp_ros.beacon.tone import agreeing, no_tone, point_light_profile
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import Lamp, LampMap
@@ -132,9 +131,11 @@ class Pipeline:
         Returns the observations, this frame's readings and each lamp's ID certain so far (None if not yet),
         by the beacon alone: ``process`` then holds the IDs to the map's geometry.
         """
-        # A steady lamp (no beacon) whose rim needs its clipped rows is placed at its crossings' centre.
-        observations = detect_lamps(image, steady=steady_test(image))
-        readings = [self._read_beacon(image, obs) for obs in observations]
+        # A steady lamp (no beacon) whose rim needs its clipped rows is placed at its crossings' centre; the beacon
+        # reading asks the same test of every lamp, and of such a lamp with the same box and ellipse.
+        steady = steady_test(image)
+        observations = detect_lamps(image, steady=steady)
+        readings = [self._read_beacon(image, obs, steady) for obs in observations]
         ids = self.tracker.update(observations, readings, stamp) if observations else []
         if self._point_lamps:
             # Once read, a point lamp's light is measured as a point (a map of point lamps only: every light).
@@ -223,9 +224,9 @@ class Pipeline:
         ids = [lamp.id if lamp is not None else i for lamp, i in zip(settled, ids)]
         return ids, [(obs, lamp) for obs, lamp in zip(observations, settled) if lamp is not None]
 
-    def _read_beacon(self, image: np.ndarray, observation: LampObservation) -> BeaconReading:
+    def _read_beacon(self, image: np.ndarray, observation: LampObservation, steady: SteadyTest) -> BeaconReading:
         beacon = self.settings.beacon
-        if shows_no_modulation(image, observation):
+        if steady(observation.bbox, observation.ellipse):
             # A steady lamp (not in the map) still counts as a lamp in view; only its reading is spared.
             if beacon.mode == 'tone':
                 return no_tone(self._frequencies, STEADY)
@@ -289,8 +290,19 @@ class Pipeline:
 
 
 def steady_test(image: np.ndarray) -> SteadyTest:
-    """Return ``detect_lamps``' test of whether a lamp of ``image`` (its box and ellipse) shows no modulation."""
-    return partial(box_shows_no_modulation, image)
+    """
+    Return ``detect_lamps``' test of whether a lamp of ``image`` (its box and ellipse) shows no modulation.
+
+    Each box and ellipse is tested once: the answers are kept for the frame.
+    """
+    answers: dict[tuple, bool] = {}
+
+    def test(bbox: tuple[int, int, int, int], ellipse: np.ndarray) -> bool:
+        key = (tuple(bbox), np.asarray(ellipse, dtype=float).tobytes())
+        if key not in answers:
+            answers[key] = box_shows_no_modulation(image, bbox, ellipse)
+        return answers[key]
+    return test
 
 
 def _key(pairs: list[tuple[LampObservation, Lamp]]) -> tuple:
