@@ -173,6 +173,27 @@ def test_id_likelihoods_equal_a_least_squares_fit_of_every_id_and_shift(mix):
     assert np.argmax(log_likelihoods) == 9
 
 
+@pytest.mark.parametrize('id_bits', [4, 8])
+def test_id_likelihoods_of_several_mixes_are_their_mean_likelihood_and_their_best_fit(id_bits):
+    # The mixes are taken in one pass: each must weigh the IDs as it does alone, the blur's mix equally likely.
+    rng = np.random.default_rng(id_bits)
+    length = len(packet_chips(0, id_bits))
+    k = np.sort(rng.choice(2 * length, length + 6, replace=False))
+    chips = packet_chips(3, id_bits) * 2.0 - 1.0
+    x = 0.7 * chips[(k + 2) % length] + rng.normal(0.0, 0.3, len(k))
+    v = rng.uniform(0.5, 3.0, len(k))
+    mixes = (0.0, 0.15, 0.3)
+    together, misfit = packet._id_log_likelihoods(x, v, k, id_bits, mixes)
+    alone = [packet._id_log_likelihoods(x, v, k, id_bits, (mix,)) for mix in mixes]
+    each = np.array([log_likelihoods for log_likelihoods, _ in alone])
+    top = each.max(axis=0)
+    np.testing.assert_allclose(together, top + np.log(np.exp(each - top).mean(axis=0)), rtol=0.0, atol=1e-9)
+    assert misfit == pytest.approx(min(fit for _, fit in alone), abs=1e-9)
+    assert np.argmax(together) == 3
+    # Above the misfit limit no likelihoods are taken, whichever the mixes.
+    assert packet._id_log_likelihoods(x, v, k, id_bits, mixes, misfit_limit=0.5 * misfit) == (None, misfit)
+
+
 def test_trying_grids_around_the_found_one_never_finds_a_wrong_id_in_chips_it_does_not_model():
     """
     An exposure of two chips smears each chip over three (beyond the blur mixes).

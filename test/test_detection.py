@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import erfc
 
 from vlp_ros.beacon.encoding import packet_waveform
-from vlp_ros.beacon.steady import shows_no_modulation
+from vlp_ros.beacon.steady import box_shows_no_modulation, shows_no_modulation
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
 from vlp_ros.core.lamp_map import Lamp
@@ -21,6 +21,7 @@ from vlp_ros.detection import detect_lamps, DetectionOptions
 from vlp_ros.detection.blobs import _quantiles, histogram
 from vlp_ros.detection.detector import _box_levels
 from vlp_ros.detection.rim import _censored_edge_fit
+from vlp_ros.pipeline import frame as frame_module
 from vlp_ros.pipeline.frame import steady_test
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.render import render_frame, SimLamp
@@ -161,6 +162,25 @@ def test_a_clipped_steady_lamp_is_a_point_without_the_clipped_rows_fit_and_a_bea
         assert tested.rim_usable
         np.testing.assert_array_equal(tested.ellipse, untested.ellipse)
         np.testing.assert_array_equal(tested.rim_points, untested.rim_points)
+
+
+def test_the_pipeline_tests_a_clipped_steady_lamp_once_for_detection_and_reading(monkeypatch):
+    # The beacon reading asks the steady test of the lamp detection placed by it: the same box and ellipse.
+    asked = []
+
+    def counted(image, bbox, ellipse):
+        asked.append(tuple(bbox))
+        return box_shows_no_modulation(image, bbox, ellipse)
+    monkeypatch.setattr(frame_module, 'box_shows_no_modulation', counted)
+    steady, _ = single(depth=0.0, peak_dn=400.0)
+    test = steady_test(steady.image)
+    lamp = only(detect_lamps(steady.image, steady=test))
+    assert len(asked) == 1
+    assert test(lamp.bbox, lamp.ellipse) and len(asked) == 1
+    assert shows_no_modulation(steady.image, lamp)
+    # Another box is tested on its own.
+    shifted = lamp.ellipse + np.array([1.0, 0.0, 0.0, 0.0, 0.0])
+    assert test(lamp.bbox, shifted) == box_shows_no_modulation(steady.image, lamp.bbox, shifted) and len(asked) == 2
 
 
 @pytest.mark.parametrize('peak, blur, glare, falloff, quality', [
