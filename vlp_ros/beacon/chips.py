@@ -143,12 +143,15 @@ def nearby_grids(z: np.ndarray, w: np.ndarray, found: ChipLevels, margin: float 
     anchor = _weighted_middle(rows)
     # The found grid's chip edge nearest the anchor: scaling the period about it keeps the middle in place.
     edge = found.phase + found.period * round((anchor - found.phase) / found.period)
+    periods = [found.period * scale for scale in scales for _ in offsets]
+    phases = [(edge + offset * found.period) % period for period in periods[::len(offsets)] for offset in offsets]
+    chips = _levels_on_grids(sums, rows, np.array(periods), np.array(phases),
+                             np.array([_interior(period, margin) for period in periods]), sigma2)
     grids = []
-    for scale in scales:
-        for offset in offsets:
-            grid = _on_grid(sums, rows, found.period * scale, edge + offset * found.period, margin, sigma2)
-            if grid is not None:
-                grids.append(grid)
+    for period, start, begin, end in zip(periods, chips.starts, chips.ends[:-1], chips.ends[1:]):
+        if end > begin:
+            grids.append(ChipLevels(chips.index[begin:end], chips.levels[begin:end], chips.variances[begin:end],
+                                    period, start))
     return grids
 
 
@@ -179,6 +182,35 @@ class _Chips(NamedTuple):
     levels: np.ndarray
     variances: np.ndarray
     start: float
+
+
+class _GridsChips(NamedTuple):
+    """``_levels_on_grids``' result: every grid's ``_Chips`` one after another (grid g's at ``ends[g]:ends[g + 1]``)."""
+
+    index: np.ndarray
+    levels: np.ndarray
+    variances: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+
+
+@kernel
+def _levels_on_grids(sums: np.ndarray, rows: np.ndarray, periods: np.ndarray, phases: np.ndarray,
+                     margins: np.ndarray, sigma2: float) -> _GridsChips:
+    """``_levels`` on each grid (its period, phase within it and margin), all in one call."""
+    count = len(periods)
+    parts = []
+    starts, ends = np.zeros(count), np.zeros(count + 1, dtype=np.int64)
+    for g in range(count):
+        chips = _levels(sums, rows, periods[g], phases[g], margins[g], sigma2)
+        parts.append(chips)
+        starts[g], ends[g + 1] = chips.start, ends[g] + chips.index.size
+    index, levels, variances = np.empty(ends[-1], np.int64), np.empty(ends[-1]), np.empty(ends[-1])
+    for g in range(count):
+        index[ends[g]:ends[g + 1]] = parts[g].index
+        levels[ends[g]:ends[g + 1]] = parts[g].levels
+        variances[ends[g]:ends[g + 1]] = parts[g].variances
+    return _GridsChips(index, levels, variances, starts, ends)
 
 
 @kernel
