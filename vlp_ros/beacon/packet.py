@@ -79,12 +79,33 @@ def _codebook(id_bits: int) -> tuple[np.ndarray, np.ndarray]:
     signs = np.array([packet_chips(i, id_bits) for i in range(ids)], dtype=float) * 2 - 1
     bit_signs = np.array([packet_bits(i, id_bits) for i in range(ids)], dtype=float).T * 2 - 1
     design = np.vstack([np.ones(ids), bit_signs])
-    # The contract is linear in the bit signs, so least squares factors it exactly.
+    # The contract is linear in the bit signs, so least squares factors it exactly: in whole numbers (0 and +-1,
+    # least squares' ~1e-17 for the zeros rounded away) where the bits determine it.
     chip_weights = np.linalg.lstsq(design.T, signs, rcond=None)[0]
+    whole = np.round(chip_weights)
+    if np.array_equal(design.T @ whole, signs):
+        chip_weights = whole
     if not np.allclose(design.T @ chip_weights, signs):
         raise AssertionError('packet chips are not linear in the bit signs')
     # float32: the hypotheses' sums need ~1e-3 nats, and halve the time of the largest arrays.
     return design.astype(np.float32), chip_weights.T.copy()
+
+
+@lru_cache(maxsize=4)
+def _chip_weight_entries(id_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return ``_codebook``'s nonzero chip weights by packet position: (starts (L + 1,), bits, weights).
+
+    Position p's entries are ``starts[p]:starts[p + 1]``: a bit or the constant puts its weight on a few
+    positions only (Manchester: two), so the per-bit sums skip the zeros.
+    """
+    chip_weights = _codebook(id_bits)[1]
+    positions, bits = np.nonzero(chip_weights)
+    starts = np.searchsorted(positions, np.arange(len(chip_weights) + 1))
+    entries = (starts.astype(np.int64), bits.astype(np.int64), chip_weights[positions, bits])
+    for array in entries:
+        array.flags.writeable = False
+    return entries
 
 
 def decode_packet(profile: RowProfile, chip_rate: float, row_time: float, id_bits: int = 8,
@@ -312,7 +333,8 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
     design, chip_weights = _codebook(id_bits)
     length = len(chip_weights)
     mixes = np.array(mixes, dtype=float)
-    per_bit, baseline_rss, by_weight, before = _per_bit_sums(x, v, k, chip_weights, mixes)
+    per_bit, baseline_rss, by_weight, before = _per_bit_sums(x, v, k, *_chip_weight_entries(id_bits),
+                                                             chip_weights.shape[1], mixes)
     # Every (mix, shift, ID): the sums over its bright minus its dark chips, each hypothesis along the last axis.
     sums = (per_bit.reshape(-1, per_bit.shape[2]) @ design).reshape(len(mixes), 4 * length, -1)
     if mixes.any():
@@ -335,8 +357,8 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
 
 
 @kernel
-def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.ndarray,
-                  mixes: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, starts: np.ndarray, weighted_bits: np.ndarray,
+                  weights: np.ndarray, bits: int, mixes: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """
     Return what each hypothesis's fit needs, factored by bit: (mixes, 4 L, 2 + id_bits) float32, row f L + shift.
 
@@ -350,9 +372,9 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
     there, and of v times what the baseline leaves of x (every ID's fit is linear in it), the latter
     scaled by sqrt(1/2) so that its squares come out as half gains (log-likelihoods). Folded for every
     shift (the window's chip j at packet position (j + shift) % L) and multiplied by what each bit puts
-    on each position (``chip_weights``, (L, 2 + id_bits)).
+    on each position (the nonzero chip weights of ``_chip_weight_entries``: ``bits`` is 2 + id_bits).
     """
-    n, length, bits = len(x), chip_weights.shape[0], chip_weights.shape[1]
+    n, length = len(x), len(starts) - 1
     basis = _orthonormal_baseline(k, v)
     baseline = np.zeros(3)
     vx_x = 0.0
@@ -398,8 +420,8 @@ def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, chip_weights: np.
                 totals[:] = 0.0
                 for position in range(length):
                     folded = by_position[f, position - shift + length]
-                    for b in range(bits):
-                        totals[b] += folded * chip_weights[position, b]
+                    for entry in range(starts[position], starts[position + 1]):
+                        totals[weighted_bits[entry]] += folded * weights[entry]
                 per_bit[m, f * length + shift] = totals
     return per_bit, baseline_rss, by_weight, before
 
