@@ -358,7 +358,8 @@ def _id_log_likelihoods(x: np.ndarray, v: np.ndarray, k: np.ndarray, id_bits: in
 
 @kernel
 def _per_bit_sums(x: np.ndarray, v: np.ndarray, k: np.ndarray, starts: np.ndarray, weighted_bits: np.ndarray,
-                  weights: np.ndarray, bits: int, mixes: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+                  weights: np.ndarray, bits: int,
+                  mixes: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """
     Return what each hypothesis's fit needs, factored by bit: (mixes, 4 L, 2 + id_bits) float32, row f L + shift.
 
