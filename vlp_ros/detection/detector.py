@@ -546,23 +546,53 @@ def _marker(box: _LampBox, options: DetectionOptions) -> MarkerFit | None:
     # The marker lies inside the rim, or straddles it with its centre at most one radius outside.
     if fit is None or conic_distance(conic_of(box.rim.ellipse), *fit.center.tolist()) > fit.radius:
         return None
-    index = np.arange(rows.size)
-    crossing = np.abs(index - fit.center[1]) < fit.radius
-    clipped_share = np.count_nonzero(rows & clipped & crossing) / max(np.count_nonzero(rows & crossing), 1)
+    crossing = _marker_crossing(rows, clipped, float(fit.center[1]), float(fit.radius))
     # A clipped edge moves the marker toward white and away from dark: radially toward the ceiling beyond
     # the rim, and across the rows where a clipped row through it borders a row below the clip (a stripe).
     outward = fit.center - box.rim.ellipse[:2]
     outward = outward / max(float(np.linalg.norm(outward)), 1e-9)
-    bordering = clipped & ~(np.roll(clipped, 1) & np.roll(clipped, -1))
-    bordering_share = np.count_nonzero(rows & bordering & crossing) / max(np.count_nonzero(rows & crossing), 1)
-    across = np.array([0.0, _CLIPPED_MARKER_SHIFT * bordering_share * fit.blur])
-    covariance = (fit.covariance + (_CLIPPED_MARKER_SHIFT * clipped_share * fit.blur) ** 2 * np.outer(outward, outward)
+    across = np.array([0.0, _CLIPPED_MARKER_SHIFT * crossing.bordering_share * fit.blur])
+    covariance = (fit.covariance
+                  + (_CLIPPED_MARKER_SHIFT * crossing.clipped_share * fit.blur) ** 2 * np.outer(outward, outward)
                   + np.outer(across, across))
     # Rows on one side of the centre only leave it to the curvature of their chords: an extrapolation
     # (on the foreign frames 3.8 px off with a sigma of 0.9 px, from three rows at one end).
-    if not ((rows & crossing & (index < fit.center[1])).any() and (rows & crossing & (index > fit.center[1])).any()):
+    if crossing.one_sided:
         covariance = covariance + (_ONE_SIDED_MARKER_SHIFT * fit.radius) ** 2 * np.eye(2)
     return replace(fit, covariance=covariance)
+
+
+class _MarkerCrossing(NamedTuple):
+    """``_marker_crossing``'s result (see there)."""
+
+    clipped_share: float
+    bordering_share: float
+    one_sided: bool
+
+
+@kernel
+def _marker_crossing(rows: np.ndarray, clipped: np.ndarray, centre: float, radius: float) -> _MarkerCrossing:
+    """
+    Return how the rows used (``rows``) that cross the marker (within ``radius`` of row ``centre``) lie.
+
+    The share of them that clip, the share that clip next to a row that does not (either neighbour, the
+    first and last rows each other's), and whether they lie on one side of the centre only.
+    """
+    count = rows.size
+    crossing = clipped_count = bordering_count = 0
+    below = above = False
+    for i in range(count):
+        if not (rows[i] and abs(i - centre) < radius):
+            continue
+        crossing += 1
+        if clipped[i]:
+            clipped_count += 1
+            if not (clipped[(i - 1) % count] and clipped[(i + 1) % count]):
+                bordering_count += 1
+        below = below or i < centre
+        above = above or i > centre
+    return _MarkerCrossing(clipped_count / max(crossing, 1), bordering_count / max(crossing, 1),
+                           not (below and above))
 
 
 class _MarkerRows(NamedTuple):
