@@ -197,11 +197,24 @@ def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp
 
 def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, anchor: Choice,
                      camera: CameraModel | None) -> list[Pair]:
+    """
+    Return the open lamps settled one after the other against ``anchor``, each with the lamps settled before it.
+
+    When each of several open lamps leaves one candidate within reach, and one pose near the anchor explains
+    them all at once, each one's own solve would find its candidate fitting too: they are settled by that solve.
+    """
+    reachable = [[(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior)
+                  if camera is None or _within_reach(open_lamp.observation, lamp, anchor.pose, camera)]
+                 for open_lamp in lamps]
+    alone = [(open_lamp.observation, options[0][0]) for open_lamp, options in zip(lamps, reachable)
+             if len(options) == 1]
+    if len(alone) == len(lamps) > 1 and len({lamp.id for _, lamp in alone}) == len(alone) \
+            and _explained_near(solve([*certain, *alone]), anchor):
+        return alone
     settled: list[Pair] = []
-    for open_lamp in lamps:
+    for open_lamp, options in zip(lamps, reachable):
         used = {lamp.id for _, lamp in settled}
-        fitting = [(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior) if lamp.id not in used
-                   and (camera is None or _within_reach(open_lamp.observation, lamp, anchor.pose, camera))
+        fitting = [(lamp, p) for lamp, p in options if lamp.id not in used
                    and _explained_near(solve([*certain, *settled, (open_lamp.observation, lamp)]), anchor)]
         decided = _decisive(fitting)
         if decided is not None:
