@@ -189,3 +189,37 @@ def test_against_the_certain_pose_only_candidates_it_can_see_where_the_lamp_is_a
     assert asked == [3]
     # Without the camera both are solved, and a pose that explains anything leaves the lamp open.
     assert settle(certain, [lamp], anywhere) == []
+
+
+def test_open_lamps_each_with_one_candidate_in_reach_are_settled_by_one_solve_of_them_all() -> None:
+    # The certain lamps' pose sees lamp 3 where one open lamp is and lamp 4 where the other is; each
+    # lamp's other candidate lies over a hundred pixels off. One pose near the certain one that explains
+    # both settles both; where none does, each is tried on its own.
+    camera = bare_led_scenario('1080p', photos=1, seed=1).camera
+    anchor_pose = Pose(np.eye(3), np.zeros(3), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
+    observation = _observation()
+
+    def seen_as(lamp_id: int) -> LampObservation:
+        seen_at = camera.project(anchor_pose.map_to_camera(_lamp(lamp_id).position))[0]
+        return replace(observation, ellipse=np.array([*seen_at, *observation.ellipse[2:]]))
+
+    certain = [(observation, _lamp(1)), (observation, _lamp(2))]
+    lamps = [OpenLamp(seen_as(3), (_lamp(3), _lamp(4)), (0.9, 0.1)), OpenLamp(seen_as(4), (_lamp(4), _lamp(3)),
+                                                                             (0.8, 0.2))]
+    asked = []
+
+    def anywhere(pairs) -> Choice:
+        asked.append([lamp.id for _, lamp in pairs[2:]])
+        return Choice(anchor_pose, Reason.MULTI_LAMP)
+
+    assert [lamp.id for _, lamp in settle(certain, lamps, anywhere, camera)] == [3, 4]
+    # The first solve is the certain lamps' own.
+    assert asked == [[], [3, 4]]
+    asked.clear()
+
+    def without_four(pairs) -> Choice:
+        asked.append([lamp.id for _, lamp in pairs[2:]])
+        return Choice(None if any(lamp.id == 4 for _, lamp in pairs) else anchor_pose, Reason.MULTI_LAMP)
+
+    assert [lamp.id for _, lamp in settle(certain, lamps, without_four, camera)] == [3]
+    assert asked == [[], [3, 4], [3], [3, 4]]
