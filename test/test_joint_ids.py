@@ -204,8 +204,8 @@ def test_open_lamps_each_with_one_candidate_in_reach_are_settled_by_one_solve_of
         return replace(observation, ellipse=np.array([*seen_at, *observation.ellipse[2:]]))
 
     certain = [(observation, _lamp(1)), (observation, _lamp(2))]
-    lamps = [OpenLamp(seen_as(3), (_lamp(3), _lamp(4)), (0.9, 0.1)), OpenLamp(seen_as(4), (_lamp(4), _lamp(3)),
-                                                                             (0.8, 0.2))]
+    lamps = [OpenLamp(seen_as(3), (_lamp(3), _lamp(4)), (0.9, 0.1)),
+             OpenLamp(seen_as(4), (_lamp(4), _lamp(3)), (0.8, 0.2))]
     asked = []
 
     def anywhere(pairs) -> Choice:

@@ -198,9 +198,9 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
                      if candidate is not None and seen_from_below(candidate.pose, points)])
 
 
-def _measured(observation: LampObservation, lamp: Lamp, camera: CameraModel) -> tuple[LampMeasurement,
-                                                                                        LampMeasurement]:
-    """Return the disc lamp's measurement and its copy thinned for probing, built once while ``_MEASURED`` keeps them."""
+def _measured(observation: LampObservation, lamp: Lamp,
+              camera: CameraModel) -> tuple[LampMeasurement, LampMeasurement]:
+    """Return the disc lamp's measurement and its copy thinned for probing, built once while kept in ``_MEASURED``."""
     key = (id(observation), id(lamp), id(camera))
     with _MEASURED_LOCK:
         entry = _MEASURED.get(key)

@@ -24,7 +24,10 @@ tried, and the readings must tell it from the others that fit.
 Against the certain lamps' pose, a candidate is solved only if that pose, moved anywhere within the
 same Mahalanobis distance, can see it within a few of its radii of the detected lamp: a joint pose
 that coincides with the certain one sees any other candidate (another lamp of the map, typically a
-metre or more away) where no lamp is, and cannot explain the image, so its solve is spared.
+metre or more away) where no lamp is, and cannot explain the image, so its solve is spared. Open lamps
+that each leave one candidate so are first solved together: a pose near the certain one that explains them
+all settles them all (each one's own solve, with the lamps settled before it, would find it fitting), and
+only when none does is each solved in turn.
 
 Certain IDs are held to the same rule. Two lamps that claim one ID (a lamp not in the map whose
 tone, 2 % off, lies in a mapped lamp's band) are both reopened, and so is the one lamp without
