@@ -223,3 +223,26 @@ def test_open_lamps_each_with_one_candidate_in_reach_are_settled_by_one_solve_of
 
     assert [lamp.id for _, lamp in settle(certain, lamps, without_four, camera)] == [3]
     assert asked == [[], [3, 4], [3], [3, 4]]
+
+
+def test_without_a_certain_pose_assignments_too_improbable_to_change_the_outcome_are_not_solved() -> None:
+    observation = _observation()
+    right = (3, 5, 7)
+    asked = []
+
+    def fits_right(pairs) -> Choice:
+        asked.append(tuple(lamp.id for _, lamp in pairs))
+        return Choice(Pose(np.eye(3), np.zeros(3)) if asked[-1] == right else None, Reason.MULTI_LAMP)
+
+    def read(p_right: float) -> list[OpenLamp]:
+        # Discs: three point lamps alone would explain any assignment.
+        return [OpenLamp(observation, (replace(_lamp(r), radius=0.075), replace(_lamp(r + 1), radius=0.075)),
+                         (p_right, 1.0 - p_right)) for r in right]
+
+    # The right assignment holds all but 3e-6 of the posterior: no other can outweigh it.
+    assert [lamp.id for _, lamp in settle([], read(1.0 - 1e-6), fits_right)] == list(right)
+    assert asked == [right]
+    asked.clear()
+    # Read at 0.99 each, the others hold 3 %: all are solved but the least probable (1e-6 of the posterior).
+    assert [lamp.id for _, lamp in settle([], read(0.99), fits_right)] == list(right)
+    assert len(asked) == 2 ** len(right) - 1 and (4, 6, 8) not in asked

@@ -10,11 +10,12 @@ explains the image and coincides with the certain lamps' pose within their covar
 lamp is identified only if the candidates that do leave all but 1e-4 of their readings' posterior
 to one (two lamps cannot stand at one place of the ceiling, so a second candidate that fits is a
 map or geometry that cannot tell them apart; then only the reading can). When the certain lamps
-give no pose (too few of them), every assignment of the open lamps' candidates is solved (residuals
+give no pose (too few of them), the assignments of the open lamps' candidates are solved (residuals
 to spare: at least two more than the pose needs, since three point lamps alone explain any
 assignment exactly; with more than 27 assignments, those of the most certain lamps, the others
 then settled against their pose), and one is taken only if it holds all but 1e-4 of the posterior (the product
-of its lamps' readings: they are independent) of the assignments that explain the image, and only
+of its lamps' readings: they are independent) of the assignments that explain the image (solved most
+probable first, until those left hold too little posterior to change the outcome), and only
 when the candidates tried hold all but 1e-4 of each open lamp's posterior: the pose is then the
 assignment's own, and on a symmetric map a wrong assignment is explained by a pose turned about the
 lamps as well as the right one is (a disc without its marker leaves the yaw free), or moved by one
@@ -258,15 +259,24 @@ def _settled_by_assignment(certain: list[Pair], lamps: list[OpenLamp], solve: So
     options = [[((o.observation, lamp), p) for lamp, p in zip(o.candidates, o.posterior)] for o in lamps]
     if not options or min(o.coverage for o in lamps) < _COVERED:
         return []
-    explaining = []
+    tried = []
     for assignment in itertools.product(*options):
         pairs = [*certain, *(pair for pair, _ in assignment)]
         if len({lamp.id for _, lamp in pairs}) < len(pairs) or _residuals(pairs) < 6 + _SPARE_RESIDUALS:
             continue
+        tried.append((pairs, float(np.prod([p for _, p in assignment]))))
+    # Most probable first: the first that explains the image is the one that may be taken, and it is (or is
+    # not) once the posterior of those not solved yet cannot change that.
+    tried.sort(key=lambda item: -item[1])
+    unsolved = np.cumsum([p for _, p in tried][::-1])[::-1]
+    taken, explained = None, 0.0
+    for (pairs, p), left in zip(tried, unsolved):
+        if taken is not None and not _COVERED * explained <= taken[1] < _COVERED * (explained + left):
+            break
         if solve(pairs).pose is not None:
-            explaining.append(([pair for pair, _ in assignment], float(np.prod([p for _, p in assignment]))))
-    decided = _decisive(explaining)
-    return decided if decided is not None else []
+            explained += p
+            taken = taken or (pairs[len(certain):], p)
+    return taken[0] if taken is not None and taken[1] >= _COVERED * explained else []
 
 
 def _decisive(fitting: list[tuple[Option, float]]) -> Option | None:
