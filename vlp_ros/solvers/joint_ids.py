@@ -26,9 +26,9 @@ Against the certain lamps' pose, a candidate is solved only if that pose, moved 
 same Mahalanobis distance, can see it within a few of its radii of the detected lamp: a joint pose
 that coincides with the certain one sees any other candidate (another lamp of the map, typically a
 metre or more away) where no lamp is, and cannot explain the image, so its solve is spared. Open lamps
-that each leave one candidate so are first solved together: a pose near the certain one that explains them
-all settles them all (each one's own solve, with the lamps settled before it, would find it fitting), and
-only when none does is each solved in turn.
+that each leave one candidate so are first solved together: a pose near the certain one that explains every
+lamp with those IDs settles them all at once (the rule itself, one solve instead of one per lamp), and only
+when none does is each solved in turn.
 
 Certain IDs are held to the same rule. Two lamps that claim one ID (a lamp not in the map whose
 tone, 2 % off, lies in a mapped lamp's band) are both reopened, and so is the one lamp without
@@ -205,7 +205,7 @@ def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, 
     Return the open lamps settled one after the other against ``anchor``, each with the lamps settled before it.
 
     When each of several open lamps leaves one candidate within reach, and one pose near the anchor explains
-    them all at once, each one's own solve would find its candidate fitting too: they are settled by that solve.
+    them all with those candidates, they are settled by that one solve.
     """
     reachable = [[(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior)
                   if camera is None or _within_reach(open_lamp.observation, lamp, anchor.pose, camera)]
