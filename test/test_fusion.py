@@ -132,3 +132,14 @@ def test_lamps_evaluated_together_give_each_lamps_residuals(markers) -> None:
         # Residuals are in sigmas: a millionth of one changes no fit.
         np.testing.assert_allclose(residuals, np.concatenate([rim_parts, marker_parts]), rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(joint_jacobian, jacobian, rtol=1e-6, atol=1e-6 * np.abs(jacobian).max())
+
+
+def test_each_frame_is_solved_from_its_own_observations() -> None:
+    # Frames one after another, the same lamps and camera, the camera moved a centimetre each time: every
+    # pose is its frame's own, though the observations of frames gone leave their memory to new ones.
+    camera, lamps = camera_wide(), grid_lamps(3)
+    for k in range(40):
+        truth = looking_up((0.5 + 0.01 * k, 0.4, 0.45), (0.1, -0.15, 0.3))
+        choice = solve_lamps([(observe(lamp, truth, camera, with_marker=True), lamp) for lamp in lamps], camera,
+                             NO_HINTS)
+        assert choice.pose.position_error(truth) < 1e-6

@@ -189,3 +189,60 @@ def test_against_the_certain_pose_only_candidates_it_can_see_where_the_lamp_is_a
     assert asked == [3]
     # Without the camera both are solved, and a pose that explains anything leaves the lamp open.
     assert settle(certain, [lamp], anywhere) == []
+
+
+def test_open_lamps_each_with_one_candidate_in_reach_are_settled_by_one_solve_of_them_all() -> None:
+    # The certain lamps' pose sees lamp 3 where one open lamp is and lamp 4 where the other is; each
+    # lamp's other candidate lies over a hundred pixels off. One pose near the certain one that explains
+    # both settles both; where none does, each is tried on its own.
+    camera = bare_led_scenario('1080p', photos=1, seed=1).camera
+    anchor_pose = Pose(np.eye(3), np.zeros(3), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
+    observation = _observation()
+
+    def seen_as(lamp_id: int) -> LampObservation:
+        seen_at = camera.project(anchor_pose.map_to_camera(_lamp(lamp_id).position))[0]
+        return replace(observation, ellipse=np.array([*seen_at, *observation.ellipse[2:]]))
+
+    certain = [(observation, _lamp(1)), (observation, _lamp(2))]
+    lamps = [OpenLamp(seen_as(3), (_lamp(3), _lamp(4)), (0.9, 0.1)),
+             OpenLamp(seen_as(4), (_lamp(4), _lamp(3)), (0.8, 0.2))]
+    asked = []
+
+    def anywhere(pairs) -> Choice:
+        asked.append([lamp.id for _, lamp in pairs[2:]])
+        return Choice(anchor_pose, Reason.MULTI_LAMP)
+
+    assert [lamp.id for _, lamp in settle(certain, lamps, anywhere, camera)] == [3, 4]
+    # The first solve is the certain lamps' own.
+    assert asked == [[], [3, 4]]
+    asked.clear()
+
+    def without_four(pairs) -> Choice:
+        asked.append([lamp.id for _, lamp in pairs[2:]])
+        return Choice(None if any(lamp.id == 4 for _, lamp in pairs) else anchor_pose, Reason.MULTI_LAMP)
+
+    assert [lamp.id for _, lamp in settle(certain, lamps, without_four, camera)] == [3]
+    assert asked == [[], [3, 4], [3], [3, 4]]
+
+
+def test_without_a_certain_pose_assignments_too_improbable_to_change_the_outcome_are_not_solved() -> None:
+    observation = _observation()
+    right = (3, 5, 7)
+    asked = []
+
+    def fits_right(pairs) -> Choice:
+        asked.append(tuple(lamp.id for _, lamp in pairs))
+        return Choice(Pose(np.eye(3), np.zeros(3)) if asked[-1] == right else None, Reason.MULTI_LAMP)
+
+    def read(p_right: float) -> list[OpenLamp]:
+        # Discs: three point lamps alone would explain any assignment.
+        return [OpenLamp(observation, (replace(_lamp(r), radius=0.075), replace(_lamp(r + 1), radius=0.075)),
+                         (p_right, 1.0 - p_right)) for r in right]
+
+    # The right assignment holds all but 3e-6 of the posterior: no other can outweigh it.
+    assert [lamp.id for _, lamp in settle([], read(1.0 - 1e-6), fits_right)] == list(right)
+    assert asked == [right]
+    asked.clear()
+    # Read at 0.99 each, the others hold 3 %: all are solved but the least probable (1e-6 of the posterior).
+    assert [lamp.id for _, lamp in settle([], read(0.99), fits_right)] == list(right)
+    assert len(asked) == 2 ** len(right) - 1 and (4, 6, 8) not in asked

@@ -22,6 +22,7 @@ import numpy as np
 # scipy.special, not scipy.stats: the same F quantile without scipy.stats' import time at start.
 from scipy.special import fdtri
 
+from vlp_ros.compiled import kernel
 from vlp_ros.core.observation import LampObservation
 
 # Rows within this share of the lamp's half height from its centre are tested: beyond it, a disc's chord
@@ -61,26 +62,49 @@ def box_shows_no_modulation(image: np.ndarray, bbox: tuple[int, int, int, int], 
     band = image[top:bottom, x0:x0 + (x1 - x0) // 2 * 2]
     if band.ndim == 3:
         band = band[..., int(np.argmax(band[len(band) // 2].max(axis=0)))]
-    even, odd = band[:, 0::2].sum(axis=1, dtype=np.float64), band[:, 1::2].sum(axis=1, dtype=np.float64)
-    signal = _curvature_energy(even + odd)
-    noise = _curvature_energy(even - odd)
+    signal, noise = _row_energies(band)
     if not noise > 0.0:
         return False
     return signal / noise < _steady_quantile(bottom - top - ORDER - 2)
 
 
+@kernel
+def _row_energies(band: np.ndarray) -> tuple[float, float]:
+    """
+    Return the curvature energies (``_curvature_energy``) of the band's row sums and of its even less odd columns.
+
+    ``band`` (rows, an even number of columns) is one channel.
+    """
+    rows, columns = band.shape
+    sums, parities = np.empty(rows), np.empty(rows)
+    for row in range(rows):
+        even = odd = 0.0
+        for column in range(0, columns, 2):
+            even += band[row, column]
+            odd += band[row, column + 1]
+        sums[row], parities[row] = even + odd, even - odd
+    return _curvature_energy(sums), _curvature_energy(parities)
+
+
+@kernel
 def _curvature_energy(values: np.ndarray) -> float:
-    """Sum of the squared second differences of ``values`` off their least-squares line."""
-    differences = np.diff(values, ORDER)
-    along = _centred_positions(len(differences))
-    line = differences.mean(), (along @ differences) / (along @ along)
-    differences = differences - line[0] - along * line[1]
-    return float(differences @ differences)
-
-
-@lru_cache(maxsize=512)
-def _centred_positions(count: int) -> np.ndarray:
-    return np.arange(count) - 0.5 * (count - 1)
+    """Sum of the squared ``ORDER``-th differences of ``values`` off their least-squares line."""
+    differences = values.copy()
+    for _ in range(ORDER):
+        differences = differences[1:] - differences[:-1]
+    count = differences.size
+    mean = differences.mean()
+    moment = spread = 0.0
+    for i in range(count):
+        along = i - 0.5 * (count - 1)
+        moment += along * differences[i]
+        spread += along * along
+    slope = moment / spread
+    energy = 0.0
+    for i in range(count):
+        left = differences[i] - mean - (i - 0.5 * (count - 1)) * slope
+        energy += left * left
+    return energy
 
 
 @lru_cache(maxsize=512)

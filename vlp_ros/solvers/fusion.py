@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
+import threading
 
 import cv2
 import numpy as np
@@ -59,6 +60,12 @@ _PROBE_RIM_POINTS = 16
 _PROBE_ITERATIONS = 10
 _HOPELESS_FACTOR = 100.0
 _PNP_MIN_LAMPS = 4
+# The latest disc lamps' measurements (and their thinned copies), by the identity of their observation, lamp and
+# camera: the solves of one frame (each ID tried with the geometry is a solve of most of the same lamps) build
+# each once. An entry holds those three objects, so their ids are not reused while it is kept.
+_MEASURED: dict[tuple[int, int, int], tuple[object, ...]] = {}
+_MEASURED_KEPT = 32
+_MEASURED_LOCK = threading.Lock()
 
 
 def solve_lamps(pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel,
@@ -164,14 +171,15 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
     ``up_directions`` (camera frame, measured or not) start poses from two point lamps;
     ``level_directions`` (the floor's) from the two lamp centres, discs or points, farthest apart in the image.
     """
-    discs = [LampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if not lamp.is_point]
+    measured = [_measured(obs, lamp, camera) for obs, lamp in pairs if not lamp.is_point]
+    discs = [measurement for measurement, _ in measured]
     points = [PointLampMeasurement.from_observation(obs, lamp, camera) for obs, lamp in pairs if lamp.is_point]
     measurements = [*discs, *points]
     if sum(m.residual_count for m in (*measurements, *up)) < 6:
         return []
     starts = _starts(discs, points, level_directions) + point_starts(points, list(up_directions))
     # Joined once: every start is scored and probed on it.
-    coarse = [LampMeasurements((*(m.thinned(_PROBE_RIM_POINTS) for m in measurements), *up))]
+    coarse = [LampMeasurements((*(thinned for _, thinned in measured), *points, *up))]
     reached: list[tuple[Pose, float]] = []
 
     def known_or_hopeless(pose: Pose, cost: float) -> bool:
@@ -188,6 +196,22 @@ def joint_candidates(pairs: list[tuple[LampObservation, Lamp]], camera: CameraMo
     refined = (refine_pose(pose, measurements, up) for pose, _ in reached)
     return distinct([candidate for candidate in refined
                      if candidate is not None and seen_from_below(candidate.pose, points)])
+
+
+def _measured(observation: LampObservation, lamp: Lamp,
+              camera: CameraModel) -> tuple[LampMeasurement, LampMeasurement]:
+    """Return the disc lamp's measurement and its copy thinned for probing, built once while kept in ``_MEASURED``."""
+    key = (id(observation), id(lamp), id(camera))
+    with _MEASURED_LOCK:
+        entry = _MEASURED.get(key)
+    if entry is None:
+        measurement = LampMeasurement.from_observation(observation, lamp, camera)
+        entry = (observation, lamp, camera, measurement, measurement.thinned(_PROBE_RIM_POINTS))
+        with _MEASURED_LOCK:
+            while len(_MEASURED) >= _MEASURED_KEPT:
+                del _MEASURED[next(iter(_MEASURED))]
+            _MEASURED[key] = entry
+    return entry[3], entry[4]
 
 
 def _starts(discs: list[LampMeasurement], points: Sequence[PointLampMeasurement] = (),

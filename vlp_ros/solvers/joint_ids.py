@@ -10,11 +10,12 @@ explains the image and coincides with the certain lamps' pose within their covar
 lamp is identified only if the candidates that do leave all but 1e-4 of their readings' posterior
 to one (two lamps cannot stand at one place of the ceiling, so a second candidate that fits is a
 map or geometry that cannot tell them apart; then only the reading can). When the certain lamps
-give no pose (too few of them), every assignment of the open lamps' candidates is solved (residuals
+give no pose (too few of them), the assignments of the open lamps' candidates are solved (residuals
 to spare: at least two more than the pose needs, since three point lamps alone explain any
 assignment exactly; with more than 27 assignments, those of the most certain lamps, the others
 then settled against their pose), and one is taken only if it holds all but 1e-4 of the posterior (the product
-of its lamps' readings: they are independent) of the assignments that explain the image, and only
+of its lamps' readings: they are independent) of the assignments that explain the image (solved most
+probable first, until those left hold too little posterior to change the outcome), and only
 when the candidates tried hold all but 1e-4 of each open lamp's posterior: the pose is then the
 assignment's own, and on a symmetric map a wrong assignment is explained by a pose turned about the
 lamps as well as the right one is (a disc without its marker leaves the yaw free), or moved by one
@@ -24,7 +25,10 @@ tried, and the readings must tell it from the others that fit.
 Against the certain lamps' pose, a candidate is solved only if that pose, moved anywhere within the
 same Mahalanobis distance, can see it within a few of its radii of the detected lamp: a joint pose
 that coincides with the certain one sees any other candidate (another lamp of the map, typically a
-metre or more away) where no lamp is, and cannot explain the image, so its solve is spared.
+metre or more away) where no lamp is, and cannot explain the image, so its solve is spared. Open lamps
+that each leave one candidate so are first solved together: a pose near the certain one that explains every
+lamp with those IDs settles them all at once (the rule itself, one solve instead of one per lamp), and only
+when none does is each solved in turn.
 
 Certain IDs are held to the same rule. Two lamps that claim one ID (a lamp not in the map whose
 tone, 2 % off, lies in a mapped lamp's band) are both reopened, and so is the one lamp without
@@ -197,11 +201,24 @@ def _within_budget(lamps: list[OpenLamp]) -> tuple[list[OpenLamp], list[OpenLamp
 
 def _settled_by_pose(certain: list[Pair], lamps: list[OpenLamp], solve: Solver, anchor: Choice,
                      camera: CameraModel | None) -> list[Pair]:
+    """
+    Return the open lamps settled one after the other against ``anchor``, each with the lamps settled before it.
+
+    When each of several open lamps leaves one candidate within reach, and one pose near the anchor explains
+    them all with those candidates, they are settled by that one solve.
+    """
+    reachable = [[(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior)
+                  if camera is None or _within_reach(open_lamp.observation, lamp, anchor.pose, camera)]
+                 for open_lamp in lamps]
+    alone = [(open_lamp.observation, options[0][0]) for open_lamp, options in zip(lamps, reachable)
+             if len(options) == 1]
+    if len(alone) == len(lamps) > 1 and len({lamp.id for _, lamp in alone}) == len(alone) \
+            and _explained_near(solve([*certain, *alone]), anchor):
+        return alone
     settled: list[Pair] = []
-    for open_lamp in lamps:
+    for open_lamp, options in zip(lamps, reachable):
         used = {lamp.id for _, lamp in settled}
-        fitting = [(lamp, p) for lamp, p in zip(open_lamp.candidates, open_lamp.posterior) if lamp.id not in used
-                   and (camera is None or _within_reach(open_lamp.observation, lamp, anchor.pose, camera))
+        fitting = [(lamp, p) for lamp, p in options if lamp.id not in used
                    and _explained_near(solve([*certain, *settled, (open_lamp.observation, lamp)]), anchor)]
         decided = _decisive(fitting)
         if decided is not None:
@@ -242,15 +259,24 @@ def _settled_by_assignment(certain: list[Pair], lamps: list[OpenLamp], solve: So
     options = [[((o.observation, lamp), p) for lamp, p in zip(o.candidates, o.posterior)] for o in lamps]
     if not options or min(o.coverage for o in lamps) < _COVERED:
         return []
-    explaining = []
+    tried = []
     for assignment in itertools.product(*options):
         pairs = [*certain, *(pair for pair, _ in assignment)]
         if len({lamp.id for _, lamp in pairs}) < len(pairs) or _residuals(pairs) < 6 + _SPARE_RESIDUALS:
             continue
+        tried.append((pairs, float(np.prod([p for _, p in assignment]))))
+    # Most probable first: the first that explains the image is the one that may be taken, and it is (or is
+    # not) once the posterior of those not solved yet cannot change that.
+    tried.sort(key=lambda item: -item[1])
+    unsolved = np.cumsum([p for _, p in tried][::-1])[::-1]
+    taken, explained = None, 0.0
+    for (pairs, p), left in zip(tried, unsolved):
+        if taken is not None and not _COVERED * explained <= taken[1] < _COVERED * (explained + left):
+            break
         if solve(pairs).pose is not None:
-            explaining.append(([pair for pair, _ in assignment], float(np.prod([p for _, p in assignment]))))
-    decided = _decisive(explaining)
-    return decided if decided is not None else []
+            explained += p
+            taken = taken or (pairs[len(certain):], p)
+    return taken[0] if taken is not None and taken[1] >= _COVERED * explained else []
 
 
 def _decisive(fitting: list[tuple[Option, float]]) -> Option | None:
