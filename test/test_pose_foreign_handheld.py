@@ -1,5 +1,5 @@
 """
-The independent renderer's hand-held 4K stills with their IMU (foreign_frames/README.md), through the locator's pipeline.
+The independent renderer's hand-held 4K stills with their IMU (foreign_frames/README.md), through the pipeline.
 
 One 11 cm lamp 2 m above the camera, blurred, glaring and brighter in the middle, as JPEG; each still comes with
 the IMU's specific force (0.5 degree of noise). The rim's shape is what the optics bend, so the tilt is weighed
