@@ -7,6 +7,7 @@ lamps tilt away from.
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from solver_scenes import camera_4k, camera_wide, grid_lamps, looking_up, measured_up, observe, small_lamp
 
 from vlp_ros.core.pose import Pose
@@ -178,3 +179,25 @@ def test_a_bent_rim_and_an_imu_of_like_accuracy_are_each_weighed_by_what_it_know
     assert all(f <= max(r, g) + np.radians(0.02) for f, r, g in zip(fused, rim_only, gravity))
     assert np.mean(fused) < min(np.mean(rim_only), np.mean(gravity))
     assert 2.0 <= np.mean(nees_fused) <= 10.0 and sum(e > 22.46 for e in nees_fused) <= 1
+
+
+def test_one_lamps_range_is_as_uncertain_as_its_edges_prior_of_its_size() -> None:
+    # A rim drawn inside the edge by the edge's own prior of its patterns moves one lamp's range by what
+    # that prior allows, once: the lamp's size mode and the common rim offset are one and the same doubt.
+    lamp = small_lamp((0.3, 0.2, 2.0))
+    truth = looking_up((0.0, 0.0, 0.0), (0.12, -0.1, 0.4))
+    prior_px = 0.1
+    up = UpMeasurement(truth.up_in_camera(), np.radians(0.1))
+
+    def solved(inside_px: float) -> Pose:
+        observation = observe(lamp, truth, camera_4k(), rim_count=200, rim_sigma=0.1, marker_sigma=0.3)
+        observation = replace(_drawn_inside(observation, inside_px), rim_model_sigma=prior_px)
+        return min(solve_lamp(observation, lamp, camera_4k(), [up]), key=lambda c: c.pose.position_error(truth)).pose
+
+    exact, drawn_inside = solved(0.0), solved(prior_px)
+    line_of_sight = lamp.position - exact.position
+    line_of_sight /= np.linalg.norm(line_of_sight)
+    moved = abs((drawn_inside.position - exact.position) @ line_of_sight)
+    range_sigma = np.sqrt(line_of_sight @ exact.covariance[:3, :3] @ line_of_sight)
+    assert moved > 1e-3
+    assert range_sigma == pytest.approx(moved, rel=0.15)

@@ -69,7 +69,7 @@ PARAMETERS = (
     ParameterSpec('imu.max_age', 'number', 0.1,
                   'an IMU message older than this (s) at the image stamp is not used'),
     ParameterSpec('imu.tolerance', 'number', 0.35, 'largest angle (rad) between a pose and measured gravity'),
-    ParameterSpec('imu.sigma', 'number', 0.01,
+    ParameterSpec('imu.sigma', 'number', 0.005,
                   "standard deviation (rad) of the IMU's up direction; > 0 makes gravity a measurement in the pose "
                   'fit, 0 only a gate'),
     ParameterSpec('continuity.gate', 'number', 0.3,

@@ -256,8 +256,10 @@ def allow_for_model_error(residuals: np.ndarray, jacobian: np.ndarray, rim_sigma
     elif mode_prior_sigma is not None and len(mode_prior_sigma) and mode_prior_sigma.max() > 0.0:
         # One lamp whose edge measured its modes: its own offset mode, marginalised with that prior, holds
         # what its size may be off by (a rim put at the profile model's edge: 0.003-0.15 px where its points
-        # scatter by 0.03-0.2 px); the common offset adds no more.
-        offset_sigma = min(offset_sigma, max(float(mode_prior_sigma.max()), MIN_OFFSET_SIGMA_PX))
+        # scatter by 0.03-0.2 px). The common offset is the same column of the fit: a prior on it as well
+        # would count that doubt twice (range 1.4 times as uncertain: on the independent renderer's hand-held
+        # stills the range was within 0.1-0.4 of its sigma even counted once), so it is held.
+        offset_sigma = MIN_OFFSET_SIGMA_PX
     step, covariance, fit_covariance = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
     fitted = _model_error_fit(
         np.ascontiguousarray(residuals, dtype=float), np.ascontiguousarray(jacobian, dtype=float),
