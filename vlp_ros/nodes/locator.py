@@ -60,8 +60,10 @@ from vlp_ros.pipeline.frame import FrameResult, Pipeline
 from vlp_ros.pipeline.frame_stats import FrameStats
 
 THROTTLE_S = 5.0
-# glibc's mallopt parameter (malloc.h).
-_M_ARENA_MAX = -8
+# glibc's mallopt parameters (malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
+# Every block up to a 4K bgr8 frame's 25 MB comes from the heap, and the heap keeps up to five such frames free.
+_HEAP_BLOCK_LIMIT, _HEAP_KEPT_FREE = 32 << 20, 128 << 20
 # How often the start checks whether the kernels are ready or being compiled.
 _WARM_UP_POLL_S = 0.05
 
@@ -216,6 +218,7 @@ class Locator(Node):
             self.get_logger().info(f'compiled kernels ready in {time.monotonic() - started:.1f} s')
         finally:
             keep_start_objects_out_of_collections()
+            keep_frames_in_the_heap()
             self._kernels_ready.set()
 
     def _subscribe(self) -> None:
@@ -293,21 +296,30 @@ class Locator(Node):
 
     def _decode(self) -> None:
         """Decode the newest frame so that it is ready when the worker is expected to be free."""
-        while True:
-            with self._wake:
-                while self._running and (delay := self._decode_delay()) != 0.0:
-                    self._wake.wait(0.5 if delay is None else delay)
-                if not self._running:
-                    return
-                (raw, received), self._pending = self._pending, None
-            started = time.monotonic()
-            decoded = self._guarded(self._decoded_frame, raw, received)
-            self._decode_times.add(time.monotonic() - started)
-            if decoded is None:
-                continue
+        while self._decode_next():
+            pass
+
+    def _decode_next(self) -> bool:
+        """
+        Decode the next frame when it is due; whether the node still runs.
+
+        A function of its own so that nothing refers to the frame's bytes once it returns: a loop's variables
+        would hold the last frame (25 MB at 4K raw) while the decoder waits for the next.
+        """
+        with self._wake:
+            while self._running and (delay := self._decode_delay()) != 0.0:
+                self._wake.wait(0.5 if delay is None else delay)
+            if not self._running:
+                return False
+            (raw, received), self._pending = self._pending, None
+        started = time.monotonic()
+        decoded = self._guarded(self._decoded_frame, raw, received)
+        self._decode_times.add(time.monotonic() - started)
+        if decoded is not None:
             with self._wake:
                 self._decoded = decoded
                 self._wake.notify_all()
+        return True
 
     def _decode_delay(self) -> float | None:
         """
@@ -326,18 +338,23 @@ class Locator(Node):
 
     def _work(self) -> None:
         self._warm_up()
-        while True:
-            with self._wake:
-                if not self._next(lambda: self._decoded is not None):
-                    return
-                frame, self._decoded = self._decoded, None
-                self._busy_since = time.monotonic()
-                self._wake.notify_all()
-            self._guarded(self._process, frame)
-            with self._wake:
-                self._process_times.add(time.monotonic() - self._busy_since)
-                self._busy_since = None
-                self._wake.notify_all()
+        while self._process_next():
+            pass
+
+    def _process_next(self) -> bool:
+        """Process and publish the next decoded frame; whether the node still runs. Holds no frame once it returns."""
+        with self._wake:
+            if not self._next(lambda: self._decoded is not None):
+                return False
+            frame, self._decoded = self._decoded, None
+            self._busy_since = time.monotonic()
+            self._wake.notify_all()
+        self._guarded(self._process, frame)
+        with self._wake:
+            self._process_times.add(time.monotonic() - self._busy_since)
+            self._busy_since = None
+            self._wake.notify_all()
+        return True
 
     def _guarded(self, step: Callable, *args):
         """Return ``step(*args)``; None, the frame dropped and counted, after an internal error."""
@@ -459,15 +476,29 @@ def bound_malloc_arenas() -> None:
     """
     Let glibc keep two malloc arenas, before rclpy starts its threads, instead of one per thread that allocates.
 
-    glibc raises its mmap threshold to the size of each large block freed (up to 32 MB), so frame-sized blocks
-    (the message's bytes, DDS's reassembled sample, the pipeline's temporaries) are reused from the heap without
-    the page faults of a fresh mapping; each arena keeps what it freed resident, so two bound it. Mapping every
-    block of 1 MB or more on its own instead (a fixed threshold) saved 20-45 MB of peak resident memory under raw
-    4K frames but lost half of those frames to the page faults (docs/benchmarks.md, "Camera rate through the
-    locator").
+    Each arena keeps what it freed resident (see ``keep_frames_in_the_heap``), so two bound the frames kept.
     """
+    _set_malloc_option(_M_ARENA_MAX, 2)
+
+
+def keep_frames_in_the_heap() -> None:
+    """
+    Take frame-sized blocks from the heap and keep them there once freed, after the kernels are loaded.
+
+    A frame passes through several blocks of its size (DDS's reassembled sample, the message's bytes, the
+    pipeline's temporaries). Mapped afresh, or returned to the system when freed at the heap's top, each is
+    faulted in again page by page: under raw 4K frames, 2-3 million page faults a run and bursts of frames
+    over their time. glibc's own threshold only rises after a mapped block is freed and its trim threshold
+    follows at twice that, under two frames; fixed, they keep every frame's blocks resident for the next. Set
+    after the kernels load so that the start's (numba's and LLVM's) allocations keep glibc's defaults.
+    """
+    _set_malloc_option(_M_MMAP_THRESHOLD, _HEAP_BLOCK_LIMIT)
+    _set_malloc_option(_M_TRIM_THRESHOLD, _HEAP_KEPT_FREE)
+
+
+def _set_malloc_option(option: int, value: int) -> None:
     try:
-        ctypes.CDLL(None).mallopt(_M_ARENA_MAX, 2)
+        ctypes.CDLL(None).mallopt(option, value)
     except (OSError, AttributeError):  # not glibc: its allocator is left as it is
         pass
 
