@@ -8,7 +8,7 @@ from conftest import ROOT
 
 # The frame is handed to the node's image callback as the executor hands it (the serialised message), so the test
 # holds the only other reference to its bytes; the node is in a process of its own (it sets process-wide options).
-ONE_FRAME = '''
+ONE_FRAME = """
 import sys, time
 import numpy as np
 import rclpy
@@ -33,7 +33,7 @@ time.sleep(0.5)
 print('processed', node.stats.processed, 'held by the node', sys.getrefcount(raw) - held)
 node.destroy_node()
 rclpy.shutdown()
-'''
+"""
 
 
 def test_an_answered_frame_is_not_held_while_the_locator_waits() -> None:

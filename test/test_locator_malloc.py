@@ -8,7 +8,7 @@ from conftest import ROOT
 
 # Three 4K bgr8 frames' worth of blocks (a frame's sample, bytes and pixels) taken and freed each round, as the
 # locator does per frame; page faults counted over the rounds after the first.
-FAULTS_PER_ROUND = '''
+FAULTS_PER_ROUND = """
 import resource, sys
 import numpy as np
 from vlp_ros.nodes import locator
@@ -25,7 +25,7 @@ before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for _ in range(10):
     one_round()
 print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 10)
-'''
+"""
 
 
 def faults_per_round(allocator: str) -> float:
