@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import erfc
 
 from vlp_ros.beacon.encoding import packet_waveform
-from vlp_ros.beacon.steady import box_shows_no_modulation, shows_no_modulation
+from vlp_ros.beacon.steady import box_shows_no_modulation
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.ellipse import conic_from_ellipse, fit_ellipse, geometric_distances
 from vlp_ros.core.lamp_map import Lamp
@@ -177,7 +177,7 @@ def test_the_pipeline_tests_a_clipped_steady_lamp_once_for_detection_and_reading
     lamp = only(detect_lamps(steady.image, steady=test))
     assert len(asked) == 1
     assert test(lamp.bbox, lamp.ellipse) and len(asked) == 1
-    assert shows_no_modulation(steady.image, lamp)
+    assert box_shows_no_modulation(steady.image, lamp.bbox, lamp.ellipse)
     # Another box is tested on its own.
     shifted = lamp.ellipse + np.array([1.0, 0.0, 0.0, 0.0, 0.0])
     assert test(lamp.bbox, shifted) == box_shows_no_modulation(steady.image, lamp.bbox, shifted) and len(asked) == 2
@@ -202,7 +202,7 @@ def test_a_clipped_steady_lamp_of_any_look_lies_within_its_sigma_and_is_not_read
         assert np.all(np.abs(observed.center - frame.truth(lamp.lamp.id).ellipse[:2]) < 3.0 * observed.center_sigma)
         # The pipeline's own test of the lamp it is given agrees with the detector's: its beacon is not read. (JPEG's
         # blocks are noise the test does not model: they may make a steady lamp look modulated, and it is then read.)
-        assert shows_no_modulation(image, observed) or quality is not None
+        assert box_shows_no_modulation(image, observed.bbox, observed.ellipse) or quality is not None
 
 
 def test_every_lamp_of_a_frame_is_found_once():

@@ -60,7 +60,6 @@ class FrameResult:
     outcome: str
     decoded_ids: list[int] = field(default_factory=list)
     unknown_ids: int = 0
-    lamps_detected: int = 0
     detail: str = ''
     seen: list[SeenLamp] = field(default_factory=list)
 
@@ -270,10 +269,10 @@ def frame_result(choice: Choice | None, pairs: list[tuple[LampObservation, Lamp]
     unknown = sum(r.unknown for r in readings)
     decoded = [lamp.id for _, lamp in pairs]
     if choice is None:
-        return FrameResult(None, UNKNOWN_ID if unknown else NO_ID, decoded, unknown, len(readings), seen=seen)
+        return FrameResult(None, UNKNOWN_ID if unknown else NO_ID, decoded, unknown, seen=seen)
     if choice.pose is None:
-        return FrameResult(None, choice.reason.value, decoded, unknown, len(readings), choice.detail, seen)
-    return FrameResult(choice.pose, 'pose', decoded, unknown, len(readings), choice.reason.value, seen)
+        return FrameResult(None, choice.reason.value, decoded, unknown, choice.detail, seen)
+    return FrameResult(choice.pose, 'pose', decoded, unknown, choice.reason.value, seen)
 
 
 def disambiguation_hints(settings: LocatorSettings, recent: tuple[Pose, float] | None, stamp: float,
