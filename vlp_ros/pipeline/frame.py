@@ -128,17 +128,6 @@ class Pipeline:
                             for obs in observations]
         return observations, readings, ids
 
-    def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
-               gravity_up: np.ndarray | None = None) -> Choice:
-        """
-        Return the pose from identified lamps of the frame at ``stamp``, which then continues (or restarts) the track.
-
-        ``process`` after detection and identification.
-        """
-        choice = self._solve(pairs, camera, stamp, gravity_up)
-        self._continue_track(choice, stamp)
-        return choice
-
     def _continue_track(self, choice: Choice, stamp: float) -> None:
         if choice.pose is not None:
             self._recent = (choice.pose, stamp)
