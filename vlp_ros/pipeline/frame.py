@@ -247,7 +247,7 @@ class Pipeline:
 
 def identified_pairs(observations: list[LampObservation], ids: list[int | None],
                      lamps: LampMap) -> list[tuple[LampObservation, Lamp]]:
-    """The (observation, lamp) pairs of the lamps identified as ``ids`` in ``lamps`` that the solvers can use."""
+    """Return the (observation, lamp) pairs of the lamps identified as ``ids`` that the solvers can use."""
     return [(obs, lamps.get(i)) for obs, i in zip(observations, ids)
             if i is not None and i in lamps and solvable(obs, lamps.get(i))]
 
