@@ -44,7 +44,7 @@ MATCH_SETTLE_S = 0.3  # see _wait_for_subscribers
 FRAME_SUBSCRIBER_WAIT_S = 10.0  # deterministic mode: for the frame topics' first subscriber
 ACK_WAIT_S = 4.0  # at the end, for reliable subscribers' acknowledgements (they follow 3 s heartbeats)
 PROGRESS_PERIOD_S = 0.5
-PROGRESS_FORMAT = 'replay: {desc}, {n:.1f}/{total:.1f} s ({percentage:.0f}%) |{bar}| {elapsed}<{remaining}'
+PROGRESS_FORMAT = 'replay: {desc}, {n:.1f}/{total:.1f} s ({percentage:.0f}%) |{bar}|'
 SPIN_SLICE_S = 0.05
 # Answers only need to arrive; best effort matches publishers of either reliability.
 ANSWER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -186,7 +186,8 @@ class Replay(Node):
                 self.create_timer(1.0 / self.options.clock,
                                   lambda: clock.publish(Clock(clock=Time(nanoseconds=self._bag_now_ns()).to_msg())))
             # A terminal shows a progress bar; a log gets the opening and closing lines only.
-            with tqdm(total=(bag.end_ns - origin) / 1e9, bar_format=PROGRESS_FORMAT, disable=None) as bar:
+            with tqdm(desc=f'0/{self._total} messages', total=(bag.end_ns - origin) / 1e9,
+                      bar_format=PROGRESS_FORMAT, disable=None) as bar:
                 shown = self.create_timer(PROGRESS_PERIOD_S, lambda: self._show_progress(bar, origin, bag.end_ns))
                 if self.options.deterministic:
                     self._prepare_answers(bag, names)
@@ -197,8 +198,9 @@ class Replay(Node):
                     self._play_pass(bag, origin)
                     if self._tally.shortfall() or not self.options.loop:
                         break
-                self._wait_for_acknowledgements()
                 self.destroy_timer(shown)
+                self._show_progress(bar, origin, bag.end_ns)
+                self._wait_for_acknowledgements()
         self._print(self._summary(time.monotonic() - started))
         for topic, (read, announced) in self._tally.surplus().items():
             self.get_logger().warning(f'{topic}: the storage held {read} messages where metadata.yaml '
