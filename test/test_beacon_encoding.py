@@ -1,9 +1,21 @@
-"""The beacon contract: packets as chips, their hard-decision inverse, and the light they make."""
+"""The beacon contract: packets as chips, read back by the packet decoder, and the light they make."""
+from beacon_scenes import flat_profile
 import numpy as np
 import pytest
 
-from vlp_ros.beacon.encoding import (decode_chips, packet_bits, packet_chips, packet_length, packet_waveform, PREAMBLE,
-                                     tone_waveform)
+from vlp_ros.beacon.encoding import (packet_bits, packet_chips, packet_length, packet_waveform, PREAMBLE,
+                                     tone_waveform, Waveform)
+from vlp_ros.beacon.packet import decode_packet
+
+ROW_TIME = 2e-5
+CHIP_RATE = 1.0 / (5 * ROW_TIME)  # five rows a chip
+EXPOSURE = 3e-5
+
+
+def read_back(waveform: Waveform, id_bits: int = 8, start: float = 0.0) -> int | None:
+    """Return the ID the packet decoder reads from two packets' clean rows of ``waveform``."""
+    profile = flat_profile(waveform, 2 * 5 * packet_length(id_bits), ROW_TIME, EXPOSURE, start)
+    return decode_packet(profile, CHIP_RATE, ROW_TIME, id_bits).lamp_id
 
 
 @pytest.mark.parametrize('id_bits', [1, 4, 8, 12])
@@ -12,7 +24,7 @@ def test_every_id_round_trips(id_bits):
     for lamp_id in ids:
         chips = packet_chips(lamp_id, id_bits)
         assert len(chips) == packet_length(id_bits)
-        assert decode_chips(chips, id_bits) == lamp_id
+        assert read_back(packet_waveform(lamp_id, CHIP_RATE, 0.7, id_bits), id_bits) == lamp_id
 
 
 def test_packet_layout_is_preamble_then_manchester_msb_first_with_even_parity():
@@ -26,38 +38,25 @@ def test_packet_layout_is_preamble_then_manchester_msb_first_with_even_parity():
 
 
 def test_back_to_back_packets_decode_from_any_start():
-    stream = np.tile(packet_chips(201), 4)
-    for start in range(24):
-        assert decode_chips(stream[start:start + 48]) == 201
+    wave = packet_waveform(201, CHIP_RATE, 0.7)
+    assert {read_back(wave, start=k / CHIP_RATE) for k in range(24)} == {201}
 
 
-def test_no_complete_packet_gives_none():
-    stream = np.tile(packet_chips(77), 2)
-    assert decode_chips(stream[3:26]) is None
-    assert decode_chips(np.zeros(30, dtype=int)) is None
-
-
-def test_manchester_violation_gives_none():
+@pytest.mark.parametrize('spoilt', ['manchester', 'parity', 'two ids'])
+def test_chips_that_no_packet_makes_give_no_id(spoilt):
     chips = packet_chips(77)
-    chips[9] = chips[8]
-    assert decode_chips(chips) is None
+    if spoilt == 'manchester':
+        chips[9] = chips[8]
+    elif spoilt == 'parity':
+        chips[8:10] = 1 - chips[8:10]  # a valid Manchester pair, but the other bit
+    else:
+        chips = np.concatenate([packet_chips(5), packet_chips(6)])
+    assert read_back(Waveform(chips, CHIP_RATE, 0.7)) is None
 
 
-def test_parity_violation_gives_none():
-    chips = packet_chips(77)
-    chips[8:10] = 1 - chips[8:10]  # a valid Manchester pair, but the other bit
-    assert decode_chips(chips) is None
-
-
-def test_packets_that_disagree_give_none():
-    assert decode_chips(np.concatenate([packet_chips(5), packet_chips(6)])) is None
-
-
-def test_bad_inputs_are_rejected():
+def test_ids_beyond_the_bits_are_rejected():
     with pytest.raises(ValueError, match='does not fit'):
         packet_chips(256)
-    with pytest.raises(ValueError, match='0 or 1'):
-        decode_chips(np.array([1, 2, 0]))
 
 
 def test_light_levels_and_exposure_averaging():

@@ -4,13 +4,17 @@ import numpy as np
 import pytest
 
 from vlp_ros.beacon.encoding import packet_waveform, tone_waveform
-from vlp_ros.beacon.steady import shows_no_modulation, STEADY_MISS
+from vlp_ros.beacon.steady import box_shows_no_modulation, STEADY_MISS
 
 ROW_TIME = 1.5e-5
 
 
 def steady():
     return packet_waveform(0, chip_rate=1.0 / (3 * ROW_TIME), depth=0.0)
+
+
+def shows_no_modulation(image, observation) -> bool:
+    return box_shows_no_modulation(image, observation.bbox, observation.ellipse)
 
 
 @pytest.mark.parametrize('peak, blur, radius', [(200.0, 0.8, 25.0), (400.0, 1.6, 40.0), (900.0, 2.0, 60.0),

@@ -12,9 +12,9 @@ from scipy.spatial.transform import Rotation
 from scipy.special import erfc
 
 from vlp_ros.beacon.encoding import packet_waveform
-from vlp_ros.beacon.steady import box_shows_no_modulation, shows_no_modulation
+from vlp_ros.beacon.steady import box_shows_no_modulation
 from vlp_ros.core.camera import CameraModel
-from vlp_ros.core.ellipse import conic_from_ellipse, ellipse_points, fit_ellipse, geometric_distances
+from vlp_ros.core.ellipse import conic_from_ellipse, fit_ellipse, geometric_distances
 from vlp_ros.core.lamp_map import Lamp
 from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps, DetectionOptions
@@ -177,7 +177,7 @@ def test_the_pipeline_tests_a_clipped_steady_lamp_once_for_detection_and_reading
     lamp = only(detect_lamps(steady.image, steady=test))
     assert len(asked) == 1
     assert test(lamp.bbox, lamp.ellipse) and len(asked) == 1
-    assert shows_no_modulation(steady.image, lamp)
+    assert box_shows_no_modulation(steady.image, lamp.bbox, lamp.ellipse)
     # Another box is tested on its own.
     shifted = lamp.ellipse + np.array([1.0, 0.0, 0.0, 0.0, 0.0])
     assert test(lamp.bbox, shifted) == box_shows_no_modulation(steady.image, lamp.bbox, shifted) and len(asked) == 2
@@ -202,7 +202,7 @@ def test_a_clipped_steady_lamp_of_any_look_lies_within_its_sigma_and_is_not_read
         assert np.all(np.abs(observed.center - frame.truth(lamp.lamp.id).ellipse[:2]) < 3.0 * observed.center_sigma)
         # The pipeline's own test of the lamp it is given agrees with the detector's: its beacon is not read. (JPEG's
         # blocks are noise the test does not model: they may make a steady lamp look modulated, and it is then read.)
-        assert shows_no_modulation(image, observed) or quality is not None
+        assert box_shows_no_modulation(image, observed.bbox, observed.ellipse) or quality is not None
 
 
 def test_every_lamp_of_a_frame_is_found_once():
@@ -343,13 +343,22 @@ def test_rim_sigma_is_honest_for_the_ellipse():
     assert 3.5 < np.mean(chi_squares) < 7.0
 
 
+def _ellipse_points(ellipse: np.ndarray, count: int) -> np.ndarray:
+    """``count`` points (N, 2) evenly spaced in parameter on the ellipse."""
+    cx, cy, a, b, theta = (float(v) for v in ellipse)
+    t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    c, s = np.cos(theta), np.sin(theta)
+    x, y = a * np.cos(t), b * np.sin(t)
+    return np.stack([cx + c * x - s * y, cy + s * x + c * y], axis=1)
+
+
 def test_fit_ellipse_recovers_exact_ellipses_and_rejects_degenerate_points():
     # The compiled fit (scatter, 3x3 LU solve, constrained eigenvector) against ellipses it must reproduce.
     rng = np.random.default_rng(3)
     for _ in range(50):
         a = rng.uniform(5.0, 400.0)
         ellipse = np.array([*rng.uniform(-100.0, 4000.0, 2), a, a * rng.uniform(0.2, 1.0), rng.uniform(-1.5, 1.5)])
-        fitted = fit_ellipse(ellipse_points(ellipse, int(rng.integers(5, 300))))
+        fitted = fit_ellipse(_ellipse_points(ellipse, int(rng.integers(5, 300))))
         # A micro-pixel (centres up to 4000 px out: 1e-9 of them) and a micro-radian.
         assert fitted[:4] == pytest.approx(ellipse[:4], rel=1e-9, abs=1e-6)
         if ellipse[3] < 0.99 * ellipse[2]:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from vlp_ros.core.gravity import STANDARD_GRAVITY
+from vlp_ros.evaluation.paper_solver import PublishedPaperSolver
 from vlp_ros.pipeline.config import default_parameters, flatten_parameters, settings_from_parameters
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.imu import specific_force
@@ -56,11 +57,14 @@ def test_without_gravity_two_candidates_that_fit_alike_give_no_pose_and_gravity_
     assert told.pose.position_error(frame.pose) < 0.01
 
 
-def test_paper_solver_pose_that_does_not_explain_the_image_is_not_published(oblique_photo) -> None:
+def test_paper_solver_pose_that_does_not_explain_the_image_is_measured_but_not_published(oblique_photo) -> None:
     settings, camera, frame, up = oblique_photo
     paper = replace(settings, solver='paper')
-    ungated = Pipeline(paper, gate_fit=False).process(frame.image, camera, 0.0, up)
+    published = PublishedPaperSolver(paper)
+    ungated = published.process(frame.image, camera, 0.0, up)
     assert ungated.pose is not None and ungated.pose.position_error(frame.pose) > 0.2
+    assert len(published.candidates) == 2
+    assert min(np.linalg.norm(c.position - ungated.pose.position) for c in published.candidates) < 1e-9
     gated = Pipeline(paper).process(frame.image, camera, 0.0, up)
     assert gated.pose is None and gated.outcome == 'poor_fit'
 

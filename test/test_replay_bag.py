@@ -11,7 +11,7 @@ from replay_bags import (chatter, copy_bag, edit_metadata, IMAGE, image_data, of
                          write_overlapping_split_bag, write_split_bag)
 from rosbags.interfaces import QosDurability, QosReliability
 
-from vlp_ros.bags.playback_plan import (parse_remaps, playback_origin, PlaybackOptions, PlaybackTally, progress_line,
+from vlp_ros.bags.playback_plan import (parse_remaps, playback_origin, PlaybackOptions, PlaybackTally, seconds_played,
                                         select_topics, Timeline)
 from vlp_ros.bags.reader import adapt_offers, Bag, BagError, BagMessage, header_stamp, OfferedQos
 
@@ -257,8 +257,9 @@ def test_schedule_scales_bag_time_by_rate_from_the_start_offset() -> None:
         playback_origin(T0_NS, T0_NS + 10 * 10**9, 10.0)
 
 
-def test_progress_line_counts_messages_and_bag_time() -> None:
-    assert progress_line(5, 20, T0_NS + 10**9, T0_NS, T0_NS + 4 * 10**9) == 'replay: 5/20 messages, 1.0/4.0 s (25%)'
+def test_progress_counts_bag_time_from_the_start_offset_to_the_end() -> None:
+    end = T0_NS + 4 * 10**9
+    assert [seconds_played(T0_NS + k * 10**9, T0_NS, end) for k in (-1, 1, 5)] == [0.0, 1.0, 4.0]
 
 
 def test_tally_compares_what_was_played_with_what_metadata_promises_from_the_start_offset() -> None:

@@ -1,4 +1,4 @@
-"""The runtime stands alone: the nodes and the warm-up import no simulator, evaluation or benchmark code."""
+"""The runtime stands alone (no simulator, evaluation or benchmark code), and the simulator needs no evaluation."""
 from __future__ import annotations
 
 import json
@@ -36,3 +36,8 @@ def test_the_locator_loads_no_heavy_library_it_does_not_need() -> None:
     # scipy.special.
     heavy = ('scipy.stats', 'scipy.optimize', 'matplotlib', 'gtsam')
     assert imported_by(('vlp_ros.nodes.locator',), heavy) == []
+
+
+def test_the_simulator_imports_no_evaluation_or_benchmark_code() -> None:
+    loaded = imported_by(('vlp_ros.sim.__main__',), ('vlp_ros.evaluation', 'vlp_ros.benchmarks'))
+    assert loaded == [], f'the simulator imports {loaded}'

@@ -1,6 +1,12 @@
 """Simulated recordings read back through rosbags, the project's bag reader, and the locator's settings."""
+import fcntl
+import os
+from pathlib import Path
+import pty
+import struct
 import subprocess
 import sys
+import termios
 
 import numpy as np
 import pytest
@@ -136,3 +142,34 @@ def test_command_line_usage_error_has_no_traceback(tmp_path):
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert 'invalid choice' in result.stderr and 'Traceback' not in result.stderr
+
+
+def _command_line_stderr(out: Path, terminal: bool) -> bytes:
+    """Run the command line on a small scenario; what it wrote to stderr, a pipe or a pseudo-terminal."""
+    command = [sys.executable, '-m', 'vlp_ros.sim', '--scenario', 'paper', '--camera', '1080p', '--points', '2',
+               '--postures', '1', '--out', str(out)]
+    if not terminal:
+        return subprocess.run(command, capture_output=True, timeout=300, check=True).stderr
+    controller, terminal_end = pty.openpty()
+    # A terminal 80 columns wide: tqdm draws nothing in a 0-column one.
+    fcntl.ioctl(terminal_end, termios.TIOCSWINSZ, struct.pack('HHHH', 24, 80, 0, 0))
+    with subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=terminal_end) as process:
+        os.close(terminal_end)
+        chunks = []
+        while True:
+            try:
+                chunk = os.read(controller, 4096)
+            except OSError:  # EIO: the process closed its end
+                break
+            if not chunk:
+                break
+            chunks.append(chunk)
+    os.close(controller)
+    assert process.returncode == 0
+    return b''.join(chunks)
+
+
+def test_command_line_shows_progress_on_a_terminal_and_none_in_a_log(tmp_path):
+    assert b'4/4' in _command_line_stderr(tmp_path / 'terminal', terminal=True)
+    logged = _command_line_stderr(tmp_path / 'log', terminal=False)
+    assert b'\r' not in logged and b'4/4' not in logged

@@ -101,12 +101,9 @@ class Timeline:
         return self.origin_ns + round(elapsed_s * self.rate * 1e9)
 
 
-def progress_line(published: int, total: int, bag_time_ns: int, origin_ns: int, end_ns: int) -> str:
-    """One compact status line; the percentage is of bag time, which start offsets keep honest."""
-    span = max(1, end_ns - origin_ns)
-    played = min(max(0, bag_time_ns - origin_ns), span)
-    return (f'replay: {published}/{total} messages, {played / 1e9:.1f}/{span / 1e9:.1f} s '
-            f'({100.0 * played / span:.0f}%)')
+def seconds_played(bag_time_ns: int, origin_ns: int, end_ns: int) -> float:
+    """Bag time played from ``origin_ns`` when playback is at ``bag_time_ns``, within [0, end_ns - origin_ns]."""
+    return min(max(0, bag_time_ns - origin_ns), end_ns - origin_ns) / 1e9
 
 
 @dataclass

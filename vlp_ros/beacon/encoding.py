@@ -92,32 +92,6 @@ class Waveform:
         return periods * cumulative[-1] + cumulative[k] + levels[k] * (within - k * chip_time)
 
 
-def decode_chips(chips: np.ndarray, id_bits: int = 8) -> int | None:
-    """
-    Hard-decision inverse of ``packet_chips``: the ID carried by a 0/1 chip sequence, or None.
-
-    Every complete packet in ``chips`` (found by its preamble) must decode, with valid
-    Manchester pairs and even parity, to the same ID; no complete packet gives None.
-    """
-    chips = np.asarray(chips).ravel()
-    if not np.isin(chips, (0, 1)).all():
-        raise ValueError('chips must be 0 or 1')
-    length = packet_length(id_bits)
-    preamble = np.array(PREAMBLE)
-    found: set[int] = set()
-    for start in range(len(chips) - length + 1):
-        if not np.array_equal(chips[start:start + len(PREAMBLE)], preamble):
-            continue
-        pairs = chips[start + len(PREAMBLE):start + length].reshape(-1, 2)
-        if np.any(pairs[:, 0] == pairs[:, 1]):
-            return None
-        bits = pairs[:, 0].astype(int)
-        if bits.sum() % 2:
-            return None
-        found.add(int(bits[:-1] @ (1 << np.arange(id_bits - 1, -1, -1))))
-    return found.pop() if len(found) == 1 else None
-
-
 def packet_waveform(lamp_id: int, chip_rate: float, depth: float,
                     id_bits: int = 8, offset: float = 0.0) -> Waveform:
     return Waveform(packet_chips(lamp_id, id_bits), chip_rate, depth, offset)

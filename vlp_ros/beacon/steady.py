@@ -23,7 +23,6 @@ import numpy as np
 from scipy.special import fdtri
 
 from vlp_ros.compiled import kernel
-from vlp_ros.core.observation import LampObservation
 
 # Rows within this share of the lamp's half height from its centre are tested: beyond it, a disc's chord
 # bends too fast for the differences to leave only noise.
@@ -36,11 +35,6 @@ MIN_TERMS = 8
 # curvature changes steadily (a small bright disc's falloff and glare), and little of a beacon is lost (higher
 # differences lost most of a blurred beacon's chips).
 ORDER = 2
-
-
-def shows_no_modulation(image: np.ndarray, observation: LampObservation) -> bool:
-    """Whether the rows of the lamp in ``observation`` vary no more than its shape and pixel noise explain."""
-    return box_shows_no_modulation(image, observation.bbox, observation.ellipse)
 
 
 def box_shows_no_modulation(image: np.ndarray, bbox: tuple[int, int, int, int], ellipse: np.ndarray) -> bool:

@@ -45,13 +45,14 @@ import sys
 
 import numpy as np
 from scipy.stats import chi2
+from tqdm import tqdm
 
 from vlp_ros.core.gravity import GravityBuffer
 from vlp_ros.detection import detect_lamps
 from vlp_ros.evaluation.evaluate import grid_point
 from vlp_ros.evaluation.metrics import (ErrorSummary, format_table, FrameOutcome, nees_or_nan, summarize, summary_row,
                                         TABLE_HEADER, WRONG_FIX_M)
-from vlp_ros.evaluation.progress import progress_bar
+from vlp_ros.evaluation.paper_solver import PublishedPaperSolver
 from vlp_ros.evaluation.report import Evaluation, PAPER_PUBLISHED_MEAN_M, write_report
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import FrameResult, Pipeline
@@ -181,13 +182,13 @@ def look_setups(quick: bool, seed: int, drive: Drive = Drive()) -> list[Setup]:
     return made
 
 
-def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = None) -> SetupRun:
-    """Every frame of ``setup`` through one pipeline per solver."""
+def run_setup(setup: Setup, seed: int, progress: Callable[[], None] | None = None) -> SetupRun:
+    """Every frame of ``setup`` through one pipeline per solver; ``progress()`` after each."""
     scenario = setup.scenario
     settings = settings_from_tree(scenario.locator_parameters(imu=True))
     # The paper's solver is measured as published: without the fit gate the locator applies.
-    pipelines = {solver: Pipeline(replace(settings, solver=solver), gate_fit=solver != 'paper')
-                 for solver in setup.solvers}
+    pipelines = {solver: PublishedPaperSolver(settings) if solver == 'paper'
+                 else Pipeline(replace(settings, solver=solver)) for solver in setup.solvers}
     gravity = GravityBuffer(settings.imu_rotation, settings.imu_max_age)
     run = SetupRun({solver: [] for solver in setup.solvers})
     for index, (truth, stamp) in enumerate(zip(scenario.poses, scenario.frame_times())):
@@ -207,7 +208,7 @@ def run_setup(setup: Setup, seed: int, progress: Callable[[int], None] | None = 
                 run.wrong_fixes.append(WrongFix(setup.label, solver, index, result.pose.position_error(truth),
                                                 result.detail, *diagnose(frame, image, mapped, result, up)))
         if progress is not None:
-            progress(index + 1)
+            progress()
     return run
 
 
@@ -527,9 +528,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'no setup matches --only {" ".join(args.only)}', file=sys.stderr)
         return 2
     for setup in chosen:
-        total = len(setup.scenario.poses)
-        runs.append((setup, run_setup(setup, args.seed,
-                                      lambda done, total=total, label=setup.label: progress_bar(done, total, label))))
+        with tqdm(desc=setup.label, total=len(setup.scenario.poses), unit='frame', disable=None) as bar:
+            runs.append((setup, run_setup(setup, args.seed, bar.update)))
     table, summaries = results_table(runs)
     driven = '' if drive == Drive() else f', drive {drive.speed:g} m/s turning up to {drive.turn_rate:g} rad/s'
     print(f'Pose accuracy in simulation (seed {args.seed}{", quick" if args.quick else ""}{driven}); '

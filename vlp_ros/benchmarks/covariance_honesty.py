@@ -9,8 +9,8 @@ not. Setups: the seed paper's grid with a 4K camera and the lamp 2 m and 1.5 m u
 the robot's drive (continuous frames, its static mount prior with a sigma, no
 IMU). Every frame is rendered, its lamps detected and matched to the simulator's
 truth, and the frame run through ``Pipeline.process`` (or, with ``--ids-from-truth``,
-the matched lamps through ``Pipeline.locate``: the solver's honesty whatever the beacon
-reads). ``--look`` renders every setup with a look of ``vlp_ros.sim.looks`` (falloff,
+the matched lamps through the perspective solver with the pipeline's hints: the solver's
+honesty whatever the beacon reads). ``--look`` renders every setup with a look of ``vlp_ros.sim.looks`` (falloff,
 glare, blur, realistic, ...; repeatable). Printed per setup and look:
 
 - detection: the rim points' mean signed distance from the true edge (px) and their
@@ -43,11 +43,12 @@ from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps
 from vlp_ros.evaluation.metrics import format_table, nees_or_nan
 from vlp_ros.pipeline.config import LocatorSettings, settings_from_tree
-from vlp_ros.pipeline.frame import Pipeline
+from vlp_ros.pipeline.frame import disambiguation_hints, Pipeline
 from vlp_ros.sim.imu import specific_force
 from vlp_ros.sim.looks import apply_look, LOOKS, transported, VARIED_LOOKS
 from vlp_ros.sim.render import LampTruth
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario, Scenario
+from vlp_ros.solvers.fusion import solve_lamps
 from vlp_ros.solvers.measurement import LampMeasurement
 from vlp_ros.solvers.up_measurement import UpMeasurement
 
@@ -153,6 +154,7 @@ def run_setup(scenario: Scenario, settings: LocatorSettings, imu: bool, seed: in
     the beacon reads) instead of the pipeline's own identification.
     """
     pipeline = Pipeline(settings)
+    recent: tuple[Pose, float] | None = None  # the last pose solved from the truth's IDs, for continuity
     lamps = {sim.lamp.id: sim.lamp for sim in scenario.lamps}
     tally = Tally()
     for index, (truth, stamp) in enumerate(zip(scenario.poses, scenario.frame_times())):
@@ -170,7 +172,9 @@ def run_setup(scenario: Scenario, settings: LocatorSettings, imu: bool, seed: in
                 pairs.append((observation, lamps[lamp_truth.lamp_id]))
         tally_measurements(tally, pairs, up_measurements(settings, gravity_up), scenario.camera, truth)
         if ids_from_truth:
-            pose = pipeline.locate(pairs, scenario.camera, float(stamp), gravity_up).pose if pairs else None
+            hints = disambiguation_hints(settings, recent, float(stamp), gravity_up)
+            pose = solve_lamps(pairs, scenario.camera, hints, settings.floor).pose if pairs else None
+            recent = (pose, float(stamp)) if pose is not None else recent
         else:
             pose = pipeline.process(image, scenario.camera, float(stamp), gravity_up).pose
         if pose is not None and pose.covariance is not None:

@@ -60,15 +60,6 @@ def fit_ellipse(points: np.ndarray) -> np.ndarray:
     return ellipse
 
 
-def ellipse_points(ellipse: np.ndarray, count: int) -> np.ndarray:
-    """``count`` points (N, 2) evenly spaced in parameter on the ellipse."""
-    cx, cy, a, b, theta = (float(v) for v in ellipse)
-    t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
-    c, s = np.cos(theta), np.sin(theta)
-    x, y = a * np.cos(t), b * np.sin(t)
-    return np.stack([cx + c * x - s * y, cy + s * x + c * y], axis=1)
-
-
 def geometric_distances(ellipse: np.ndarray, points: np.ndarray) -> np.ndarray:
     """
     Approximate signed distance (N,) of points to the ellipse (Sampson, first order).

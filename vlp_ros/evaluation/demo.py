@@ -21,12 +21,12 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
+from tqdm import tqdm
 
 from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation import figures
 from vlp_ros.evaluation.evaluate import evaluate_offline, grid_point
 from vlp_ros.evaluation.metrics import FrameOutcome, off_axis_deg, summarize
-from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.evaluation.recording import ground_truth, RecordingTopics
 from vlp_ros.evaluation.report import Evaluation, PAPER_PUBLISHED_MEAN_M, write_report
 from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, mirror_summary
@@ -96,16 +96,18 @@ def play_recording(model: str, height: float, args: argparse.Namespace, listener
     if bag.exists():
         shutil.rmtree(bag)
     print(f'{model} postures, lamp {group} above the camera: rendering {len(scenario.poses)} frames', file=sys.stderr)
-    record(scenario, bag, 'sqlite3', True, np.random.default_rng([args.seed, int(height * 100), len(model)]),
-           lambda done, total: progress_bar(done, total, 'frames rendered'))
+    with tqdm(desc='frames rendered', total=len(scenario.poses), unit='frame', disable=None) as bar:
+        record(scenario, bag, 'sqlite3', True, np.random.default_rng([args.seed, int(height * 100), len(model)]),
+               lambda done, total: bar.update(done - bar.n))
     write_params(params, scenario, imu=True)
     truth = ground_truth(bag, TOPICS.ground_truth)
     from vlp_ros.nodes.pose_listener import play_through_nodes
-    seconds = play_through_nodes(bag, params, len(truth), listener, args.out, PLAYED_TOPICS,
-                                 lambda done, total: progress_bar(done, total, 'frames located'))
+    with tqdm(desc='frames located', total=len(truth), unit='frame', disable=None) as bar:
+        seconds = play_through_nodes(bag, params, len(truth), listener, args.out, PLAYED_TOPICS,
+                                     lambda done, total: bar.update(done - bar.n))
     ours = outcomes_from_answers(truth, listener, group)
     paper_settings = replace(settings_from_params_file(params), solver='paper')
-    theirs = evaluate_offline(bag, paper_settings, TOPICS, group, gate_fit=False, paper_tiebreak=args.paper_tiebreak)
+    theirs = evaluate_offline(bag, paper_settings, TOPICS, group, args.paper_tiebreak)
     if not args.keep_bags:
         shutil.rmtree(bag)
     return Played(ours, theirs, scenario.lamps[0].lamp.position, seconds)

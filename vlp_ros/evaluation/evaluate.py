@@ -10,7 +10,6 @@ Frames run through the same pipeline the locator node runs, in this process.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 import sys
@@ -18,9 +17,10 @@ import sys
 from vlp_ros.bags.reader import BagError
 from vlp_ros.core.gravity import GravityBuffer
 from vlp_ros.evaluation.metrics import FrameOutcome
+from vlp_ros.evaluation.paper_solver import PublishedPaperSolver
 from vlp_ros.evaluation.recording import ground_truth, recorded_frames, RecordingTopics
 from vlp_ros.evaluation.report import Evaluation, write_report
-from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, CandidateRecorder, mirror_summary
+from vlp_ros.evaluation.tiebreak import add_paper_tiebreak_argument, mirror_summary
 from vlp_ros.pipeline.config import ConfigError, LocatorSettings, settings_from_params_file
 from vlp_ros.pipeline.frame import Pipeline
 
@@ -31,19 +31,18 @@ def grid_point(outcome_truth_xy) -> tuple[float, float]:
 
 
 def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopics, group: str = '',
-                     progress: Callable[[int], None] | None = None, gate_fit: bool = True,
                      paper_tiebreak: str = 'hints') -> list[FrameOutcome]:
     """
     Run every frame of ``bag`` through the pipeline and pair each with its true pose.
 
-    ``gate_fit=False`` measures the paper's solver as published (see ``Pipeline``);
-    ``paper_tiebreak`` is how its mirror poses are told apart (``tiebreak.CandidateRecorder``),
-    and each outcome keeps its candidates.
+    ``solver: paper`` in ``settings`` measures the paper's solver as published
+    (``PublishedPaperSolver``), its mirror poses told apart by ``paper_tiebreak``;
+    each of its outcomes keeps its candidates.
     """
     truth = ground_truth(bag, topics.ground_truth)
     gravity = GravityBuffer(settings.imu_rotation, settings.imu_max_age) if settings.imu_enabled else None
-    recorder = CandidateRecorder(paper_tiebreak)
-    pipeline = Pipeline(settings, gate_fit, recorder)
+    paper = PublishedPaperSolver(settings, paper_tiebreak) if settings.solver == 'paper' else None
+    pipeline = paper or Pipeline(settings)
     outcomes = []
     for frame in recorded_frames(bag, topics, gravity):
         if frame.stamp_ns not in truth:
@@ -51,9 +50,7 @@ def evaluate_offline(bag: Path, settings: LocatorSettings, topics: RecordingTopi
         result = pipeline.process(frame.image, frame.camera, frame.stamp_ns * 1e-9, frame.up)
         pose = truth[frame.stamp_ns]
         outcomes.append(FrameOutcome(pose, result.pose, group, grid_point(pose.position[:2]), result.outcome,
-                                     recorder.take()))
-        if progress is not None:
-            progress(1)
+                                     paper.candidates if paper else []))
     return outcomes
 
 
@@ -79,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = settings_from_params_file(args.params)
         solvers = ['perspective', 'paper'] if args.solver == 'both' else [args.solver]
         series = {solver: evaluate_offline(args.bag, replace(settings, solver=solver), topics, args.group,
-                                           gate_fit=solver != 'paper', paper_tiebreak=args.paper_tiebreak)
+                                           args.paper_tiebreak)
                   for solver in solvers}
     except (ConfigError, BagError, ValueError, OSError) as err:
         print(f'evaluate: {err}', file=sys.stderr)

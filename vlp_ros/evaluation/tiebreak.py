@@ -14,7 +14,6 @@ import argparse
 
 from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation.metrics import FrameOutcome
-from vlp_ros.solvers.ambiguity import choose_candidate, DisambiguationHints
 from vlp_ros.solvers.candidates import Choice, distinct, PoseCandidate, Reason
 
 PAPER_TIEBREAKS = ('hints', 'appendix-b')
@@ -44,31 +43,6 @@ def appendix_b_choice(candidates: list[PoseCandidate]) -> Choice:
     if len(agreeing) > 1:
         return Choice(None, Reason.AMBIGUOUS, 'several candidates face up toward the user (Appendix B)')
     return Choice(agreeing[0].pose, Reason.UP_DIRECTION, 'Appendix B')
-
-
-class CandidateRecorder:
-    """
-    A ``Pipeline`` paper_choice that remembers the frame's candidates, then decides by ``tiebreak``.
-
-    'hints' (gravity, prior, continuity, as the locator) or 'appendix-b'.
-    """
-
-    def __init__(self, tiebreak: str = 'hints') -> None:
-        if tiebreak not in PAPER_TIEBREAKS:
-            raise ValueError(f'paper tie-break must be one of {", ".join(PAPER_TIEBREAKS)}, got {tiebreak!r}')
-        self.tiebreak = tiebreak
-        self.candidates: list[Pose] = []
-
-    def __call__(self, candidates: list[PoseCandidate], hints: DisambiguationHints) -> Choice:
-        self.candidates = [c.pose for c in distinct(candidates)]
-        if self.tiebreak == 'appendix-b':
-            return appendix_b_choice(candidates)
-        return choose_candidate(candidates, hints)
-
-    def take(self) -> list[Pose]:
-        """Return the distinct candidates of the frame just processed (none when the solver was not reached)."""
-        taken, self.candidates = self.candidates, []
-        return taken
 
 
 def picks_mirror(candidates: list[Pose], truth: Pose) -> bool | None:

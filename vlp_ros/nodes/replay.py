@@ -31,9 +31,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
+from tqdm import tqdm
 
 from vlp_ros.bags.playback_plan import (DEFAULT_CLOCK_HZ, playback_origin, PlaybackOptions, PlaybackTally,
-                                        progress_line, select_topics, Timeline)
+                                        seconds_played, select_topics, Timeline)
 from vlp_ros.bags.reader import Bag, BagMessage, BagTopic, FRAME_TYPES, header_stamp
 from vlp_ros.nodes.lifecycle import run_node
 
@@ -42,7 +43,8 @@ DISCOVERY_SETTLE_S = 0.5  # once some matched, this long without another match e
 MATCH_SETTLE_S = 0.3  # see _wait_for_subscribers
 FRAME_SUBSCRIBER_WAIT_S = 10.0  # deterministic mode: for the frame topics' first subscriber
 ACK_WAIT_S = 4.0  # at the end, for reliable subscribers' acknowledgements (they follow 3 s heartbeats)
-PROGRESS_PERIOD_S = 1.0
+PROGRESS_PERIOD_S = 0.5
+PROGRESS_FORMAT = 'replay: {desc}, {n:.1f}/{total:.1f} s ({percentage:.0f}%) |{bar}|'
 SPIN_SLICE_S = 0.05
 # Answers only need to arrive; best effort matches publishers of either reliability.
 ANSWER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -179,23 +181,26 @@ class Replay(Node):
             mode = 'deterministic' if self.options.deterministic else f'rate {self.options.rate:g}'
             self._print(f'replay: playing {bag.path}: {self._total} messages on {len(names)} topics, '
                         f'{(bag.end_ns - origin) / 1e9:.1f} s of bag time, {mode}')
-            self.create_timer(PROGRESS_PERIOD_S,
-                              lambda: self._print(progress_line(self._published, self._total, self._bag_now_ns(),
-                                                                origin, bag.end_ns)))
             if self.options.clock > 0:
                 clock = self.create_publisher(Clock, '/clock', CLOCK_QOS)
                 self.create_timer(1.0 / self.options.clock,
                                   lambda: clock.publish(Clock(clock=Time(nanoseconds=self._bag_now_ns()).to_msg())))
-            if self.options.deterministic:
-                self._prepare_answers(bag, names)
-            self._wait_for_subscribers()
-            started = time.monotonic()
-            while True:
-                self._tally = PlaybackTally(promised, self._skip_reasons)
-                self._play_pass(bag, origin)
-                if self._tally.shortfall() or not self.options.loop:
-                    break
-            self._wait_for_acknowledgements()
+            # A terminal shows a progress bar; a log gets the opening and closing lines only.
+            with tqdm(desc=f'0/{self._total} messages', total=(bag.end_ns - origin) / 1e9,
+                      bar_format=PROGRESS_FORMAT, disable=None) as bar:
+                shown = self.create_timer(PROGRESS_PERIOD_S, lambda: self._show_progress(bar, origin, bag.end_ns))
+                if self.options.deterministic:
+                    self._prepare_answers(bag, names)
+                self._wait_for_subscribers()
+                started = time.monotonic()
+                while True:
+                    self._tally = PlaybackTally(promised, self._skip_reasons)
+                    self._play_pass(bag, origin)
+                    if self._tally.shortfall() or not self.options.loop:
+                        break
+                self.destroy_timer(shown)
+                self._show_progress(bar, origin, bag.end_ns)
+                self._wait_for_acknowledgements()
         self._print(self._summary(time.monotonic() - started))
         for topic, (read, announced) in self._tally.surplus().items():
             self.get_logger().warning(f'{topic}: the storage held {read} messages where metadata.yaml '
@@ -314,6 +319,11 @@ class Replay(Node):
 
     def _spin_for(self, seconds: float) -> None:
         self._spin_while(lambda: True, seconds)
+
+    def _show_progress(self, bar: tqdm, origin_ns: int, end_ns: int) -> None:
+        bar.set_description_str(f'{self._published}/{self._total} messages', refresh=False)
+        bar.n = seconds_played(self._bag_now_ns(), origin_ns, end_ns)
+        bar.refresh()
 
     def _bag_now_ns(self) -> int:
         """Bag time being played: the clock in timed playback, the last message in deterministic mode."""

@@ -6,7 +6,7 @@ publishing; the evaluation tools call it the same way.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,7 +60,6 @@ class FrameResult:
     outcome: str
     decoded_ids: list[int] = field(default_factory=list)
     unknown_ids: int = 0
-    lamps_detected: int = 0
     detail: str = ''
     seen: list[SeenLamp] = field(default_factory=list)
 
@@ -78,18 +77,9 @@ def solvable(observation: LampObservation, lamp: Lamp) -> bool:
 class Pipeline:
     """Stateful across frames: beacon evidence per tracked lamp, and the last pose for continuity."""
 
-    def __init__(self, settings: LocatorSettings, gate_fit: bool = True,
-                 paper_choice: Callable[[list[PoseCandidate], DisambiguationHints], Choice] = choose_candidate) -> None:
-        """
-        Build a pipeline for ``settings``, with no tracked lamps and no recent pose yet.
-
-        ``gate_fit=False`` lets the paper's solver publish poses that do not explain the
-        image, and ``paper_choice`` replaces how its mirror poses are told apart: both only
-        for measuring that solver as published, never in the locator.
-        """
+    def __init__(self, settings: LocatorSettings) -> None:
+        """Build a pipeline for ``settings``, with no tracked lamps and no recent pose yet."""
         self.settings = settings
-        self.gate_fit = gate_fit
-        self.paper_choice = paper_choice
         # Per-frame decoding needs these for every lamp: derive them once.
         self._known_ids = settings.lamps.ids
         self._frequencies = settings.lamps.frequencies()
@@ -109,19 +99,14 @@ class Pipeline:
         ids, pairs, solved = self._identified_with_geometry(observations, ids, readings, camera, stamp, gravity_up)
         if not pairs:
             ids, pairs = self._identified_by_continuity(observations, ids, camera, stamp, gravity_up, solved)
-        unknown = sum(r.unknown for r in readings)
-        decoded = [lamp.id for _, lamp in pairs]
         seen = [_seen_lamp(obs, i, reading, self.settings.lamps)
                 for obs, i, reading in zip(observations, ids, readings)]
         if not pairs:
-            outcome = UNKNOWN_ID if unknown else NO_ID
-            return FrameResult(None, outcome, decoded, unknown, len(observations), seen=seen)
+            return frame_result(None, pairs, readings, seen)
         # Detection and decoding read the raw image; the solvers see lamps through a model they take.
         choice = solved.get(_key(pairs)) or self._solve(*solver_view(pairs, camera), stamp, gravity_up)
         self._continue_track(choice, stamp)
-        if choice.pose is None:
-            return FrameResult(None, choice.reason.value, decoded, unknown, len(observations), choice.detail, seen)
-        return FrameResult(choice.pose, 'pose', decoded, unknown, len(observations), choice.reason.value, seen)
+        return frame_result(choice, pairs, readings, seen)
 
     def identify(self, image: np.ndarray, stamp: float
                  ) -> tuple[list[LampObservation], list[BeaconReading], list[int | None]]:
@@ -143,17 +128,6 @@ class Pipeline:
                             for obs in observations]
         return observations, readings, ids
 
-    def locate(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
-               gravity_up: np.ndarray | None = None) -> Choice:
-        """
-        Return the pose from identified lamps of the frame at ``stamp``, which then continues (or restarts) the track.
-
-        ``process`` after detection and identification.
-        """
-        choice = self._solve(pairs, camera, stamp, gravity_up)
-        self._continue_track(choice, stamp)
-        return choice
-
     def _continue_track(self, choice: Choice, stamp: float) -> None:
         if choice.pose is not None:
             self._recent = (choice.pose, stamp)
@@ -174,8 +148,7 @@ class Pipeline:
         lamps = self.settings.lamps
 
         def pairs_of(lamp_ids: list[int | None]) -> list[tuple[LampObservation, Lamp]]:
-            return [(obs, lamps.get(i)) for obs, i in zip(observations, lamp_ids)
-                    if i is not None and i in lamps and solvable(obs, lamps.get(i))]
+            return identified_pairs(observations, lamp_ids, lamps)
 
         solved: dict[tuple, Choice] = {}
         if self.settings.solver != 'perspective' or len(observations) < 2:
@@ -253,40 +226,73 @@ class Pipeline:
                                                                  beacon.id_bits, self._known_ids))
 
     def _hints(self, stamp: float, gravity_up: np.ndarray | None) -> DisambiguationHints:
-        s = self.settings
-        up = []
-        if s.prior_up is not None:
-            up.append(UpHint(s.prior_up, s.prior_tolerance, s.prior_sigma))
-        if gravity_up is not None:
-            up.append(UpHint(gravity_up, s.imu_tolerance, s.imu_sigma))
-        recent, age = None, 0.0
-        # A pose vouches only for later frames (stamps may arrive out of order), and never when max_age is 0.
-        if self._recent is not None and s.continuity_max_age > 0.0 and 0.0 <= stamp - self._recent[1]:
-            recent, age = self._recent[0], stamp - self._recent[1]
-        return DisambiguationHints(up_in_camera=up, recent_pose=recent, recent_gate_m=s.continuity_gate,
-                                   recent_age=age, recent_max_age=s.continuity_max_age,
-                                   recent_max_speed=s.continuity_max_speed)
+        return disambiguation_hints(self.settings, self._recent, stamp, gravity_up)
 
     def _solve(self, pairs: list[tuple[LampObservation, Lamp]], camera: CameraModel, stamp: float,
                gravity_up: np.ndarray | None) -> Choice:
         if self.settings.solver == 'paper':
-            discs = [pair for pair in pairs if not pair[1].is_point]
-            if not discs:
-                return Choice(None, Reason.NO_CANDIDATES, "the paper's solver needs a disc lamp; all are point lamps")
-            observation, lamp = max(discs, key=lambda pair: pair[0].ellipse[2])
             try:
-                candidates = solve_lamp_paper(observation, lamp, camera)
-            except ValueError as err:  # e.g. no marker: the paper's method cannot fix the yaw
+                candidates = paper_candidates(pairs, camera)
+            except ValueError as err:
                 return Choice(None, Reason.NO_CANDIDATES, str(err))
-            if self.gate_fit:
-                # Weak perspective is an approximation: a pose it cannot reconcile with the
-                # image under the exact projection is decimetres off and must not be published.
-                candidates = [c for c in candidates if explains_the_image(c)]
-                if not candidates:
-                    return Choice(None, Reason.POOR_FIT, "the paper's pose does not explain the image")
-            # The paper's two mirror solutions are told apart by the same hints as ours (by default).
-            return self.paper_choice(candidates, self._hints(stamp, gravity_up))
+            # Weak perspective is an approximation: a pose it cannot reconcile with the
+            # image under the exact projection is decimetres off and must not be published.
+            candidates = [c for c in candidates if explains_the_image(c)]
+            if not candidates:
+                return Choice(None, Reason.POOR_FIT, "the paper's pose does not explain the image")
+            # The paper's two mirror solutions are told apart by the same hints as ours.
+            return choose_candidate(candidates, self._hints(stamp, gravity_up))
         return solve_lamps(pairs, camera, self._hints(stamp, gravity_up), self.settings.floor)
+
+
+def identified_pairs(observations: list[LampObservation], ids: list[int | None],
+                     lamps: LampMap) -> list[tuple[LampObservation, Lamp]]:
+    """Return the (observation, lamp) pairs of the lamps identified as ``ids`` that the solvers can use."""
+    return [(obs, lamps.get(i)) for obs, i in zip(observations, ids)
+            if i is not None and i in lamps and solvable(obs, lamps.get(i))]
+
+
+def frame_result(choice: Choice | None, pairs: list[tuple[LampObservation, Lamp]], readings: list[BeaconReading],
+                 seen: list[SeenLamp]) -> FrameResult:
+    """Return the result of a frame whose lamps were read as ``readings``: ``choice`` solved from ``pairs``, if any."""
+    unknown = sum(r.unknown for r in readings)
+    decoded = [lamp.id for _, lamp in pairs]
+    if choice is None:
+        return FrameResult(None, UNKNOWN_ID if unknown else NO_ID, decoded, unknown, seen=seen)
+    if choice.pose is None:
+        return FrameResult(None, choice.reason.value, decoded, unknown, choice.detail, seen)
+    return FrameResult(choice.pose, 'pose', decoded, unknown, choice.reason.value, seen)
+
+
+def disambiguation_hints(settings: LocatorSettings, recent: tuple[Pose, float] | None, stamp: float,
+                         gravity_up: np.ndarray | None) -> DisambiguationHints:
+    """Return what tells a frame's candidate poses apart: the prior, gravity and the ``recent`` (pose, stamp)."""
+    s = settings
+    up = []
+    if s.prior_up is not None:
+        up.append(UpHint(s.prior_up, s.prior_tolerance, s.prior_sigma))
+    if gravity_up is not None:
+        up.append(UpHint(gravity_up, s.imu_tolerance, s.imu_sigma))
+    pose, age = None, 0.0
+    # A pose vouches only for later frames (stamps may arrive out of order), and never when max_age is 0.
+    if recent is not None and s.continuity_max_age > 0.0 and 0.0 <= stamp - recent[1]:
+        pose, age = recent[0], stamp - recent[1]
+    return DisambiguationHints(up_in_camera=up, recent_pose=pose, recent_gate_m=s.continuity_gate,
+                               recent_age=age, recent_max_age=s.continuity_max_age,
+                               recent_max_speed=s.continuity_max_speed)
+
+
+def paper_candidates(pairs: Iterable[tuple[LampObservation, Lamp]], camera: CameraModel) -> list[PoseCandidate]:
+    """
+    Return the paper's two poses from the largest disc lamp of ``pairs`` (as the solvers see it).
+
+    Raises ValueError when the paper's method has none: no disc lamp, or one without a usable marker.
+    """
+    discs = [pair for pair in pairs if not pair[1].is_point]
+    if not discs:
+        raise ValueError("the paper's solver needs a disc lamp; all are point lamps")
+    observation, lamp = max(discs, key=lambda pair: pair[0].ellipse[2])
+    return solve_lamp_paper(observation, lamp, camera)
 
 
 def steady_test(image: np.ndarray) -> SteadyTest:

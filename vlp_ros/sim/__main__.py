@@ -2,7 +2,7 @@
 Command line: python -m vlp_ros.sim --scenario paper|robot|drive|tone|bare_leds --out DIR [--look NAME] [options].
 
 Writes DIR/<scenario> (a rosbag2 recording) and DIR/params.yaml (the locator's
-parameters for it), shows a progress bar on stderr and prints a one-line summary.
+parameters for it), shows a progress bar on a terminal and prints a one-line summary.
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import sys
 import time
 
 import numpy as np
+from tqdm import tqdm
 
-from vlp_ros.evaluation.progress import progress_bar
 from vlp_ros.sim.bag_writer import STORAGES
 from vlp_ros.sim.looks import apply_look, Look, LOOKS
 from vlp_ros.sim.point_lamps import BARE_LED_CAMERAS, bare_led_scenario, PointLampLook
@@ -183,7 +183,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'python -m vlp_ros.sim: error: {error}', file=sys.stderr)
         return 2
     started = time.perf_counter()
-    frames = record(scenario, bag_path, args.storage, args.imu, np.random.default_rng([args.seed, 1]), progress_bar)
+    with tqdm(desc='frames', total=len(scenario.poses), unit='frame', disable=None) as bar:
+        frames = record(scenario, bag_path, args.storage, args.imu, np.random.default_rng([args.seed, 1]),
+                        lambda done, total: bar.update(done - bar.n))
     write_params(params_path, scenario, args.imu)
     camera = scenario.camera
     print(f'wrote {bag_path} ({args.storage}): {frames} frames {camera.width}x{camera.height} '

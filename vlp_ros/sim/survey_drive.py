@@ -235,11 +235,6 @@ def exact_survey_data(drive: SurveyDrive, rng: np.random.Generator, rim_sigma: f
                       level_sigma=LEVEL_SIGMA)
 
 
-def without_lamp_sightings(data: SurveyData, lamp_id: int) -> SurveyData:
-    """Return ``data`` as if ``lamp_id`` had never been identified."""
-    return replace(data, sightings=[s for s in data.sightings if s.lamp_id != lamp_id])
-
-
 def main(argv: list[str] | None = None) -> int:
     """Render a survey drive into a folder: bag/ (with /odom), partial.yaml (the anchors) and truth.yaml."""
     import argparse

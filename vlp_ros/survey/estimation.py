@@ -125,7 +125,6 @@ class SurveyEstimate:
     undetermined: dict[int, str]
     frames_seen: Counter
     residuals: list[SightingResidual]
-    odometry_chi_square: float = 0.0
     variance_factor: float = 1.0
 
 
@@ -491,8 +490,7 @@ class _Graph:
                 continue
             lamps[lamp_id] = SurveyedLamp(np.array(position), angle, position_covariance, angle_sigma)
         cameras = {f: self.cameras[f] for f in self.used_frames}
-        return SurveyEstimate(lamps, cameras, undetermined, frames_seen, residuals,
-                              float(self.graph.error(self.values)), factor)
+        return SurveyEstimate(lamps, cameras, undetermined, frames_seen, residuals, factor)
 
 
 def _marginal_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
@@ -520,10 +518,6 @@ def _whitening(measured: list[Pose]) -> np.ndarray:
     covariances = np.array([m.covariance for m in measured]).reshape(-1, 6, 6)
     factors = np.linalg.cholesky(covariances + 1e-14 * np.eye(6))
     return np.linalg.inv(factors)
-
-
-def lamps_by_name(estimate: SurveyEstimate, names: dict[int, str]) -> dict[str, SurveyedLamp]:
-    return {names[i]: lamp for i, lamp in estimate.lamps.items()}
 
 
 def per_lamp_residuals(estimate: SurveyEstimate) -> dict[int, tuple[float, float]]:

@@ -45,7 +45,6 @@ class SurveyRecording:
     frames: list[FrameSightings]
     data: SurveyData
     duration: float
-    odometry_used: bool
     imu_used: bool
 
 
@@ -93,7 +92,7 @@ def read_survey(bag: Path | str, partial: PartialMap, topics: SurveyTopics,
                       odometry=odometry, mounting=settings.mounting,
                       up=dict(ups), up_sigma=settings.imu_sigma or 0.01,
                       expected_up=_expected_up(partial), level_sigma=_level_sigma(partial))
-    return SurveyRecording(frames, data, duration, bool(odometry), bool(ups))
+    return SurveyRecording(frames, data, duration, bool(ups))
 
 
 def _expected_up(partial: PartialMap) -> np.ndarray | None:

@@ -56,7 +56,6 @@ class FrameSightings:
     sightings: list[Sighting] = field(default_factory=list)
     # Lamps the beacon read with certainty as IDs that the map does not list.
     unlisted_ids: list[int] = field(default_factory=list)
-    lamps_detected: int = 0
 
 
 def lamp_frame_lamp(lamp: Lamp) -> Lamp:
@@ -90,7 +89,7 @@ def frame_sightings(pipeline: Pipeline, index: int, image: np.ndarray, camera: C
     """Identify the lamps of one frame with ``pipeline`` and solve each identified one in its lamp frame."""
     observations, _, ids = pipeline.identify(image, stamp_ns * 1e-9)
     lamps = pipeline.settings.lamps
-    result = FrameSightings(stamp_ns, lamps_detected=len(observations))
+    result = FrameSightings(stamp_ns)
     for observation, lamp_id, evidence in zip(observations, ids, pipeline.tracker.evidence):
         if lamp_id is None:
             unlisted = _unlisted_id(evidence)
