@@ -31,7 +31,7 @@ venv: $(STAMP)
 $(BUILT): $(STAMP) $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
 	find vlp_ros install/vlp_ros -path '*/__pycache__/*.nb[ic]' -delete
-	$(RUN) cd build && python -m vlp_ros.compiled.warm_up
+	$(RUN) cd build && python -m vlp_ros.pipeline.warm_up
 	site=$$(ls -d install/vlp_ros/lib/python3*/site-packages) && \
 		cd $$site && find vlp_ros -path '*/__pycache__/*.nb[ic]' -exec cp --parents -p {} $(CURDIR)/ \;
 	touch $@

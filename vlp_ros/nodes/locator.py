@@ -42,7 +42,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
-from vlp_ros.compiled.warm_up import warm_up
+from vlp_ros.pipeline.warm_up import warm_up
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import GravityBuffer
 from vlp_ros.core.mounting import publishable_covariance
