@@ -7,7 +7,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.requirements.stamp
 BUILT := install/vlp_ros/share/vlp_ros/package.xml
-SOURCES := $(shell find vlp_ros config launch resource -type f -not -path '*/__pycache__/*') setup.py setup.cfg package.xml
+SOURCES := $(shell find vlp_ros config launch resource -type f -not -path '*/__pycache__/*') setup.py setup.cfg package.xml LICENSE
 RUN := source scripts/setup_env.sh &&
 
 .PHONY: all venv build test demo bench clean

@@ -45,12 +45,12 @@ if __name__ == '__main__':
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from vlp_ros.pipeline.warm_up import warm_up  # noqa: E402
 from vlp_ros.core.lamp_map import Lamp  # noqa: E402
 from vlp_ros.core.pose import Pose  # noqa: E402
 from vlp_ros.evaluation.metrics import format_table  # noqa: E402
 from vlp_ros.pipeline.config import settings_from_tree  # noqa: E402
 from vlp_ros.pipeline.frame import Pipeline  # noqa: E402
+from vlp_ros.pipeline.warm_up import warm_up  # noqa: E402
 from vlp_ros.sim.imu import specific_force  # noqa: E402
 from vlp_ros.sim.looks import apply_look, LOOKS, transported  # noqa: E402
 from vlp_ros.sim.render import render_frame  # noqa: E402
