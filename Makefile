@@ -7,7 +7,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.requirements.stamp
 BUILT := install/vlp_ros/share/vlp_ros/package.xml
-SOURCES := $(shell find vlp_ros config launch resource -type f -not -path '*/__pycache__/*') setup.py setup.cfg package.xml
+SOURCES := $(shell find vlp_ros config launch resource -type f -not -path '*/__pycache__/*') setup.py setup.cfg package.xml LICENSE
 RUN := source scripts/setup_env.sh &&
 
 .PHONY: all venv build test demo bench clean
@@ -31,7 +31,7 @@ venv: $(STAMP)
 $(BUILT): $(STAMP) $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --base-paths . --event-handlers console_direct- summary-
 	find vlp_ros install/vlp_ros -path '*/__pycache__/*.nb[ic]' -delete
-	$(RUN) cd build && python -m vlp_ros.compiled.warm_up
+	$(RUN) cd build && python -m vlp_ros.pipeline.warm_up
 	site=$$(ls -d install/vlp_ros/lib/python3*/site-packages) && \
 		cd $$site && find vlp_ros -path '*/__pycache__/*.nb[ic]' -exec cp --parents -p {} $(CURDIR)/ \;
 	touch $@

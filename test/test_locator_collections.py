@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 AFTER_THE_KERNELS = """
 import gc
 import weakref
-from vlp_ros.compiled.warm_up import warm_up
+from vlp_ros.pipeline.warm_up import warm_up
 from vlp_ros.nodes.locator import keep_start_objects_out_of_collections
 
 warm_up()

@@ -16,7 +16,7 @@ Each camera pose is the last of a short burst of frames: the robot's own video u
 drive), or the pose's camera held still (the stills of the paper and the tone robot). The beacon's packet
 phase moves on from frame to frame and stamps advance one frame period per call, so beacon evidence is in
 its steady state; the burst's first pass is an untimed warm-up, after the locator's own
-(``vlp_ros.compiled.warm_up``), which loads every numba kernel before the first frame. "posed" counts the
+(``vlp_ros.pipeline.warm_up``), which loads every numba kernel before the first frame. "posed" counts the
 camera poses whose last frame reached a pose. Targets (median / 99th percentile, ms): one lamp at 1080p
 2 / 6, at 4K 6 / 15, the robot scenes (1-5 lamps in view at 1080p) 8 / 20.
 
@@ -45,12 +45,12 @@ if __name__ == '__main__':
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from vlp_ros.compiled.warm_up import warm_up  # noqa: E402
 from vlp_ros.core.lamp_map import Lamp  # noqa: E402
 from vlp_ros.core.pose import Pose  # noqa: E402
 from vlp_ros.evaluation.metrics import format_table  # noqa: E402
 from vlp_ros.pipeline.config import settings_from_tree  # noqa: E402
 from vlp_ros.pipeline.frame import Pipeline  # noqa: E402
+from vlp_ros.pipeline.warm_up import warm_up  # noqa: E402
 from vlp_ros.sim.imu import specific_force  # noqa: E402
 from vlp_ros.sim.looks import apply_look, LOOKS, transported  # noqa: E402
 from vlp_ros.sim.render import render_frame  # noqa: E402

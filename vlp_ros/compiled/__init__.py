@@ -8,7 +8,7 @@ work without the per-call cost. Only the inner numerics are compiled: their
 callers stay plain Python with the checks and dataclasses around them.
 
 Settings: ``cache=True`` keeps the machine code on disk, so a process loads it instead of
-compiling; ``python -m vlp_ros.compiled.warm_up`` (run by ``make build``) fills that
+compiling; ``python -m vlp_ros.pipeline.warm_up`` (run by ``make build``) fills that
 cache. The cache notices a change in a kernel's own file only, not in the kernels it
 calls from other files, so ``make build`` clears it before compiling afresh.
 ``error_model='numpy'`` makes a division by zero give inf/nan as numpy does instead

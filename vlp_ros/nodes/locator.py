@@ -42,7 +42,6 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from vlp_ros.beacon.camera_settings import packet_setting_advice, tone_setting_advice
-from vlp_ros.compiled.warm_up import warm_up
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.gravity import GravityBuffer
 from vlp_ros.core.mounting import publishable_covariance
@@ -58,6 +57,7 @@ from vlp_ros.pipeline.config import ConfigError, settings_from_parameters
 from vlp_ros.pipeline.debug_view import debug_view
 from vlp_ros.pipeline.frame import FrameResult, Pipeline
 from vlp_ros.pipeline.frame_stats import FrameStats
+from vlp_ros.pipeline.warm_up import warm_up
 
 THROTTLE_S = 5.0
 # glibc's mallopt parameters (malloc.h).

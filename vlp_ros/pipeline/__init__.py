@@ -1,1 +1,1 @@
-"""The frame pipeline: one image to one pose (ROS-free), with its validated settings, counters and debug view."""
+"""The frame pipeline: one image to one pose (ROS-free), its validated settings, counters, debug view and warm-up."""

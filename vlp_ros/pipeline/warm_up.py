@@ -1,8 +1,8 @@
 """
-Make every numba kernel ready before the first frame: python -m vlp_ros.compiled.warm_up.
+Make every numba kernel ready before the first frame: python -m vlp_ros.pipeline.warm_up.
 
 Numba compiles a kernel on its first call for the argument types it gets (about
-about half a second per kernel and signature, minutes for all of them), or loads it from the cache
+half a second per kernel and signature, minutes for all of them), or loads it from the cache
 (``vlp_ros.compiled``); a node would pay that on its first frames. ``warm_up``
 builds a few small frames in place and runs them through the pipeline: a camera
 looking straight up at lamps 2 m above it, each a disc whose rows carry its beacon
@@ -10,8 +10,10 @@ looking straight up at lamps 2 m above it, each a disc whose rows carry its beac
 glowing, without a marker (a steady lamp off the map), and as bare LEDs; in packet
 and tone mode, in colour with gravity and as mono8 without, each as the writable
 C-contiguous array the locator gives the pipeline (``vlp_ros.images.conversion``;
-numba would compile a read-only or strided frame separately). Only the pipeline's
-public entry points are called, so the warm-up follows the kernels wherever they move.
+numba would compile a read-only or strided frame separately). Only public entry points
+are called (the pipeline's, and the detector's and solvers' for two cases its frames do not reach),
+so the warm-up follows the kernels wherever they move; test/test_warm_up.py checks that
+it reaches every kernel.
 
 ``make build`` runs this for the installed package and for the source tree the
 tests import, which fills the cache; the locator runs ``warm_up`` before it
@@ -30,12 +32,10 @@ import numpy as np
 from vlp_ros.beacon.encoding import packet_waveform, tone_waveform, Waveform
 from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.lamp_map import LampMap
-from vlp_ros.core.pose import Pose
 from vlp_ros.detection import detect_lamps
 from vlp_ros.pipeline.config import settings_from_tree
 from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.solvers.fit_kernels import inverse_form
-from vlp_ros.solvers.perspective import _up_update
 from vlp_ros.solvers.point_lamps import PointLampMeasurement, pose_from_opencv
 from vlp_ros.solvers.refinement import refine_pose
 from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -211,11 +211,6 @@ def refine_from_an_opencv_start(image: np.ndarray, lamps: LampMap) -> None:
     refine_pose(pose_from_opencv(np.array([1e-3, 0.0, 0.0]), np.zeros(3)), points, [UpMeasurement(UP, 0.01)])
 
 
-def update_by_up() -> None:
-    """Run the Kalman update by an up direction (when gravity must settle a candidate) on a level pose."""
-    _up_update(Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4), [UpMeasurement(np.array([0.0, 0.0, 1.0]), 0.01)])
-
-
 def compare_candidates() -> None:
     """Test whether two candidate poses are apart by their covariance, writable and read-only."""
     covariance, separation = np.eye(6) * 1e-4, np.full(6, 1e-2)
@@ -229,7 +224,6 @@ def warm_up() -> None:
     warm_packet_lamps(rng)
     warm_tone_lamps(rng)
     warm_bare_leds(rng)
-    update_by_up()
     compare_candidates()
 
 
