@@ -9,7 +9,7 @@ frame's processing. Each stage holds at most one waiting frame, the newest: a fr
 arrives while the stages are busy replaces the waiting one (counted as superseded), so
 latency never grows.
 
-The worker first makes the pipeline's compiled kernels ready (vlp_ros.compiled.warm_up),
+The worker first makes the pipeline's compiled kernels ready (vlp_ros.pipeline.warm_up),
 so the first frames take no longer than later ones. The node subscribes when they are
 loaded from numba's cache; if numba has to compile them (no cache: minutes), it
 subscribes at once, drops frames as ``kernels_compiling`` and says so in its
