@@ -1,5 +1,7 @@
-"""The README and the example params file stay true to the code."""
+"""The README, the docs and the example params file stay true to the code."""
 from __future__ import annotations
+
+import re
 
 from conftest import ROOT
 
@@ -8,12 +10,19 @@ from vlp_ros.pipeline.config import LAMP_PARAMETERS, PARAMETERS, settings_from_p
 import yaml
 
 
-def test_readme_documents_every_parameter() -> None:
-    readme = (ROOT / 'README.md').read_text()
+def test_parameter_reference_documents_every_parameter() -> None:
+    reference = (ROOT / 'docs' / 'nodes.md').read_text()
     for spec in PARAMETERS:
-        assert f'`{spec.name}`' in readme, spec.name
+        assert f'`{spec.name}`' in reference, spec.name
     for spec in LAMP_PARAMETERS:
-        assert f'`leds.N.{spec.name}`' in readme, spec.name
+        assert f'`leds.N.{spec.name}`' in reference, spec.name
+
+
+def test_relative_links_lead_to_files() -> None:
+    pages = [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]
+    for page in pages:
+        for target in re.findall(r'\]\(([^)#:]+)(?:#[^)]*)?\)', page.read_text()):
+            assert (page.parent / target).exists(), f'{page.name} links to {target}'
 
 
 def test_readme_quick_start_commands() -> None:

@@ -15,7 +15,7 @@ from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario
 
-# The README's worked example: a camera 20 cm ahead of base_link and 45 cm up, looking
+# docs/nodes.md's worked example: a camera 20 cm ahead of base_link and 45 cm up, looking
 # straight up, the top of its image toward the robot's front.
 LOOKING_UP = Mounting.from_quaternion([0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)], [0.2, 0.0, 0.45])
 
