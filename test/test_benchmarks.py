@@ -23,7 +23,7 @@ def test_accuracy_locates_every_quick_frame_within_the_targets_and_never_wrongly
     def table_with(column: str) -> dict:
         return next((t for t in tables if t and column in next(iter(t.values()))), {})
 
-    availability, issue_targets, optics = table_with('NEES > 99.9 %'), table_with('issue'), table_with('hold')
+    availability, row_targets, optics = table_with('NEES > 99.9 %'), table_with('target'), table_with('hold')
     assert {f'{setup} {solver}' for setup in ACCURACY_BOUNDS for solver in accuracy.SOLVERS} <= set(results)
     for setup, (mean_cm, orientation_deg) in ACCURACY_BOUNDS.items():
         row = results[f'{setup} perspective']
@@ -34,7 +34,7 @@ def test_accuracy_locates_every_quick_frame_within_the_targets_and_never_wrongly
     assert all(int(row['wrong fixes']) == 0 for label, row in results.items() if label.endswith('perspective'))
     assert availability and all(int(row['wrong']) == 0 and int(row['NEES > 99.9 %']) == 0
                                 for row in availability.values()), availability
-    assert 'published (Zhang et al. 2017)' in out and issue_targets
+    assert 'published (Zhang et al. 2017)' in out and row_targets
     # Every look row states its mean error, p95, NEES and share beyond the bound, its targets and whether they
     # hold, which follows from what it measured.
     looks = {label for label in availability if ' look ' in label}

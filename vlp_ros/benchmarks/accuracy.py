@@ -19,8 +19,8 @@ frames had no pose, and the wrong fixes: counted by row with the stage at fault,
 the first few of each row in full. Frame k of a setup is rendered from its own
 random stream ([seed, setup number, k]), so a frame can be reproduced alone.
 
-Then the looks of real lamps and cameras (``vlp_ros.sim.looks``, issue 14) and the
-cases of issue 13, through the perspective solver: the paper's hand-held 4K stills
+Then the looks of real lamps and cameras (``vlp_ros.sim.looks``) and the hard
+cases of markers, stills and driving, through the perspective solver: the paper's hand-held 4K stills
 at 2 m with the paper's rim marker under each look, raw and as JPEG, and under the
 realistic look with its halo, blur and falloff (another functional form too) varied
 (``sim.looks.VARIED_LOOKS``); markers from
@@ -30,7 +30,7 @@ robot with its IMU, clean and realistic; a robot driving and turning
 under packet lamps 2.4 m apart (gaps with no lamp in view); robot stills under
 tone lamps. For each: availability (poses per frame with a mapped lamp fully in
 view, and why the rest had none), wrong fixes, mean NEES and poses beyond their
-99.9 % chi-square bound; then the targets of issues 13 and 14 with the measured values,
+99.9 % chi-square bound; then each row's targets with the measured values,
 and per look its mean error, p95, mean NEES and share of poses beyond the bound against
 the optics targets (``optics_targets_table``), each with whether it holds.
 """
@@ -64,10 +64,10 @@ from vlp_ros.sim.scenarios import (as_stills, DRIVE_SPEED, DRIVE_TURN_RATE, pape
 
 SOLVERS = ('paper', 'perspective')
 HEIGHTS = (2.0, 1.5)
-# The hand-held looks: every effect alone, then together (issue 14), on the paper's 4K stills at 2 m.
+# The hand-held looks: every effect alone, then together, on the paper's 4K stills at 2 m.
 HAND_HELD_LOOKS = ('clean', 'blur', 'glare', 'falloff', 'saturated', 'clutter', 'jpeg', 'row_time_error',
                    'realistic', 'realistic_jpeg')
-# Marker centres (fractions of r) of issue 13: inside, the paper's marginal point, straddling the rim.
+# Marker centres (fractions of r): inside, the paper's marginal point, straddling the rim.
 MARKER_DISTANCES = (0.5, 0.9, 1.0)
 # A 6-DoF NEES beyond this is outside the 99.9 % chi-square bound.
 NEES_BOUND = float(chi2.ppf(0.999, 6))
@@ -83,7 +83,7 @@ class Setup:
     """
     One simulated recording; ``number`` picks its random streams.
 
-    ``targets`` name the targets of issues 13 and 14 that apply to it (``ISSUE_TARGETS``),
+    ``targets`` name the kinds of target that apply to it (``_row_targets``),
     none for today's setups.
     """
 
@@ -123,7 +123,7 @@ class SetupRun:
 
 @dataclass(frozen=True)
 class Drive:
-    """How the robot of the drive rows moves: issue 13's setup unless asked otherwise."""
+    """How the robot of the drive rows moves: 0.8 m/s weaving, unless asked otherwise."""
 
     speed: float = DRIVE_SPEED
     turn_rate: float = DRIVE_TURN_RATE
@@ -133,7 +133,7 @@ def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -
     """
     Return the setups, numbered in order.
 
-    The paper's grid at both heights with both cameras, the robot's drive, then the looks and issue-13 cases.
+    The paper's grid at both heights with both cameras, the robot's drive, then the looks and hard cases.
     """
     points, postures = (3, 1) if quick else (7, 3)
     made = []
@@ -151,7 +151,7 @@ def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -
 
 
 def look_setups(quick: bool, seed: int, drive: Drive = Drive()) -> list[Setup]:
-    """Return the looks of issue 14 and the cases of issue 13, each through the perspective solver only."""
+    """Return the looks and the hard cases (markers, stills, driving, tone), each through the perspective solver only."""
     points, postures = (3, 1) if quick else (5, 2)
     paper = paper_scenario('4k', height=2.0, points=points, postures=postures, seed=seed)
     marginal = with_rim_markers(paper, 0.9, 0.1)
@@ -342,7 +342,7 @@ def availability(run: SetupRun, solver: str) -> Availability:
 
 
 def availability_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str, ErrorSummary]) -> str:
-    """Per looks / issue-13 row: availability, wrong fixes, accuracy, NEES, and why frames with a lamp had no pose."""
+    """Per look or hard case: availability, wrong fixes, accuracy, NEES, and why frames with a lamp had no pose."""
     rows = []
     for setup, run in runs:
         if not setup.targets:
@@ -364,9 +364,9 @@ def _shown(value: float, unit: str = '') -> str:
     return '-' if np.isnan(value) else f'{value:.3g}{unit}'
 
 
-def _issue_targets(kind: str, a: Availability, s: ErrorSummary) -> list[tuple[str, str, str, bool]]:
+def _row_targets(kind: str, a: Availability, s: ErrorSummary) -> list[tuple[str, str, bool]]:
     """
-    Return what a target kind of issues 13 and 14 asks of a row: (issue, target, measured, met) each.
+    Return what a kind of target asks of a row: (target, measured, met) each.
 
     A row without poses meets no target but 'wrong fixes = 0'.
     """
@@ -375,19 +375,18 @@ def _issue_targets(kind: str, a: Availability, s: ErrorSummary) -> list[tuple[st
     nees_range = ('mean NEES in [4, 8]', _shown(s.mean_nees), 4.0 <= s.mean_nees <= 8.0)
     bound = ('poses beyond 99.9 % chi-square = 0', f'{a.beyond_bound} of {s.poses}',
              a.beyond_bound == 0 and s.poses > 0)
-    table = {
-        'hand-held look': ('14', [available, wrong, nees_range]),
-        'tone': ('14', [available, wrong]),
-        'marker': ('13', [available, wrong]),
-        'stills': ('13', [available, wrong]),
-        'drive': ('13', [available, (f'gaps with a pose within {FRAMES_AFTER_GAP} frames = all',
-                                     f'{a.recovered} of {a.gaps}', a.gaps > 0 and a.recovered == a.gaps), wrong]),
-        'falloff': ('13', [nees_range, bound]),
-        'any look': ('13', [wrong, nees_range, bound]),
-        'varied look': ('14', [available, wrong]),
-    }
-    issue, checks = table[kind]
-    return [(issue, what, shown, met) for what, shown, met in checks]
+    recovered = (f'gaps with a pose within {FRAMES_AFTER_GAP} frames = all', f'{a.recovered} of {a.gaps}',
+                 a.gaps > 0 and a.recovered == a.gaps)
+    return {
+        'hand-held look': [available, wrong, nees_range],
+        'tone': [available, wrong],
+        'marker': [available, wrong],
+        'stills': [available, wrong],
+        'drive': [available, recovered, wrong],
+        'falloff': [nees_range, bound],
+        'any look': [wrong, nees_range, bound],
+        'varied look': [available, wrong],
+    }[kind]
 
 
 # Mean 3D error targets (cm) of the optics rows: the hand-held 4K stills at 2 m with an IMU, the robot under
@@ -437,16 +436,16 @@ def optics_targets_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str
                                'targets', 'hold'))
 
 
-def issue_targets_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str, ErrorSummary]) -> str:
-    """Return the targets of issues 13 and 14 next to what this run measured (no poses never meets one)."""
+def row_targets_table(runs: list[tuple[Setup, SetupRun]], summaries: dict[str, ErrorSummary]) -> str:
+    """Return each row's targets next to what this run measured (no poses never meets one)."""
     rows = []
     for setup, run in runs:
         for kind in setup.targets:
             label = row_label(setup, 'perspective')
             a = availability(run, 'perspective')
-            for issue, what, shown, met in _issue_targets(kind, a, summaries[label]):
-                rows.append([label, f'#{issue}', what, shown, 'yes' if met else 'NO'])
-    return format_table(rows, ('row', 'issue', 'target', 'measured', 'met'))
+            for what, shown, met in _row_targets(kind, a, summaries[label]):
+                rows.append([label, what, shown, 'yes' if met else 'NO'])
+    return format_table(rows, ('row', 'target', 'measured', 'met'))
 
 
 def no_pose_table(runs: list[tuple[Setup, SetupRun]]) -> str:
@@ -506,7 +505,7 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument('--examples', type=int, default=3, help='wrong fixes shown in full per row')
     parser.add_argument('--figures', type=Path, default=None, help='write paper-style figures into this folder')
     parser.add_argument('--drive-speed', type=float, default=Drive.speed, metavar='V',
-                        help=f"m/s of the drive rows' robot (default {Drive.speed:g}, issue 13)")
+                        help=f"m/s of the drive rows' robot (default {Drive.speed:g})")
     parser.add_argument('--drive-turn-rate', type=float, default=Drive.turn_rate, metavar='W',
                         help=f'largest heading rate (rad/s) of its weave (default {Drive.turn_rate:g})')
     args = parser.parse_args(argv)
@@ -541,11 +540,11 @@ def main(argv: list[str] | None = None) -> int:
         print('\nWhy frames had no pose')
         print(no_pose_table(runs))
     if any(setup.targets for setup, _ in runs):
-        print(f'\nLooks of real lamps and cameras, and the cases of issue 13: availability = poses on frames with a '
+        print(f'\nLooks of real lamps and cameras, and hard cases: availability = poses on frames with a '
               f'mapped lamp fully in view; NEES bound {NEES_BOUND:.1f} (99.9 %, 6 DoF)')
         print(availability_table(runs, summaries))
-        print('\nTargets of issues 13 and 14')
-        print(issue_targets_table(runs, summaries))
+        print('\nTargets per row')
+        print(row_targets_table(runs, summaries))
         print(f'\nOptics targets per look (mean NEES {OPTICS_NEES_RANGE[0]:g}-{OPTICS_NEES_RANGE[1]:g}, '
               f'<= {100 * OPTICS_MAX_BEYOND:g} % of poses beyond the 99.9 % bound, as in every row)')
         print(optics_targets_table(runs, summaries))

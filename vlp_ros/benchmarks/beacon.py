@@ -470,7 +470,7 @@ def track_checks(name: str, results: dict[tuple[float, float, float], tuple[floa
     """
     Return the tracker's checks, each (text, met).
 
-    The tracker against the issue's 99 % over spans of at least half a packet, and at exactly half a
+    The tracker against its 99 % target over spans of at least half a packet, and at exactly half a
     packet (where the frames' coverage alone leaves less than 99 %) against what that coverage allows.
     """
     lo, hi = TRACK_TARGET

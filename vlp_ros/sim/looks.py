@@ -72,7 +72,7 @@ class Look:
 
 
 # The independent renderer's realistic look (foreign_frames/README.md), with the overexposure and
-# modulation depth measured on its frames (docs/simulator.md), and as JPEG at issue 14's q90.
+# modulation depth measured on its frames (docs/simulator.md), and as JPEG at q90.
 REALISTIC = Look(blur_sigma=1.6, depth=0.6, glare=0.2, falloff=0.3, brightness=2.2, clutter=2)
 LOOKS = {
     'clean': Look(),

@@ -1,7 +1,7 @@
 """
 The bare-LED look: point lamps as a bright core with a glow, striped row by row by their tone.
 
-Set from the photographs of the published five-LED rig (issue 14): Lumia 1020, 7712x4352,
+Set from the photographs of the published five-LED rig: Lumia 1020, 7712x4352,
 focal length 5620 px, row time 21.03 us, exposure 60 us, LEDs from 2000 to 4000 Hz 500 Hz
 apart, 2.46 m above the camera. There each LED is a bright core 31-64 px wide at half level
 with a glow still at 10 % about 120 px out, and the stripes (12-24 rows per period) run

@@ -297,13 +297,13 @@ def robot_scenario(lamp_count: int = 7, spacing: float = 1.2, height: float = 2.
                     prior_up=np.array([0.0, 0.0, 1.0]), prior_tolerance=0.1, prior_sigma=np.radians(0.7))
 
 
-# The moving robot of issue 13 and the tone lamps of issue 14: a 1080p camera whose lamps
+# The moving robot and the tone lamps' robot: a 1080p camera whose lamps
 # are ~77 px across (the independent renderer's f 1100 px and lens), rows 15 us apart.
 ROBOT_1080P_FOCAL = 1100.0
 ROBOT_1080P_DISTORTION = (-0.08, 0.03, 0.0005, -0.0003, 0.0)
 ROBOT_ROW_TIME = 15e-6
 ROBOT_EXPOSURE = 20e-6
-# Issue 13's drive: 0.8 m/s, weaving with a heading rate up to 0.3 rad/s.
+# The drive: 0.8 m/s, weaving with a heading rate up to 0.3 rad/s.
 DRIVE_SPEED = 0.8
 DRIVE_TURN_RATE = 0.3
 ROBOT_LAMP_RADIUS = 0.075

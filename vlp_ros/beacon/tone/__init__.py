@@ -38,7 +38,7 @@ from vlp_ros.beacon.tone.model import ToneFit
 from vlp_ros.core.observation import LampObservation
 
 # How far off (relative) the row time may be: every frequency then reads off by as much, so each lamp's band
-# widens by that share of its frequency (issue 14: nominal row times are 0.3-2 % off).
+# widens by that share of its frequency (real cameras' nominal row times are 0.3-2 % off).
 ROW_TIME_TOLERANCE = 0.02
 # Beyond, the bands of a lamp and its octave meet.
 MAX_ROW_TIME_TOLERANCE = 0.3
@@ -52,7 +52,7 @@ _EDGE_QUANTUM = 0.3
 # frequency.
 _MIN_TRANSMISSION = 0.1
 # A lamp without a rim (a bare LED) is read out to this many core radii: on the five-LED rig's photos its
-# glow still carries the stripes at 10 % of the core's level 4-8 core radii out (issue 14).
+# glow still carries the stripes at 10 % of the core's level 4-8 core radii out.
 POINT_LIGHT_REACH = 10.0
 # A row's brightness is known no better than the light's model (one radial shape times the row's level)
 # holds: rows worth at least this share of the best row's weight count alike. Where a bare LED's core clips
