@@ -151,7 +151,7 @@ def setups(quick: bool, seed: int, frames: int | None, drive: Drive = Drive()) -
 
 
 def look_setups(quick: bool, seed: int, drive: Drive = Drive()) -> list[Setup]:
-    """Return the looks and the hard cases (markers, stills, driving, tone), each through the perspective solver only."""
+    """Return the looks and the hard cases (markers, stills, driving, tone), through the perspective solver only."""
     points, postures = (3, 1) if quick else (5, 2)
     paper = paper_scenario('4k', height=2.0, points=points, postures=postures, seed=seed)
     marginal = with_rim_markers(paper, 0.9, 0.1)
