@@ -143,14 +143,9 @@ def _clear_plateaus(brightness: np.ndarray, rows: np.ndarray, ellipse: np.ndarra
     return keep, plateau
 
 
-def ellipse_chords(ellipse: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(left, right, crossed): where each row (y = ``rows``) enters and leaves the ellipse."""
-    return chords(conic_of(np.asarray(ellipse, dtype=float)), np.asarray(rows, dtype=float).ravel())
-
-
 @kernel
 def chords(conic: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``ellipse_chords`` of a conic (3x3) and float rows."""
+    """(left, right, crossed): where each row (y = ``rows``, float) enters and leaves the ellipse ``conic`` (3x3)."""
     left, right, crossed = np.empty(rows.size), np.empty(rows.size), np.empty(rows.size, np.bool_)
     a = conic[0, 0]
     for i in range(rows.size):
