@@ -10,6 +10,8 @@ from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 
+pytestmark = pytest.mark.dds
+
 
 @pytest.mark.parametrize('scenario_name, storage, frames, tolerance_m', [
     ('paper_4k', 'sqlite3', 6, 0.01),

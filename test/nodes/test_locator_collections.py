@@ -1,11 +1,10 @@
 """The locator's start objects stay out of Python's garbage collections, and later cycles are still freed."""
 from __future__ import annotations
 
-from pathlib import Path
 import subprocess
 import sys
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
 
 # In a process of its own: freezing the objects of pytest's process would keep them for every later test.
 AFTER_THE_KERNELS = """

@@ -14,6 +14,8 @@ from replay_bags import (by_topic, chatter, edit_metadata, overlapping_recording
                          write_bag, write_overlapping_split_bag)
 from test_replay_node import deserialized, run_to_end, subscribe
 
+pytestmark = pytest.mark.dds
+
 
 def strings(data: list[bytes]) -> list[str]:
     from std_msgs.msg import String

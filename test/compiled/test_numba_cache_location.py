@@ -8,9 +8,9 @@ import stat
 import subprocess
 import sys
 
+from conftest import ROOT
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 # Root writes through any permission bits; without these capabilities it is held to them like a service account.
 AS_AN_ACCOUNT = ['setpriv', '--bounding-set', '-dac_override,-dac_read_search,-fowner',
                  '--inh-caps', '-dac_override,-dac_read_search,-fowner'] if os.geteuid() == 0 else []

@@ -13,12 +13,15 @@ import math
 
 from conftest import located_through_the_nodes
 import numpy as np
+import pytest
 
 from vlp_ros.benchmarks.accuracy import availability, FRAMES_AFTER_GAP, SetupRun
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import robot_drive_scenario
+
+pytestmark = pytest.mark.dds
 
 
 def test_a_robot_that_loses_sight_of_the_lamps_is_located_again_within_three_frames(

@@ -7,6 +7,7 @@ from pathlib import Path
 from conftest import RosProcess, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
+import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
@@ -16,6 +17,8 @@ from vlp_ros.sim.bag_writer import image_message, TYPESTORE
 from vlp_ros.sim.recording import LOCATOR_NODE
 
 import yaml
+
+pytestmark = pytest.mark.dds
 
 # Compiling every kernel takes minutes of CPU; the imports and DDS's start take seconds.
 SUBSCRIBED_S = 60.0

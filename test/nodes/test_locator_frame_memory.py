@@ -5,6 +5,9 @@ import subprocess
 import sys
 
 from conftest import ROOT
+import pytest
+
+pytestmark = pytest.mark.dds
 
 # The frame is handed to the node's image callback as the executor hands it (the serialised message), so the test
 # holds the only other reference to its bytes; the node is in a process of its own (it sets process-wide options).

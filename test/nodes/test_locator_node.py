@@ -22,6 +22,8 @@ from vlp_ros.sim.scenarios import robot_scenario
 
 import yaml
 
+pytestmark = pytest.mark.dds
+
 STAMP_NS = 1_700_000_123_456_789_000
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # The locator subscribes once its kernels are loaded, as slowly as the machine is busy. Waits like

@@ -23,6 +23,8 @@ from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.render import render_frame
 from vlp_ros.solvers.covariance import nees
 
+pytestmark = pytest.mark.dds
+
 FRAMES = 120
 
 

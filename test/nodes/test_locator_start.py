@@ -1,11 +1,13 @@
 """A locator that fails while it starts reports that failure, not a second one from destroying it."""
 from __future__ import annotations
 
-from pathlib import Path
 import subprocess
 import sys
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+import pytest
+
+pytestmark = pytest.mark.dds
 
 # rclpy destroys every node of a context it shuts down, also one whose __init__ raised while the error is kept.
 FAILED_START = """

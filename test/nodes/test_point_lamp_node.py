@@ -8,11 +8,14 @@ from __future__ import annotations
 
 from conftest import located_through_the_nodes
 import numpy as np
+import pytest
 
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.recording import record, write_params
+
+pytestmark = pytest.mark.dds
 
 FRAMES = 4
 # The target for photos of the bare-LED rig with three or more LEDs identified.

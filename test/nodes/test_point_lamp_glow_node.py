@@ -9,11 +9,14 @@ from __future__ import annotations
 
 from conftest import located_through_the_nodes
 import numpy as np
+import pytest
 
 from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.bag_writer import COMPRESSED_TOPIC
 from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.recording import record, write_params
+
+pytestmark = pytest.mark.dds
 
 FRAMES = 3
 # The target for photos with three or more LEDs identified.

@@ -21,6 +21,8 @@ from vlp_ros.solvers.covariance import nees
 
 import yaml
 
+pytestmark = pytest.mark.dds
+
 FRAMES = 120
 
 

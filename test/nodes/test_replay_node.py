@@ -10,6 +10,8 @@ import pytest
 from replay_bags import (CAMERA_INFO, camera_info_data, chatter, copy_bag, IMAGE, image_data, Recorded, SHARED_BAGS,
                          sqlite3_topic_data, T0_NS, write_bag, write_split_bag)
 
+pytestmark = pytest.mark.dds
+
 TALKER_DB = SHARED_BAGS / 'talker_sqlite3' / 'talker.db3'
 TALKER_MCAP = SHARED_BAGS / 'talker_mcap'
 TALKER_START_NS = 1585866235112411371  # starting_time in its metadata.yaml

@@ -19,6 +19,8 @@ from vlp_ros.sim.recording import write_params
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import robot_scenario
 
+pytestmark = pytest.mark.dds
+
 STAMP_NS = 1_700_000_321_000_000_000
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

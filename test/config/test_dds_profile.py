@@ -1,17 +1,17 @@
 """The loopback DDS profile's shared memory: room for one raw 4K frame's fragments, and no more than it needs."""
 from __future__ import annotations
 
-from pathlib import Path
 import xml.etree.ElementTree as ElementTree
 
-PROFILE = Path(__file__).resolve().parents[1] / 'config' / 'fastdds_loopback.xml'
+from conftest import LOOPBACK_PROFILE
+
 NAMESPACE = {'dds': 'http://www.eprosima.com'}
 RAW_4K_BGR8_BYTES = 3840 * 2160 * 3
 
 
 def shared_memory_transport() -> ElementTree.Element:
     """Return the profile's SHM transport descriptor."""
-    descriptors = ElementTree.parse(PROFILE).getroot().iterfind('.//dds:transport_descriptor', NAMESPACE)
+    descriptors = ElementTree.parse(LOOPBACK_PROFILE).getroot().iterfind('.//dds:transport_descriptor', NAMESPACE)
     return next(d for d in descriptors if d.findtext('dds:type', namespaces=NAMESPACE) == 'SHM')
 
 

@@ -21,6 +21,8 @@ from vlp_ros.pipeline.config import settings_from_params_file, settings_from_tre
 
 import yaml
 
+pytestmark = pytest.mark.dds
+
 DRIVE = SHARED_DATA / 'foreign_frames' / 'survey_drive_clean'
 UNLISTED, ABSENT = 's11', 's12'
 

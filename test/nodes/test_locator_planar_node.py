@@ -12,6 +12,7 @@ from dataclasses import replace
 from conftest import spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
+import pytest
 
 from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation.demo import PLAYED_TOPICS
@@ -21,6 +22,8 @@ from vlp_ros.sim.planar_drive import FLOORS, MOUNTING, mounting_parameters, plan
 from vlp_ros.sim.recording import LOCATOR_NODE, record, write_params
 
 import yaml
+
+pytestmark = pytest.mark.dds
 
 FRAMES = 80
 LIFT_M = 0.15

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 from conftest import located_through_the_nodes
 import numpy as np
+import pytest
 
 from vlp_ros.evaluation.metrics import WRONG_FIX_M
 from vlp_ros.evaluation.recording import RecordingTopics
 from vlp_ros.sim.looks import apply_look, LOOKS
 from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import as_stills, paper_scenario, with_rim_markers
+
+pytestmark = pytest.mark.dds
 
 
 def test_clipped_blurred_stills_get_poses_and_no_wrong_fix(start_process, test_node, tmp_path) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 from conftest import located_through_the_nodes, spin_until
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
+import pytest
 
 from vlp_ros.core.pose import Pose
 from vlp_ros.evaluation.recording import RecordingTopics
@@ -27,6 +28,8 @@ from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario
 
 import yaml
+
+pytestmark = pytest.mark.dds
 
 SPACING_NS = 100_000_000  # 0.1 s between stills
 # One still per test point (0.6 m apart), in the order a person walks the grid.

@@ -27,6 +27,8 @@ from vlp_ros.sim.recording import record, write_params
 from vlp_ros.sim.scenarios import (as_stills, paper_scenario, robot_drive_scenario, robot_scenario, Scenario,
                                    with_rim_markers)
 
+pytestmark = pytest.mark.dds
+
 # The issues' availability target: a pose on 90 % of the frames that show a mapped lamp fully.
 AVAILABILITY = 0.9
 
