@@ -4,7 +4,7 @@ A clipped, blurred disc read with its clipped chips censored: "at least this bri
 The simulator's realistic look puts the paper's lamp 2.2 times over the sensor's ceiling behind a 1.6 px
 blur and a diffuser 30 % dimmer at its rim: the bright chips all read the ceiling, whether a run or one chip
 between dark ones, and in the disc's middle blur lifts isolated dark chips over it too. The Gaussian reading
-misfits such a disc and refuses it (main read an ID on 1 of the benchmark's 9 realistic stills);
+misfits such a disc and refuses it;
 ``decode_clipped_packet`` reads it, and never as another ID.
 """
 import numpy as np
@@ -61,7 +61,7 @@ def test_a_clipped_blurred_disc_is_read():
 
 
 def test_the_gaussian_reading_refuses_what_the_censored_one_reads():
-    """The same discs fit no packet as measured levels (why main read none)."""
+    """The same discs fit no packet as measured levels."""
     for seed in range(5):
         profile = clipped_disc(90, seed)
         assert decode_packet(profile, CHIP_RATE, ROW_TIME, 8, MAP, blur_mixes=BLUR_MIXES).lamp_id is None
@@ -112,11 +112,12 @@ def test_an_unclipped_window_is_left_to_the_gaussian_reading():
     assert reading.lamp_id is None and reading.detail == 'not clipped'
 
 
+@pytest.mark.simulation
 def test_the_simulators_realistic_stills_are_identified():
     """
     The accuracy benchmark's hand-held realistic stills (paper's 4K lamp at 2 m, rim marker, clutter).
 
-    The locator's reading of each mapped lamp (main: 1 of 9), and never of a clutter lamp.
+    The locator's reading of each mapped lamp, and never of a clutter lamp.
     """
     scenario = apply_look(with_rim_markers(paper_scenario('4k', height=2.0, points=3, postures=1, seed=0), 0.9, 0.1),
                           LOOKS['realistic'], 0)

@@ -3,9 +3,8 @@ Clipped, blurred stripes and complement-closed codebooks: a lamp is read as itse
 
 A lamp bright enough to clip at the ceiling, seen through an ordinary blur, lifts its isolated dark chips to
 the ceiling too: the chips then look like a packet that was never sent, and with odd ``id_bits`` the
-complement of a packet passes parity. Main's decoder read such profiles as other IDs with certainty (3-bit
-lamp 5 as its complement 2 at 0.99998, lamp 4 as 2 at 1.0; 6 wrong fixes on the accuracy benchmark's
-realistic robot row).
+complement of a packet passes parity. Read as measured levels, such profiles fit other IDs with certainty
+(3-bit lamp 5 as its complement 2 at 0.99998, lamp 4 as 2 at 1.0).
 """
 import cv2
 import numpy as np

@@ -20,11 +20,10 @@ def test_the_hand_held_realistic_lamp_is_identified_in_seven_frames_of_eight_and
     pipeline = Pipeline(settings)
     frames = list(recorded_frames(HANDHELD / 'bag', RecordingTopics(image='/image_raw/compressed'), None))
     decoded = [pipeline.process(f.image, f.camera, f.stamp_ns * 1e-9, f.up).decoded_ids for f in frames]
-    # One mapped lamp (ID 90) beside unmodulated lamps: any other ID would be wrong. With sharp chips only
-    # on its light, 2 of the 8 frames were read; with blur weighed in, 4; with the chip grid searched on the
-    # whole window (the first 24 chips lie in the glow's faint rows), 5; with the grids around it weighed in
-    # too, all 8, each at 0.99999 or more (issue 14 asks for 90 %). With the marker fit of docs/detection.md
-    # merged in, the first still's clipped disc read no evidence (7 of 8); its chips read censored, 8 of 8.
+    # One mapped lamp (ID 90) beside unmodulated lamps: any other ID would be wrong. Its light is read with
+    # blur weighed in, the chip grid searched on the whole window (the first 24 chips lie in the glow's faint
+    # rows) and the grids around it weighed in too, and a clipped disc's chips censored: each of the 8 stills
+    # reads 90 at 0.99999 or more, and the target is 90 % of them.
     assert all(ids in ([], [90]) for ids in decoded), decoded
     assert sum(ids == [90] for ids in decoded) >= 7, decoded
 

@@ -1,9 +1,8 @@
 """
 The glow decoder on a clipped, glaring, blurred 4K lamp: an ID the chip grid alone decides is not certain.
 
-On the accuracy benchmark's realistic hand-held stills (seed 2, still 49), main's glow decoder found the chip
-period 6 % short and read lamp 11 as ID 107 at 0.99999 (on the nominal period: 11 at 1.0). 107 is not in the
-benchmark's map, so it was reported as an unknown ID; with 107 in a map it would have been a wrong fix.
+On the accuracy benchmark's realistic hand-held stills (seed 2, still 49), a chip period found 6 % short reads
+lamp 11 as ID 107 at 0.99999 (on the nominal period: 11 at 1.0); with 107 in a map that would be a wrong fix.
 """
 import numpy as np
 

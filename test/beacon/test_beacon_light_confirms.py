@@ -1,4 +1,4 @@
-"""An uncertain disc is read again over the lamp's light, whose glare halo can show the whole packet (issue 14)."""
+"""An uncertain disc is read again over the lamp's light, whose glare halo can show the whole packet."""
 import numpy as np
 
 from vlp_ros.beacon.decoding import decode_packet, read_lamp

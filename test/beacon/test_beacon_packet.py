@@ -198,8 +198,8 @@ def test_trying_grids_around_the_found_one_never_finds_a_wrong_id_in_chips_it_do
     """
     An exposure of two chips smears each chip over three (beyond the blur mixes).
 
-    The found grid misfits, and trying grids around it must not find one where another ID fits (12 of 264
-    such profiles were read as other IDs before the found grid had to fit and the others to fit well).
+    The found grid misfits, and trying grids around it must not find one where another ID fits: the found
+    grid has to fit, and the others to fit well.
     """
     row_time = 1.5e-5
     for rows_per_chip in (4.0, 7.7):

@@ -207,7 +207,7 @@ def test_each_mix_is_fitted_exactly(stride):
 def test_a_plateau_of_peaks_gives_no_id():
     # A demosaiced lamp at an unmapped 6.9 kHz over 16 rows (4.2 rows per period, exposed 1.09 rows): the
     # mixed rows fit everything from 6.8 to 7.1 kHz about as well, and the grid, narrowed onto the peak
-    # near 7 kHz, saw none of the others (this read lamp 30 at 7 kHz, 0.99999); its earlier passes did.
+    # near 7 kHz, sees none of the others (alone it reads lamp 30 at 7 kHz, 0.99999); its wider passes do.
     sums = [1064, 1094, 1002, 1847, 2496, 2101, 1429, 2077, 2839, 2284, 1437, 1669, 2314, 1071, 536, 432]
     pixels = np.array([6, 9, 11, 13, 14, 16, 16, 16, 16, 16, 16, 14, 13, 7, 6, 4], dtype=float)
     profile = RowProfile(np.array(sums) / pixels, pixels, np.zeros(len(pixels)), 0)
@@ -236,7 +236,7 @@ def test_spectral_peak_is_the_zero_padded_ffts(seed):
     assert scan.spectral_peak(fit, 30.0 * rows, 31.0 * rows) is None
 
 
-# Issue 14's tone lamps: 12 from 2000 to 5300 Hz, 300 Hz apart, 15 us rows, 20 us exposure.
+# A robot's tone lamps: 12 from 2000 to 5300 Hz, 300 Hz apart, 15 us rows, 20 us exposure.
 SPARSE = {1 + k: 2000.0 + 300.0 * k for k in range(12)}
 
 

@@ -1,4 +1,4 @@
-"""The accuracy benchmark's looks and issue-13 rows: availability counts what the issues count, and prints it."""
+"""The accuracy benchmark's looks and robot rows: availability counts frames with a lamp and gaps, and prints it."""
 from __future__ import annotations
 
 import numpy as np
@@ -57,7 +57,8 @@ LOOK_ROWS = {'hand-held 4K 2 m look realistic_jpeg perspective': 10.0,
              'robot tone look realistic_jpeg perspective': 1.0}
 
 
-def test_benchmark_locates_the_looks_and_issue_13_rows_and_meets_their_availability_targets(capsys):
+@pytest.mark.simulation
+def test_benchmark_locates_the_look_and_stills_rows_and_meets_their_availability_targets(capsys):
     frames = 2
     assert accuracy.main(['--quick', '--frames', str(frames), '--only', 'look realistic_jpeg',
                           '--only', 'stills 0.1']) == 0
@@ -70,7 +71,7 @@ def test_benchmark_locates_the_looks_and_issue_13_rows_and_meets_their_availabil
         row = availability[label]
         assert int(row['poses']) == int(row['lamp in view']) == frames, (label, row)
         assert int(row['wrong']) == 0 and int(row['NEES > 99.9 %']) == 0 and float(row['mean cm']) < mean_cm, row
-    # Each row's availability and wrong-fix targets, under the issue that set them, are met.
+    # Each row's availability and wrong-fix targets, under the source the benchmark names for them, are met.
     targets = out.split('Targets of issues 13 and 14')[1].split('Optics targets per look')[0]
     judged = [line.split() for line in targets.splitlines() if ' #1' in line and 'NEES' not in line]
     assert len(judged) == 2 * len(LOOK_ROWS) and all(cells[-1] == 'yes' for cells in judged), targets

@@ -13,6 +13,7 @@ TRACK_ROW = re.compile(r'^(?P<label>\S.*?)\s+(?P<tracks>\d+)\s+(?P<within>[\d.]+
 WRONG_IDS = re.compile(r'^(PASS|FAIL)  wrong IDs, (packet|tone): (\d+) in (\d+) ')
 
 
+@pytest.mark.simulation
 def test_a_small_run_identifies_the_target_lamps_and_never_a_wrong_one(capsys: pytest.CaptureFixture[str]) -> None:
     beacon.main(['--trials', '20', '--seed', '3'])
     out = capsys.readouterr().out

@@ -7,12 +7,13 @@ import pytest
 
 from vlp_ros.benchmarks import accuracy, pipeline_speed
 
-# The issues' accuracy targets (mean error, cm; mean orientation error, deg) per setup of the perspective
-# solver; the 1080p photos, for which the issues set none, within twice the 4K pixel's error.
+# The accuracy targets (mean error, cm; mean orientation error, deg) per setup of the perspective solver;
+# the 1080p photos, which have none of their own, within twice the 4K pixel's error.
 ACCURACY_BOUNDS = {'paper 4K 2 m': (0.5, 0.15), 'paper 4K 1.5 m': (0.4, 0.15), 'paper 1080p 2 m': (2.0, 0.5),
                    'paper 1080p 1.5 m': (2.0, 0.5), 'robot': (1.0, 0.5)}
 
 
+@pytest.mark.simulation
 def test_accuracy_locates_every_quick_frame_within_the_targets_and_never_wrongly(capsys) -> None:
     frames = 2
     assert accuracy.main(['--quick', '--frames', str(frames)]) == 0
@@ -30,7 +31,7 @@ def test_accuracy_locates_every_quick_frame_within_the_targets_and_never_wrongly
         assert int(row['poses']) == frames and int(row['wrong fixes']) == 0, (setup, row)
         assert float(row['mean cm']) < mean_cm and float(row['orient. mean deg']) < orientation_deg, (setup, row)
     # The perspective solver never publishes a wrong fix, nor a pose beyond its covariance's 99.9 % bound,
-    # under any look or case of issue 13 (the paper's solver is the published baseline, wrong fixes and all).
+    # under any look or robot case (the paper's solver is the published baseline, wrong fixes and all).
     assert all(int(row['wrong fixes']) == 0 for label, row in results.items() if label.endswith('perspective'))
     assert availability and all(int(row['wrong']) == 0 and int(row['NEES > 99.9 %']) == 0
                                 for row in availability.values()), availability
@@ -49,6 +50,7 @@ def test_accuracy_rejects_zero_frames() -> None:
         accuracy.main(['--quick', '--frames', '0'])
 
 
+@pytest.mark.simulation
 def test_pipeline_speed_locates_the_frame_of_each_case_it_times(capsys: pytest.CaptureFixture[str]) -> None:
     pipeline_speed.main(['--quick'])
     rows = printed_tables(capsys.readouterr().out)[0]

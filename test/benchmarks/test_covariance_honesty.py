@@ -26,6 +26,7 @@ def _tables(out: str, look: str) -> tuple[dict, dict]:
     return detection, poses
 
 
+@pytest.mark.simulation
 def test_a_few_clean_frames_give_unbiased_rims_honest_sigmas_and_nees(capsys: pytest.CaptureFixture[str]) -> None:
     frames = 4
     assert covariance_honesty.main(['--frames', str(frames)]) == 0
@@ -43,6 +44,7 @@ def test_a_few_clean_frames_give_unbiased_rims_honest_sigmas_and_nees(capsys: py
         assert float(row['mean error cm']) < 1.0, (label, row)
 
 
+@pytest.mark.simulation
 def test_with_ids_from_the_truth_every_frame_of_the_look_is_solved_honestly(capsys) -> None:
     frames = 3
     assert covariance_honesty.main(['--frames', str(frames), '--look', 'falloff', '--ids-from-truth']) == 0

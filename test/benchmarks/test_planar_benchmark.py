@@ -1,7 +1,8 @@
-"""The planar robot drive and its benchmark: the geometry the issue asks for, planar against 6-DoF."""
+"""The planar robot drive and its benchmark: a robot under sparse lamps, planar against 6-DoF."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from vlp_ros.benchmarks.planar import Row, run_row
 from vlp_ros.sim.planar_drive import FLOORS, MOUNTING, planar_drive_scenario
@@ -34,6 +35,7 @@ def _inside(scenario, camera, lamp) -> bool:
     return bool(np.all((pixels >= 0.0) & (pixels < [scenario.camera.width, scenario.camera.height])))
 
 
+@pytest.mark.simulation
 def test_planar_beats_six_dof_on_a_flat_floor_under_falloff() -> None:
     six_dof, planar = run_row(Row('flat', 0.0026, 'falloff', 0.010), frames=60, seed=1)
     assert planar.wrong == 0 and planar.poses >= 0.9 * six_dof.poses

@@ -2,8 +2,11 @@
 from __future__ import annotations
 
 from printed_tables import printed_tables
+import pytest
 
 from vlp_ros.benchmarks import survey
+
+pytestmark = pytest.mark.simulation
 
 
 def test_the_exact_rows_of_a_drive_are_printed_within_the_targets(capsys) -> None:

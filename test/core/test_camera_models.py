@@ -172,6 +172,7 @@ def test_poses_through_the_wide_lenses_are_right_with_an_honest_covariance(model
     assert 4.0 <= np.mean(values) <= 8.0, np.mean(values)
 
 
+@pytest.mark.simulation
 def test_the_benchmark_prints_a_row_per_model(capsys: pytest.CaptureFixture[str]) -> None:
     assert camera_models.main(['--frames', '3', '--first', '100']) == 0
     rows = capsys.readouterr().out.splitlines()

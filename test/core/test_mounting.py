@@ -159,6 +159,7 @@ def test_prior_and_imu_stay_in_the_camera_frame_with_a_tilted_mounting() -> None
     assert np.degrees(estimate.rotation_error(base)) < 0.5
 
 
+@pytest.mark.simulation
 def test_base_frame_benchmark_prints_camera_base_and_lever_free_rows(capsys: pytest.CaptureFixture[str]) -> None:
     from vlp_ros.benchmarks import base_frame
     assert base_frame.main(['--frames', '6', '--first', '100']) == 0

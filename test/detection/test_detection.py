@@ -296,7 +296,7 @@ def test_bad_options_are_value_errors():
 def test_rim_points_lie_on_the_edge_on_average_whatever_the_blur(blur):
     # Blur pulls the half level of a convex edge inward (by ~0.3 px / radius at 0.7 px blur),
     # and so does the maximum over colour channels on a tinted ceiling: 0.011 px (0.7 px blur)
-    # and 0.031 px (1.4 px) here before either was undone, against the 0.002-0.004 px one
+    # and 0.031 px (1.4 px) here unless both are undone, against the 0.002-0.004 px one
     # lamp's rim noise averages out to.
     cam, pose = camera(), tilted_pose()
     sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=blur)
@@ -463,8 +463,7 @@ def test_bare_leds_with_glow_are_points_with_their_centre(core_radius, peak):
             assert error < 4.0
             if not o.rim_usable:
                 assert len(o.rim_points) == 0 and o.marker is None and error < 4.0 * o.center_sigma
-    # Today 5-6 of the 6 LEDs (issue 14 asks for every one): a core whose unclipped rows are too few
-    # for the circle is still missed.
+    # 5-6 of the 6 LEDs: a core whose unclipped rows are too few for the circle is missed.
     assert found >= 5
 
 
@@ -474,9 +473,9 @@ def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, fallof
     Fit the rim of a blurred lamp with a glare halo and falloff to its edge without bias.
 
     Blur 2 px, a row-lit glare halo of 20 % (Gaussian of 0.35 of the image diameter) and a diffuser
-    30 % dimmer at the rim: half of the chord's middle lay inside the edge, and the semi-axes came out
-    0.2-0.5 px short. Now the rim fits the edge to within 0.2 px in every frame (the halo alone lengthens the
-    axes by about 0.13 px), less than the common rim offset the pose fit allows for (0.5 px).
+    30 % dimmer at the rim: fitted as a sharp disc, half of the chord's middle lies inside the edge and the
+    semi-axes come out 0.2-0.5 px short. The rim fits the edge to within 0.2 px in every frame (the halo alone
+    lengthens the axes by about 0.13 px), less than the common rim offset the pose fit allows for (0.5 px).
     """
     cam, pose = camera(), tilted_pose()
     sensor = SensorModel(row_time=ROW_TIME, exposure=0.5 * ROW_TIME, blur_sigma=2.0, glare=glare)
@@ -497,7 +496,7 @@ def test_blurred_lamp_with_halo_and_falloff_is_fitted_without_bias(glare, fallof
 
 
 def drive_marker_lamp(cam, pose, at, marker_distance, marker_angle, peak_dn, phase):
-    """Return a robot's lamp (issue 13): 77 px across, 8-bit packets at 4 rows a chip, a marker of 0.1 r."""
+    """Return a robot's lamp: 77 px across, 8-bit packets at 4 rows a chip, a marker of 0.1 r."""
     ray = pose.rotation @ np.array([(at[0] - cam.K[0, 2]) / cam.focal, (at[1] - cam.K[1, 2]) / cam.focal, 1.0])
     position = ray * HEIGHT / ray[2]
     radius = 0.5 * 77.0 * np.linalg.norm(position) / cam.focal

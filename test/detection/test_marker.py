@@ -2,8 +2,8 @@
 The marker's compiled kernels against their numpy formulation.
 
 ``fit_marker``, ``find_seed`` and ``redness`` run as numba kernels
-(vlp_ros.detection.marker). The reference here is the numpy code they replaced, kept
-as it was: the blurred-disc model with its amplitudes eliminated (variable
+(vlp_ros.detection.marker). The reference here is the same fit written in numpy:
+the blurred-disc model with its amplitudes eliminated (variable
 projection, Kaufman's Jacobian), the Levenberg-Marquardt loop on it and the consider
 covariance of the centre. The kernels must give the same fits, to rounding error, on
 the markers detect_lamps meets in simulated frames.
@@ -22,7 +22,7 @@ from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 
 # ---------------------------------------------------------------------------------------------
-# The numpy formulation (marker.py before the kernels).
+# The numpy formulation.
 # ---------------------------------------------------------------------------------------------
 
 
@@ -228,7 +228,7 @@ def test_fit_marker_matches_the_numpy_formulation(recorded_fits):
 
 
 def test_fit_marker_rejects_what_the_numpy_formulation_rejects(recorded_fits):
-    """Too few usable rows, and a window without any: None, as before."""
+    """Too few usable rows, and a window without any: None, as the numpy formulation gives."""
     red, seed, lamp_ellipse, blur_guess, margin, row_level, rows_used, gradient, spread = recorded_fits[0]
     for used in (np.zeros_like(rows_used), np.arange(rows_used.size) == int(seed.center[1])):
         assert reference_fit(red, seed, lamp_ellipse, blur_guess, margin, row_level, used, gradient, spread) is None

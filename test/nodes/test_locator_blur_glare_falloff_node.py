@@ -1,15 +1,13 @@
 """
-The looks of real lamps and cameras through the installed executables over DDS (issues 13 and 14).
+Blur, glare and falloff of real lamps and cameras through the installed executables over DDS.
 
 A simulator bag with a look -> replay -> locator, every answer compared with the bag's truth.
 
-Each case is one failure the issues name: hand-held stills with blur, glare, falloff and clutter
-lamps (0 of 40 got a pose; sent as JPEG, the replay's first frame went unanswered for a minute: not
-yet understood, so not a case here); a robot driving under
-packet lamps it loses sight of (no pose on 61 of 71 frames); diffuser falloff. Every case must give
-no wrong fix; the drive, a pose on 90 % of its frames with a lamp (31 of 36 before this session's
-marker fit). Not asserted, because not yet met (docs/benchmarks.md): a pose within 3 frames after
-every gap, availability under the realistic look, and falloff poses within their 99.9 % bound.
+The cases: hand-held stills with blur, glare, falloff and clutter lamps, raw; a robot driving under
+packet lamps it loses sight of; diffuser falloff. Every case must give no wrong fix; the drive, a pose
+on 90 % of its frames with a lamp. Not asserted, because not met (docs/benchmarks.md): a pose within 3
+frames after every gap, availability under the realistic look, and falloff poses within their 99.9 %
+bound.
 """
 from __future__ import annotations
 
@@ -29,7 +27,7 @@ from vlp_ros.sim.scenarios import (as_stills, paper_scenario, robot_drive_scenar
 
 pytestmark = pytest.mark.dds
 
-# The issues' availability target: a pose on 90 % of the frames that show a mapped lamp fully.
+# The availability target: a pose on 90 % of the frames that show a mapped lamp fully.
 AVAILABILITY = 0.9
 
 

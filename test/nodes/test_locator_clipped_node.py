@@ -1,10 +1,10 @@
 """
-Clipped, blurred lamps through the installed executables over DDS (issue 14: saturation with blur).
+Clipped, blurred lamps through the installed executables over DDS: saturation with blur.
 
 The simulator's realistic hand-held stills (lamp 2.2 x the ceiling, blur 1.6 px, glare, falloff, two
-clutter lamps) -> replay -> locator. In the core (one noise draw), main got a pose on 3 of these 9
-stills (its Gaussian chip fit refuses a clipped disc, whose glow then rarely carries the ID); read with
-its clipped chips censored, 5 of them; never a wrong fix.
+clutter lamps) -> replay -> locator. A Gaussian chip fit refuses a clipped disc, whose glow then rarely
+carries the ID; read with its clipped chips censored, 5 of these 9 stills get a pose in the core (one
+noise draw); never a wrong fix.
 """
 from __future__ import annotations
 

@@ -2,15 +2,12 @@
 The installed locator over DDS.
 
 Hand-held stills that jump from one test point to the next 0.1 s apart are not locked out
-by the recent pose (issue 13: 31 of 60 such frames ended ``no_candidate_agrees`` when the
-0.3 m gate ignored the time and overrode gravity).
+by the recent pose: its gate grows with the time since that pose and does not override gravity.
 
 The stills are played from a bag by the installed replay in deterministic mode, one at a time,
-each waiting for its answer however busy the machine is (``conftest.located_through_the_nodes``).
-Publishing them from the test with a few seconds per answer made the test flaky under load: the
-locator's warm-up could outlast the 20 s the test waited for its subscriptions, a still answered
-late was sent again and processed twice (its beacon evidence added twice to the tracker, its pose
-continuing itself), and the restarts in /diagnostics were awaited for only 5 s.
+each waiting for its answer however busy the machine is (``conftest.located_through_the_nodes``):
+a still sent again after a late answer would be processed twice (its beacon evidence added twice to
+the tracker, its pose continuing itself).
 """
 from __future__ import annotations
 

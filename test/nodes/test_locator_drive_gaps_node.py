@@ -2,10 +2,10 @@
 The installed replay and locator over DDS.
 
 A robot that drives under packet lamps 2.4 m apart and loses sight of them gets a pose again within 3
-frames of each gap (issue 13's target), never a wrong one. A lamp that comes into view holds 0.8 of a
+frames of each gap, never a wrong one. A lamp that comes into view holds 0.8 of a
 packet a frame, so its beacon alone needs 2-4 frames; where only one lamp of the map can be, near the
-recent pose, the geometry settles its ID on the first (``solvers.continuity_ids``). Before that, as
-the last lamp of a row left and the next came in, three frames in a row had no pose.
+recent pose, the geometry settles its ID on the first (``solvers.continuity_ids``), also as the last
+lamp of a row leaves and the next comes in.
 """
 from __future__ import annotations
 

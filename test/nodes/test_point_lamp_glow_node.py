@@ -2,7 +2,7 @@
 Bare LEDs as the five-LED rig's photos show them, through the installed nodes.
 
 1 cm cores in a glow at 40 % of them, JPEG q90 over ``image_transport: compressed``, the row time 2
-% off nominal (issue 14). The locator reads each LED's tone over its glow and places the camera
+% off nominal. The locator reads each LED's tone over its glow and places the camera
 from the centres.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from vlp_ros.sim.recording import record, write_params
 pytestmark = pytest.mark.dds
 
 FRAMES = 3
-# The issue's target for photos with three or more LEDs identified.
+# The target for photos with three or more LEDs identified.
 TARGET_M = 0.05
 
 
@@ -32,7 +32,7 @@ def test_the_rigs_measured_look_as_jpeg_is_located_through_the_locator(test_node
     topics = RecordingTopics(image=COMPRESSED_TOPIC)
     outcomes = located_through_the_nodes(test_node, start_process, bag, params, topics, True, scenario.name)
 
-    # On main the glow was not read: no photo of this look had three IDs, so none had a pose.
+    # Read on its core alone, no photo of this look has three IDs: every pose rests on the glow.
     located = [o for o in outcomes if o.estimate is not None]
     assert len(located) == FRAMES, [o.reason for o in outcomes]
     errors = [o.estimate.position_error(o.truth) for o in located]

@@ -18,7 +18,7 @@ from vlp_ros.sim.recording import record, write_params
 pytestmark = pytest.mark.dds
 
 FRAMES = 4
-# The target for photos of the bare-LED rig with three or more LEDs identified.
+# The target for photos of the bare-LED rig with three or more LEDs identified.
 TARGET_M = 0.05
 NEES_BOUND = 22.46
 

@@ -1,5 +1,5 @@
 """
-Bare LEDs as the five-LED rig's photos show them (issue 14).
+Bare LEDs as the five-LED rig's photos show them.
 
 A 1 cm core in a glow at 40 % of it, stripes on every row the light reaches. Their tones are read
 over core and glow, raw and as JPEG with the row time 2 % off nominal; and a map whose spacing the
@@ -23,10 +23,11 @@ from vlp_ros.sim.point_lamps import bare_led_scenario, PointLampLook
 from vlp_ros.sim.sensor import encode_jpeg
 
 PHOTOS = 3
-# The issue's target for photos with three or more LEDs identified.
+# The target for photos with three or more LEDs identified.
 TARGET_M = 0.05
 
 
+@pytest.mark.simulation
 @pytest.mark.parametrize('row_time_error, jpeg_quality', [(0.0, None), (0.02, 90), (-0.015, 90)])
 def test_the_rigs_leds_are_identified_from_their_glow_and_located(row_time_error, jpeg_quality) -> None:
     scenario = bare_led_scenario('4k', photos=PHOTOS, seed=11, look=PointLampLook(),
@@ -47,7 +48,7 @@ def test_the_rigs_leds_are_identified_from_their_glow_and_located(row_time_error
             assert result.pose is not None, result.detail
             assert np.linalg.norm(result.pose.position - pose.position) < TARGET_M
     assert wrong == 0
-    # Core alone (main): 7 of 30 such LEDs identified; over core and glow all but the odd one.
+    # Over the core alone 7 of 30 such LEDs are identified; over core and glow all but the odd one.
     assert right >= 0.9 * 5 * PHOTOS
 
 
@@ -70,9 +71,10 @@ def test_the_row_time_tolerance_is_a_parameter_checked_at_start() -> None:
     assert err.value.parameter == 'beacon.row_time_tolerance'
 
 
+@pytest.mark.simulation
 def test_every_led_of_the_rigs_photos_is_detected_at_its_centre() -> None:
-    # Main missed one LED in 4 of these 12 photos: its dark stripes alone spanned too few of the core's
-    # rows to pass for round, and the clipped bright rows were not tried.
+    # In 4 of these 12 photos an LED's dark stripes alone span too few of the core's rows to pass for
+    # round: its clipped bright rows are tried too.
     scenario = bare_led_scenario('4k', photos=12, seed=1, look=PointLampLook())
     rng = np.random.default_rng([1, 1])
     for index in range(len(scenario.poses)):

@@ -1,5 +1,5 @@
 """
-One lamp whose light departs from a uniform disc on a sharp edge (issue 13 item 4).
+One lamp whose light departs from a uniform disc on a sharp edge.
 
 A glare halo or a diffuser's falloff moves its rim by patterns its ellipse absorbs, which the
 edge's blur alone did not show. The covariance must cover them.
@@ -12,6 +12,8 @@ from vlp_ros.pipeline.frame import Pipeline
 from vlp_ros.sim.looks import apply_look, LOOKS, transported
 from vlp_ros.sim.scenarios import paper_scenario, with_rim_markers
 from vlp_ros.solvers.covariance import nees
+
+pytestmark = pytest.mark.simulation
 
 # The 99.9 % point of chi-square with 6 degrees of freedom.
 BOUND = 22.46
@@ -34,8 +36,8 @@ def _poses(look: str) -> list[float]:
 
 @pytest.mark.parametrize('look', ['glare', 'falloff'])
 def test_one_sharp_lamp_under_glare_or_falloff_is_not_over_confident(look: str) -> None:
-    # On 4512d33 the glare look's single-lamp poses had mean NEES 37 with 4 of 6 beyond the bound,
-    # falloff 11 with 2 of 7: the sharp edge (0.8-1 px of blur) gave its rim patterns no prior.
+    # Were the sharp edge (0.8-1 px of blur) to give its rim patterns no prior, the glare look's poses
+    # would have mean NEES 37 with 4 of 6 beyond the bound, falloff's 11 with 2 of 7.
     errors = _poses(look)
     assert len(errors) >= 5
     assert np.mean(errors) <= 9.0

@@ -87,13 +87,14 @@ def test_a_look_refuses_impossible_values() -> None:
         PointLampLook(glow_level=1.0)
 
 
+@pytest.mark.simulation
 @pytest.mark.parametrize('look, poses', [(PointLampLook(core_radius=0.02, glow_level=0.1), 3),
                                          (PointLampLook(), 0)])
 def test_bare_led_photos_through_the_pipeline_give_right_ids_and_poses_or_none(look, poses) -> None:
     """
-    The soft-glow look is read today: a pose from the five LEDs on each photo.
+    The soft-glow look is read: a pose from the five LEDs on each photo.
 
-    The rig's measured look is not yet (its glow hides the cores from this detector): no ID
+    The rig's measured look is not (its glow hides the cores from this detector): no ID
     and no pose, and never a wrong one.
     """
     scenario = bare_led_scenario('4k', photos=3, seed=4, look=look)

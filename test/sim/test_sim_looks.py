@@ -244,6 +244,7 @@ def test_command_line_records_a_look_with_its_options(tmp_path, capsys):
     assert params['beacon']['row_time'] == pytest.approx(nominal, rel=1e-9)
 
 
+@pytest.mark.simulation
 def test_look_check_finds_our_own_realistic_frames_match_our_realistic_look(tmp_path, capsys):
     scenario = apply_look(with_rim_markers(paper_scenario('1080p', points=1, postures=2, seed=4)),
                           LOOKS['realistic_jpeg'])

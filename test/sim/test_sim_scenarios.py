@@ -89,7 +89,8 @@ def lamps_fully_in_view(scenario, index):
     return [t for t in frame.lamps if t.fully_inside]
 
 
-def test_robot_drive_is_issue_13s_moving_robot_with_gaps():
+@pytest.mark.simulation
+def test_robot_drive_is_a_moving_robot_with_gaps():
     scenario = robot_drive_scenario()
     assert scenario.frame_rate == 10.0 and scenario.sensor.row_time == 15e-6
     assert (scenario.beacon.chip_rate, scenario.beacon.id_bits) == (16000.0, 8)

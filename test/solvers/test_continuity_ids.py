@@ -2,8 +2,8 @@
 A lamp whose beacon is not yet certain, identified by where the recent pose says it can be.
 
 Only when exactly one lamp of the map can be there and the beacon leans to it
-(``solvers.continuity_ids``, issue 13: a robot that loses the lamps for half a second must get a
-pose again within a few frames).
+(``solvers.continuity_ids``): a robot that loses the lamps for half a second gets a pose again
+within a few frames.
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """
 The covariance stays honest when the lamps depart from the model.
 
-Issue 13: a rim that falloff, glare or soft edges draw inside the true edge; an up direction the
-lamps tilt away from.
+A rim that falloff, glare or soft edges draw inside the true edge; an up direction the lamps tilt
+away from.
 """
 from dataclasses import replace
 
@@ -84,8 +84,8 @@ def test_two_lamps_whose_rims_are_warped_each_its_own_way_get_a_covariance_that_
     # 0.2 px of second harmonic per lamp at a random orientation, twice the 0.1 px noise: as measured
     # at the true pose on an independent renderer's blurred frames (0.4-0.9 px against 0.2-0.3 px of
     # scatter). Each lamp's ellipse absorbs it, so only the lamps' disagreement shows it; with two
-    # lamps the fit that ignored it gave mean NEES 52 with 15 of these 40 poses beyond the bound
-    # (measured on f17478c), now 6.3 with 3.
+    # lamps a fit that ignores it gives mean NEES 52 with 15 of these 40 poses beyond the bound, this
+    # one 6.3 with 3.
     rng = np.random.default_rng(32)
     estimates = _poses_of_lamps_seen_as(grid_lamps(2), 40, rng,
                                         lambda observation: _warped(observation, 0.2, rng.uniform(0.0, np.pi)))

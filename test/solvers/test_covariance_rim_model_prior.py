@@ -2,8 +2,8 @@
 Two lamps whose rims depart from the model each its own way.
 
 The frame's estimate of that departure rests on little redundancy, and each lamp's own prior
-(``LampObservation.rim_model_sigma``) bounds what the fit may claim (issue 13: a robot under two
-realistic lamps was centimetres off with NEES in the hundreds).
+(``LampObservation.rim_model_sigma``) bounds what the fit may claim: without it a robot under two
+realistic lamps is centimetres off with NEES in the hundreds.
 """
 from dataclasses import replace
 
@@ -55,9 +55,8 @@ def _two_lamp_poses(prior_px: float, seed: int) -> list:
 
 
 def test_each_lamps_prior_of_its_rim_patterns_bounds_what_two_lamps_claim() -> None:
-    # Measured before this allowance (ccc7ce1): the frame's estimate alone left 8 of the 12 poses
-    # beyond the bound (mean NEES 56); with the lamps' prior the same poses have mean NEES 7.5,
-    # none beyond.
+    # The frame's estimate alone (no prior) leaves 8 of the 12 poses beyond the bound (mean NEES 56);
+    # with the lamps' prior the same poses have mean NEES 7.5, none beyond.
     claimed = _two_lamp_poses(0.0, 51)
     bounded = _two_lamp_poses(0.4, 51)
     solved = [(c, b) for c, b in zip(claimed, bounded) if c is not None]

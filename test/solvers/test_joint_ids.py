@@ -1,5 +1,5 @@
 """
-IDs settled jointly with the geometry (issue 14).
+IDs settled jointly with the geometry.
 
 With several lamps in view, a lamp whose tone lies where two lamps' bands meet (a row time known to
 2 % leaves it open) is identified when one pose explains every lamp with it, and a lamp that is not
@@ -73,6 +73,7 @@ def located(scenario, photos) -> list[tuple[int, int, float | None]]:
     return found
 
 
+@pytest.mark.simulation
 def test_lamps_between_two_bands_are_identified_by_the_pose_that_explains_every_lamp(photos) -> None:
     scenario, frames = photos
     outcomes = located(scenario, [(frame, up) for frame, _, up in frames])
@@ -81,6 +82,7 @@ def test_lamps_between_two_bands_are_identified_by_the_pose_that_explains_every_
     assert sum(right for right, _, _ in outcomes) >= 5 * PHOTOS - 1
 
 
+@pytest.mark.simulation
 def test_a_lamp_not_in_the_map_whose_tone_takes_a_mapped_id_is_told_apart_by_the_geometry(photos) -> None:
     scenario, frames = photos
     assert all(any(t.lamp_id == 6 and t.fully_inside for t in frame.lamps) for _, frame, _ in frames)
@@ -89,8 +91,8 @@ def test_a_lamp_not_in_the_map_whose_tone_takes_a_mapped_id_is_told_apart_by_the
     # lamp 5 does: both are reopened, and only the real one fits the pose.
     posed = [(wrong, error) for _, wrong, error in outcomes if error is not None]
     assert all(wrong == 0 and error < 0.05 for wrong, error in posed), outcomes
-    # Main: the doubly claimed ID left every photo without a pose. Where three lamps and the stranger
-    # are certain (one photo here) nothing tells which is the stranger: no pose.
+    # Where three lamps and the stranger are certain (one photo here) nothing tells which is the
+    # stranger: no pose.
     assert len(posed) >= PHOTOS - 1
 
 
@@ -132,8 +134,8 @@ def test_without_a_certain_pose_an_assignment_counts_only_if_the_right_one_was_t
 
 def test_where_the_grid_explains_every_lamp_read_as_its_neighbour_the_readings_decide() -> None:
     # A regular grid whose IDs run along it: moved by one spacing, a pose explains the lamps read each as
-    # its neighbour as well as the right assignment (issue 14's tone stills: 3 lamps at 0.996-0.999 each,
-    # their neighbours holding the rest, gave no pose on main).
+    # its neighbour as well as the right assignment (tone stills: 3 lamps at 0.996-0.999 each, their
+    # neighbours holding the rest).
     observation = _observation()
     right, shifted = (3, 5, 7, 9), (2, 4, 6, 8)
 
@@ -151,7 +153,7 @@ def test_where_the_grid_explains_every_lamp_read_as_its_neighbour_the_readings_d
 
 def test_more_open_lamps_than_assignments_can_be_tried_are_settled_by_the_most_certain_ones_pose() -> None:
     # Five open tone lamps of three candidates each: 243 assignments. The three most certain are settled
-    # by assignment, the other two against their pose (main: none identified, no pose).
+    # by assignment, the other two against their pose.
     observation = _observation()
     right = (3, 5, 7, 9, 11)
     anchor_pose = Pose(np.eye(3), np.zeros(3), np.eye(6) * 1e-4)

@@ -15,7 +15,7 @@ from vlp_ros.solvers.up_measurement import UpMeasurement
 def test_a_lamp_near_the_image_centre_with_the_mount_prior_gives_a_pose_that_explains_the_image(frame: int) -> None:
     # The drive's lamp 214 passes near the image centre, 1.7 m above the camera: its two circle
     # poses each explain the rim (chi-square ~50 for 50 points) 20-40 cm apart, and their midpoint
-    # does not (150-590); merged and updated with the 0.7 deg mount prior, the pose was refused
+    # does not (150-590): merged and updated with the 0.7 deg mount prior, the pose would be refused
     # (poor_fit, chi-square 300-1400) although the prior singles out the right one of the two.
     scenario = apply_look(robot_drive_scenario(seed=2017), LOOKS['overexposed'], 2017)
     truth = scenario.poses[frame]
