@@ -10,7 +10,7 @@ BUILT := install/vlp_ros/share/vlp_ros/package.xml
 SOURCES := $(shell find vlp_ros config launch resource -type f -not -path '*/__pycache__/*') setup.py setup.cfg package.xml LICENSE
 RUN := source scripts/setup_env.sh &&
 
-.PHONY: all venv build test demo bench clean
+.PHONY: all venv build test test-quick demo bench clean
 
 all: build
 
@@ -40,6 +40,11 @@ build: $(BUILT)
 
 test: build
 	$(RUN) python -m pytest test $(PYTEST_ARGS)
+
+# The unit tier, for checking an edit in a minute or two: the DDS and simulation tiers and the linters
+# (pytest.ini's markers) take most of `make test`'s minutes and run there.
+test-quick: build
+	$(RUN) python -m pytest test -m 'not dds and not simulation and not linter' $(PYTEST_ARGS)
 
 demo: build
 	$(RUN) python -m vlp_ros.evaluation.demo $(DEMO_ARGS)

@@ -8,6 +8,8 @@ import pytest
 
 from vlp_ros.nodes.dds_environment import installed_executable
 
+pytestmark = pytest.mark.dds
+
 EXECUTABLES = ['locator', 'replay']
 
 

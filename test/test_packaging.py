@@ -32,7 +32,7 @@ PYTHON_KEYS = {
 }
 PACKAGE = parse_package(str(ROOT))
 # The tests' own helper modules, imported by name from test/.
-TEST_HELPERS = frozenset(path.stem for path in (ROOT / 'test').glob('*.py'))
+TEST_HELPERS = frozenset(path.stem for path in (ROOT / 'test').rglob('*.py'))
 
 
 def needed_keys(found: list[SourceImport]) -> dict[str, str]:

@@ -217,7 +217,7 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
 # The compiled kernels (vlp_ros.compiled). The fit is one call: window, model, Levenberg-Marquardt
 # and covariance with no return to Python, whose per-iteration numpy calls cost several times the
 # arithmetic on a marker's few hundred pixels. Sums over pixels run in order, one pass for all of
-# them; against the numpy formulation this replaced (test/test_marker.py keeps it as the
+# them; against the numpy formulation this replaced (test/detection/test_marker.py keeps it as the
 # reference) results differ by rounding only: 1e-13 px on the accuracy benchmark's frames.
 
 
