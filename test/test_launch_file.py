@@ -105,9 +105,9 @@ def test_replay_accepts_the_arguments_it_is_given() -> None:
     assert arguments.rate == float(ARGUMENTS['rate'])
 
 
-def test_the_readme_launches_it_with_its_arguments() -> None:
-    commands = re.findall(r'ros2 launch vlp_ros vlp\.launch\.py(.*)', (ROOT / 'README.md').read_text())
-    assert commands, 'the README shows no launch command'
+def test_the_docs_launch_it_with_its_arguments() -> None:
+    commands = re.findall(r'ros2 launch vlp_ros vlp\.launch\.py(.*)', (ROOT / 'docs' / 'nodes.md').read_text())
+    assert commands, 'docs/nodes.md shows no launch command'
     required = {name for name, default in ARGUMENTS.items() if default is None}
     for command in commands:
         given = set(re.findall(r'(\w+):=', command))
