@@ -421,7 +421,10 @@ def _upper_bound(value: float, bound: float) -> float:
     return bound if bound < value else value
 
 
-# Zeros to start the unrolled sums from: a 4x4 Gram matrix's upper triangle, row by row, and four column sums.
+# The pixel loops carry their sums as tuples through small kernels (``_edge``, ``_projected_jacobian``,
+# ``_gram_plus``, ``_plus_scaled``) that the compiler inlines: no call to them is left in the machine code
+# (``inspect_llvm``), and the sums stay in registers. Zeros to start them from: a 4x4 Gram matrix's upper
+# triangle, row by row, and four column sums.
 _NO_GRAM = (0.0,) * 10
 _NO_COLUMN_SUMS = (0.0,) * 4
 
