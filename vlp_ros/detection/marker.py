@@ -306,11 +306,11 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
-    fitted = _fit(red, _Start(float(seed.center[0]), float(seed.center[1]), float(seed.radius), float(blur_guess),
-                              float(margin)),
-                  _Lamp(np.asarray(lamp_ellipse, dtype=np.float64), float(shape_spread),
-                        np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
-                        np.asarray(level_gradient, dtype=np.float64)))
+    start = _Start(float(seed.center[0]), float(seed.center[1]), float(seed.radius), float(blur_guess), float(margin))
+    lamp = _Lamp(np.asarray(lamp_ellipse, dtype=np.float64), float(shape_spread),
+                 np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
+                 np.asarray(level_gradient, dtype=np.float64))
+    fitted = _fit(red, start, lamp)
     if not fitted.found:
         return None
     return MarkerFit(fitted.center, fitted.covariance, fitted.radius, fitted.blur, fitted.shape)
@@ -446,6 +446,7 @@ def _fit(red: np.ndarray, start: _Start, lamp: _Lamp) -> _Fitted:
 
 @kernel
 def _failed() -> _Fitted:
+    """Return the result of a fit that failed."""
     return _Fitted(False, np.zeros(2), np.zeros((2, 2)), 0.0, 0.0, np.zeros((2, 2)))
 
 
@@ -498,7 +499,7 @@ def _sample_pixels(red: np.ndarray, window: _Window, lamp: _Lamp, blur: float) -
 
 @kernel
 def _disc_conic(ellipse: np.ndarray) -> tuple[float, float, float, float, float, float]:
-    """Return the ellipse's conic x^T C x = 0 as (xx, xy, yy, xw, yw, ww), the rim at 1 from the centre."""
+    """Return the ellipse's conic p^T C p, p = (x, y, 1), as its entries (xx, xy, yy, xw, yw, ww): 0 on the rim."""
     cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
     c, s = math.cos(theta), math.sin(theta)
     ia, ib = 1.0 / (a * a), 1.0 / (b * b)
@@ -710,19 +711,20 @@ def _basis_weights(columns: np.ndarray, amplitudes: _Amplitudes, scale: float) -
 
 
 @kernel
-def _less_basis(value: float, weights: np.ndarray, k: int, b0: float, b1: float) -> float:
-    """Return column ``k``'s ``value`` at a pixel less its part in the basis terms (b0, b1) there."""
-    return value - (weights[k, 0] * b0 + weights[k, 1] * b1)
+def _less_basis(value: float, weights: np.ndarray, b0: float, b1: float) -> float:
+    """Return a column's ``value`` at a pixel less its part in the basis terms (b0, b1), by the column's ``weights``."""
+    return value - (weights[0] * b0 + weights[1] * b1)
 
 
 @kernel
 def _projected_jacobian(jacobian: np.ndarray, i: int, scale: float, weights: np.ndarray, b0: float,
                         b1: float) -> tuple[float, float, float, float]:
     """Return row ``i`` of the variable-projection Jacobian: ``basis``' columns scaled, less their part in the basis."""
-    return (_less_basis(scale * jacobian[i, 0], weights, 0, b0, b1),
-            _less_basis(scale * jacobian[i, 1], weights, 1, b0, b1),
-            _less_basis(scale * jacobian[i, 2], weights, 2, b0, b1),
-            _less_basis(scale * jacobian[i, 3], weights, 3, b0, b1))
+    # Rows of ``weights`` rather than literal indices: one compiled signature of ``_less_basis``, not one per column.
+    return (_less_basis(scale * jacobian[i, 0], weights[0], b0, b1),
+            _less_basis(scale * jacobian[i, 1], weights[1], b0, b1),
+            _less_basis(scale * jacobian[i, 2], weights[2], b0, b1),
+            _less_basis(scale * jacobian[i, 3], weights[3], b0, b1))
 
 
 @kernel
@@ -823,8 +825,8 @@ def _consider_terms(params: np.ndarray, pixels: _Pixels, basis: _Basis, sums: _M
             b1 = pixels.disc[i]
             j = _projected_jacobian(basis.jacobian, i, scale, weights, b0, b1)
             gram = _gram_plus(gram, j)
-            cross_axes = _plus_scaled(cross_axes, j, _less_basis(scale * stretches[i, 0], weights, 4, b0, b1))
-            cross_diagonals = _plus_scaled(cross_diagonals, j, _less_basis(scale * stretches[i, 1], weights, 5, b0, b1))
+            cross_axes = _plus_scaled(cross_axes, j, _less_basis(scale * stretches[i, 0], weights[4], b0, b1))
+            cross_diagonals = _plus_scaled(cross_diagonals, j, _less_basis(scale * stretches[i, 1], weights[5], b0, b1))
             terms = _plus_scaled(terms, j, amplitudes.marker * b0)
             vertical = _plus_scaled(vertical, j, j[1])
         for k in range(4):
