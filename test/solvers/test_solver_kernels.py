@@ -14,10 +14,10 @@ from vlp_ros.core.camera import CameraModel
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.circle_pose import circle_poses
 from vlp_ros.solvers.covariance import perturbed, with_rotation_curvature
-from vlp_ros.solvers.fit_kernels import forecast, inverse_form, project_point
+from vlp_ros.solvers.fit_kernels import forecast, inverse_form, joined, project_point
 from vlp_ros.solvers.measurement import LampMeasurement, LampMeasurements
 from vlp_ros.solvers.perspective import _kalman_update
-from vlp_ros.solvers.refinement import linearize
+from vlp_ros.solvers.refinement import _levenberg_marquardt, linearize, PATIENCE
 from vlp_ros.solvers.up_measurement import _tangent_axes, UpMeasurement
 
 WIDE_TRUTH = looking_up((0.5, 0.4, 0.45), (0.1, -0.15, 0.3))
@@ -129,6 +129,23 @@ def test_joined_terms_stack_every_kind_in_order() -> None:
              + [(3, slice(None)), (4, slice(None))])
     np.testing.assert_array_equal(residuals, np.concatenate([parts[k][0][s] for k, s in order]))
     np.testing.assert_array_equal(jacobian, np.vstack([parts[k][1][s] for k, s in order]))
+
+
+@pytest.mark.parametrize('iterations', [4, 6, 50])
+def test_a_descent_paused_to_be_judged_ends_where_an_unpaused_one_does(iterations: int) -> None:
+    """Pausing after ``PATIENCE`` iterations and going on takes the same steps, no more in all than asked."""
+    camera = camera_wide()
+    rng = np.random.default_rng(6)
+    terms = joined([LampMeasurement.from_observation(observe(lamp, WIDE_TRUTH, camera, rng=rng), lamp, camera).terms
+                    for lamp in grid_lamps(3)[:3]])
+    judged = []
+    paused = _levenberg_marquardt(AWAY, terms, iterations, lambda pose, cost: judged.append(cost) or False)
+    straight = _levenberg_marquardt(AWAY, terms, iterations)
+    assert len(judged) == 1 and iterations > PATIENCE
+    np.testing.assert_array_equal(paused[0].rotation, straight[0].rotation)
+    np.testing.assert_array_equal(paused[0].position, straight[0].position)
+    np.testing.assert_array_equal(paused[1], straight[1])
+    assert paused[3] == straight[3] == (iterations == 50)
 
 
 def test_rotation_curvature_is_the_direct_formula() -> None:

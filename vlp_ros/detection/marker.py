@@ -65,6 +65,108 @@ class _Seed(NamedTuple):
     radius: float
 
 
+class _Start(NamedTuple):
+    """Where the fit starts: the seed's centre and radius and the blur guessed (px); the window's margin beyond them."""
+
+    x: float
+    y: float
+    radius: float
+    blur: float
+    margin: float
+
+
+class _Lamp(NamedTuple):
+    """
+    What the lamp gives the fit (``fit_marker``'s arguments of the same meaning).
+
+    Its ``ellipse`` (cx, cy, a, b, theta) in the box's pixels and the marker's expected
+    ``shape_spread`` against it; per row of the box: the lamp's ``level``, whether the row is
+    ``used``, and the level's relative ``gradient`` L' / L.
+    """
+
+    ellipse: np.ndarray
+    shape_spread: float
+    level: np.ndarray
+    used: np.ndarray
+    gradient: np.ndarray
+
+
+class _Window(NamedTuple):
+    """The box the fit reads, ``half`` (px) around the seed: columns x0 to x1 and the used ``rows`` from y0 to y1."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    half: float
+    rows: np.ndarray
+
+
+class _Pixels(NamedTuple):
+    """
+    The window's pixels, row after row (``width`` a row), and what the model holds fixed at them.
+
+    Per pixel (N): its redness ``data``, its row's lamp ``level``, the lamp's disc blurred by the
+    guess times that level (``disc``), and its position where the lamp is round (``rounded``,
+    (N, 2): p ``root``, the symmetric root (2x2, det 1) of the lamp's shape). Also the disc's
+    sums against itself and the data.
+    """
+
+    data: np.ndarray
+    level: np.ndarray
+    disc: np.ndarray
+    rounded: np.ndarray
+    root: np.ndarray
+    width: int
+    disc_norm2: float
+    disc_data: float
+
+
+class _Basis(NamedTuple):
+    """
+    Scratch that ``_marker_terms`` fills at the parameters it is given, per pixel.
+
+    The marker term (N): the level times the blurred disc; its ``jacobian`` (N, 4) over centre,
+    radius and blur, short of the factor amplitude / (sqrt(2 pi) blur).
+    """
+
+    marker: np.ndarray
+    jacobian: np.ndarray
+
+
+class _Edge(NamedTuple):
+    """
+    A pixel against the marker's edge, in the frame where the lamp is round (``_edge``).
+
+    Its offset (u, v) from the centre and distance ``rho``; the offset mapped back to the image
+    (``gradient_x``, ``gradient_y``: the edge's outward normal there) and its inverse norm; ``gain``,
+    rho times that inverse norm; ``z``, the distance to the edge in blurs, positive inside.
+    """
+
+    u: float
+    v: float
+    rho: float
+    gradient_x: float
+    gradient_y: float
+    inverse_norm: float
+    gain: float
+    z: float
+
+
+class _NormalEquations(NamedTuple):
+    """J^T J (4x4) and J^T r (4) of the marker model's variable-projection Jacobian."""
+
+    jtj: np.ndarray
+    jtr: np.ndarray
+
+
+class _Descent(NamedTuple):
+    """``_descend``'s result: the parameters reached (centre, radius, blur) and their cost."""
+
+    params: np.ndarray
+    cost: float
+
+
 class _MarkerSums(NamedTuple):
     """
     ``_marker_terms``' sums.
@@ -204,11 +306,11 @@ def fit_marker(red: np.ndarray, seed: MarkerSeed, lamp_ellipse: np.ndarray, blur
     ``shape_spread`` is the expected relative difference (stretch) between the marker's
     image shape and its lamp's.
     """
-    fitted = _fit(
-        red, float(seed.center[0]), float(seed.center[1]), float(seed.radius),
-        np.asarray(lamp_ellipse, dtype=np.float64), float(blur_guess), float(margin),
-        np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
-        np.asarray(level_gradient, dtype=np.float64), float(shape_spread))
+    start = _Start(float(seed.center[0]), float(seed.center[1]), float(seed.radius), float(blur_guess), float(margin))
+    lamp = _Lamp(np.asarray(lamp_ellipse, dtype=np.float64), float(shape_spread),
+                 np.asarray(row_level, dtype=np.float64), np.asarray(rows_used, dtype=np.bool_),
+                 np.asarray(level_gradient, dtype=np.float64))
+    fitted = _fit(red, start, lamp)
     if not fitted.found:
         return None
     return MarkerFit(fitted.center, fitted.covariance, fitted.radius, fitted.blur, fitted.shape)
@@ -319,249 +421,422 @@ def _upper_bound(value: float, bound: float) -> float:
     return bound if bound < value else value
 
 
-@kernel
-def _marker_terms(cx: float, cy: float, s: float, blur: float, rounded: np.ndarray, root: np.ndarray,
-                  level: np.ndarray, data: np.ndarray, disc_term: np.ndarray, marker: np.ndarray,
-                  jac: np.ndarray) -> _MarkerSums:
-    """
-    Return the marker's basis term and its derivatives, before the amplitude is known.
+# The pixel loops carry their sums as tuples through small kernels (``_edge``, ``_projected_jacobian``,
+# ``_gram_plus``, ``_plus_scaled``) that the compiler inlines: no call to them is left in the machine code
+# (``inspect_llvm``), and the sums stay in registers. Zeros to start them from: a 4x4 Gram matrix's upper
+# triangle, row by row, and four column sums.
+_NO_GRAM = (0.0,) * 10
+_NO_COLUMN_SUMS = (0.0,) * 4
 
-    Fills ``marker`` (N): level times the blurred disc, and ``jac`` (N, 4): the derivatives
-    of the marker term over centre, radius and blur, short of the factor amplitude /
-    (sqrt(2 pi) blur). Returns the sums the amplitudes and the projection need.
+
+@kernel
+def _fit(red: np.ndarray, start: _Start, lamp: _Lamp) -> _Fitted:
+    """fit_marker's work."""
+    window = _window(red, start, lamp.used)
+    if window.rows.size < _MIN_MARKER_ROWS or window.x1 - window.x0 < 5:
+        return _failed()
+    pixels = _sample_pixels(red, window, lamp, start.blur)
+    count = pixels.data.size
+    basis = _Basis(np.empty(count), np.empty((count, 4)))
+    descent = _descend(pixels, start, basis)
+    if not _is_plausible(descent.params, window):
+        return _failed()
+    return _marker_found(descent, pixels, basis, window.rows, lamp)
+
+
+@kernel
+def _failed() -> _Fitted:
+    """Return the result of a fit that failed."""
+    return _Fitted(False, np.zeros(2), np.zeros((2, 2)), 0.0, 0.0, np.zeros((2, 2)))
+
+
+@kernel
+def _window(red: np.ndarray, start: _Start, used: np.ndarray) -> _Window:
+    """Return the box around the seed, widened by the margin and cut by the image, and its ``used`` rows."""
+    half = start.radius + start.margin
+    x0 = max(int(np.floor(start.x - half)), 0)
+    y0 = max(int(np.floor(start.y - half)), 0)
+    x1 = min(int(np.ceil(start.x + half)) + 1, red.shape[1])
+    y1 = min(int(np.ceil(start.y + half)) + 1, red.shape[0])
+    last = min(y1, used.size)
+    rows = np.empty(max(last - y0, 0), dtype=np.int64)
+    count = 0
+    for y in range(y0, last):
+        if used[y]:
+            rows[count] = y
+            count += 1
+    return _Window(x0, y0, x1, y1, half, rows[:count])
+
+
+@kernel
+def _sample_pixels(red: np.ndarray, window: _Window, lamp: _Lamp, blur: float) -> _Pixels:
+    """Return the window's pixels and the lamp's disc at them, blurred by ``blur``."""
+    width = window.x1 - window.x0
+    n = window.rows.size * width
+    conic = _disc_conic(lamp.ellipse)
+    root = _shape_root(lamp.ellipse)
+    data = np.empty(n)
+    level = np.empty(n)
+    disc = np.empty(n)
+    rounded = np.empty((n, 2))
+    disc_norm2 = 0.0
+    disc_data = 0.0
+    i = 0
+    for row in window.rows:
+        py = float(row)
+        for column in range(window.x0, window.x1):
+            px = float(column)
+            data[i] = float(red[row, column])
+            level[i] = lamp.level[row]
+            disc[i] = lamp.level[row] * _ndtr(-_sampson_distance(conic, px, py) / blur)
+            disc_norm2 += disc[i] * disc[i]
+            disc_data += disc[i] * data[i]
+            rounded[i, 0] = px * root[0, 0] + py * root[1, 0]
+            rounded[i, 1] = px * root[0, 1] + py * root[1, 1]
+            i += 1
+    return _Pixels(data, level, disc, rounded, root, width, disc_norm2, disc_data)
+
+
+@kernel
+def _disc_conic(ellipse: np.ndarray) -> tuple[float, float, float, float, float, float]:
+    """Return the ellipse's conic p^T C p, p = (x, y, 1), as its entries (xx, xy, yy, xw, yw, ww): 0 on the rim."""
+    cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
+    c, s = math.cos(theta), math.sin(theta)
+    ia, ib = 1.0 / (a * a), 1.0 / (b * b)
+    xx, yy, xy = c * c * ia + s * s * ib, s * s * ia + c * c * ib, c * s * (ia - ib)
+    xw, yw = -(xx * cx + xy * cy), -(xy * cx + yy * cy)
+    ww = xx * cx * cx + 2.0 * xy * cx * cy + yy * cy * cy - 1.0
+    return xx, xy, yy, xw, yw, ww
+
+
+@kernel
+def _sampson_distance(conic: tuple[float, float, float, float, float, float], px: float, py: float) -> float:
+    """Return the pixel's distance (px) outside the ellipse to first order, as ``ellipse.geometric_distances``."""
+    xx, xy, yy, xw, yw, ww = conic
+    gx = xx * px + xy * py + xw
+    gy = xy * px + yy * py + yw
+    value = gx * px + gy * py + (xw * px + yw * py + ww)
+    return 0.5 * value / math.sqrt(gx * gx + gy * gy)
+
+
+@kernel
+def _shape_root(ellipse: np.ndarray) -> np.ndarray:
+    """Return the symmetric root of the lamp's shape (det 1): R diag(sqrt(b/a), sqrt(a/b)) R^T."""
+    a, b, theta = ellipse[2], ellipse[3], ellipse[4]
+    c, s = math.cos(theta), math.sin(theta)
+    along, across = math.sqrt(b / a), math.sqrt(a / b)
+    off = c * s * (along - across)
+    root = np.empty((2, 2))
+    root[0, 0] = c * c * along + s * s * across
+    root[0, 1] = root[1, 0] = off
+    root[1, 1] = s * s * along + c * c * across
+    return root
+
+
+@kernel
+def _descend(pixels: _Pixels, start: _Start, basis: _Basis) -> _Descent:
+    """Return the marker's centre, radius and blur by Levenberg-Marquardt from the seed, the amplitudes eliminated."""
+    params = np.array([start.x, start.y, start.radius, start.blur])
+    trial = np.empty(4)
+    normal = _NormalEquations(np.empty((4, 4)), np.empty(4))
+    trial_normal = _NormalEquations(np.empty((4, 4)), np.empty(4))
+    cost = _evaluate(params, pixels, basis, normal)
+    damping = 1e-3
+    for _ in range(_MAX_ITERATIONS):
+        _step_within_bounds(params, _damped_step(normal, damping), trial)
+        trial_cost = _evaluate(trial, pixels, basis, trial_normal)
+        dx, dy = trial[0] - params[0], trial[1] - params[1]
+        moved = math.sqrt(dx * dx + dy * dy)
+        if trial_cost < cost:
+            params, trial = trial, params
+            normal, trial_normal = trial_normal, normal
+            cost = trial_cost
+            damping = max(damping * 0.3, 1e-6)
+        else:
+            damping *= 10.0
+        if moved < _CONVERGED or damping > 1e6:
+            break
+    return _Descent(params, cost)
+
+
+@kernel
+def _damped_step(normal: _NormalEquations, damping: float) -> np.ndarray:
+    """Return the step that solves the normal equations with their diagonal raised by ``damping`` times itself."""
+    damped = normal.jtj.copy()
+    for k in range(4):
+        damped[k, k] += damping * (normal.jtj[k, k] + 1e-12)
+    # A singular system (a pivot below OpenCV's DECOMP_LU floor) gives no step, as cv2.solve would.
+    solved = lu_solve(damped, normal.jtr, OPENCV_PIVOT_FLOOR)
+    return solved.solution if solved.ok else np.zeros(4)
+
+
+@kernel
+def _step_within_bounds(params: np.ndarray, step: np.ndarray, trial: np.ndarray) -> None:
+    """Write ``params`` moved by ``step`` into ``trial``, the radius at least 0.5 px and the blur in its bounds."""
+    trial[0] = params[0] + step[0]
+    trial[1] = params[1] + step[1]
+    trial[2] = _lower_bound(params[2] + step[2], 0.5)
+    trial[3] = _upper_bound(_lower_bound(params[3] + step[3], _BLUR_BOUNDS[0]), _BLUR_BOUNDS[1])
+
+
+@kernel
+def _is_plausible(params: np.ndarray, window: _Window) -> bool:
+    """Return whether the marker fitted lies in its window, fits in it, is plausibly blurred and crosses enough rows."""
+    mx, my, radius, blur = params[0], params[1], params[2], params[3]
+    if (not (window.x0 <= mx < window.x1 and window.y0 <= my < window.y1) or radius > window.half
+            or not _BLUR_BOUNDS[0] < blur < _BLUR_BOUNDS[1]):
+        return False
+    # Rows crossing the marker's image carry its position; one or two leave it ambiguous. A small
+    # marker's radius trades against its blur (both widen the spot), so the image's reach counts.
+    reach = math.hypot(radius, blur)
+    crossing = 0
+    for row in window.rows:
+        if abs(row - my) < reach:
+            crossing += 1
+    return crossing >= _MIN_MARKER_ROWS
+
+
+@kernel
+def _marker_found(descent: _Descent, pixels: _Pixels, basis: _Basis, rows: np.ndarray, lamp: _Lamp) -> _Fitted:
+    """Return the marker the descent reached, with its centre's covariance and the rows' mixing shift half undone."""
+    params = descent.params
+    blur = params[3]
+    sums = _marker_terms(params, pixels, basis)
+    amplitudes = _amplitudes(sums, pixels)
+    terms = _consider_terms(params, pixels, basis, sums, amplitudes)
+    inflation = _correlation_inflation(pixels, basis, amplitudes, rows)
+    dof = pixels.data.size - 4 - _LINEAR_COUNT
+    covariance = _centre_covariance(terms, inflation * descent.cost / dof, lamp.shape_spread,
+                                    _row_level_spread(blur, rows, lamp.gradient))
+    # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
+    # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
+    # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
+    # other half is counted as the centre's uncertainty along the shift, so either way the error stays within it.
+    shift_x, shift_y = _row_mixing_shift(blur, terms, rows, lamp.gradient)
+    covariance[0, 0] += 0.25 * shift_x * shift_x
+    covariance[0, 1] += 0.25 * shift_x * shift_y
+    covariance[1, 0] += 0.25 * shift_x * shift_y
+    covariance[1, 1] += 0.25 * shift_y * shift_y
+    center, shape = np.empty(2), np.empty((2, 2))
+    center[0], center[1] = params[0] - 0.5 * shift_x, params[1] - 0.5 * shift_y
+    root = pixels.root
+    for i in range(2):
+        for j in range(2):
+            shape[i, j] = root[i, 0] * root[0, j] + root[i, 1] * root[1, j]
+    return _Fitted(True, center, covariance, params[2], blur, shape)
+
+
+@kernel
+def _rounded_centre(params: np.ndarray, root: np.ndarray) -> tuple[float, float]:
+    """Return the marker's centre (``params[:2]``) where the lamp is round: p ``root``."""
+    return params[0] * root[0, 0] + params[1] * root[1, 0], params[0] * root[0, 1] + params[1] * root[1, 1]
+
+
+@kernel
+def _edge(pixels: _Pixels, i: int, centre: tuple[float, float], radius: float, inverse_blur: float) -> _Edge:
+    """Return pixel ``i`` against the edge of a marker of ``radius`` at the rounded ``centre``."""
+    root = pixels.root
+    u = pixels.rounded[i, 0] - centre[0]
+    v = pixels.rounded[i, 1] - centre[1]
+    gradient_x = u * root[0, 0] + v * root[0, 1]
+    gradient_y = u * root[1, 0] + v * root[1, 1]
+    inverse_norm = 1.0 / max(math.sqrt(gradient_x * gradient_x + gradient_y * gradient_y), 1e-9)
+    rho = math.sqrt(u * u + v * v)
+    # Distance to the marker's edge (first order in the offset from the edge).
+    gain = rho * inverse_norm
+    z = (radius - rho) * gain * inverse_blur
+    return _Edge(u, v, rho, gradient_x, gradient_y, inverse_norm, gain, z)
+
+
+@kernel
+def _marker_terms(params: np.ndarray, pixels: _Pixels, basis: _Basis) -> _MarkerSums:
     """
-    # Pixels in the frame where the lamp is round: u = (p - centre) R is a shift away.
-    shift_u = cx * root[0, 0] + cy * root[1, 0]
-    shift_v = cx * root[0, 1] + cy * root[1, 1]
-    inverse_blur = 1.0 / blur
-    gram_00 = gram_01 = project_0 = 0.0
-    a00 = a01 = a10 = a11 = a20 = a21 = a30 = a31 = 0.0
+    Fill ``basis`` at ``params`` (centre, radius, blur), before the amplitude is known.
+
+    Returns the sums the amplitudes and the projection need.
+    """
+    centre = _rounded_centre(params, pixels.root)
+    radius, inverse_blur = params[2], 1.0 / params[3]
+    level, disc, data = pixels.level, pixels.disc, pixels.data
+    marker, jacobian = basis.marker, basis.jacobian
+    marker_norm2 = marker_disc = marker_data = 0.0
+    along_marker = along_disc = _NO_COLUMN_SUMS
     for i in range(data.size):
-        u = rounded[i, 0] - shift_u
-        v = rounded[i, 1] - shift_v
-        gradient_x = u * root[0, 0] + v * root[0, 1]
-        gradient_y = u * root[1, 0] + v * root[1, 1]
-        inverse_norm = 1.0 / max(math.sqrt(gradient_x * gradient_x + gradient_y * gradient_y), 1e-9)
-        rho = math.sqrt(u * u + v * v)
-        # Distance to the marker's edge, positive inside (first order in the offset from the edge).
-        gain = rho * inverse_norm
-        z = (s - rho) * gain * inverse_blur
-        gaussian = math.exp(-0.5 * z * z)
-        b0 = level[i] * _blurred_step(z, gaussian)
-        b1 = disc_term[i]
+        edge = _edge(pixels, i, centre, radius, inverse_blur)
+        gaussian = math.exp(-0.5 * edge.z * edge.z)
+        b0 = level[i] * _blurred_step(edge.z, gaussian)
+        b1 = disc[i]
         marker[i] = b0
-        gram_00 += b0 * b0
-        gram_01 += b0 * b1
-        project_0 += b0 * data[i]
+        marker_norm2 += b0 * b0
+        marker_disc += b0 * b1
+        marker_data += b0 * data[i]
         density = level[i] * gaussian
-        j0 = density * gradient_x * inverse_norm
-        j1 = density * gradient_y * inverse_norm
-        j2 = density * gain
-        j3 = -density * z
-        jac[i, 0], jac[i, 1], jac[i, 2], jac[i, 3] = j0, j1, j2, j3
-        a00 += j0 * b0
-        a01 += j0 * b1
-        a10 += j1 * b0
-        a11 += j1 * b1
-        a20 += j2 * b0
-        a21 += j2 * b1
-        a30 += j3 * b0
-        a31 += j3 * b1
+        j = (density * edge.gradient_x * edge.inverse_norm, density * edge.gradient_y * edge.inverse_norm,
+             density * edge.gain, -density * edge.z)
+        jacobian[i, 0], jacobian[i, 1], jacobian[i, 2], jacobian[i, 3] = j
+        along_marker = _plus_scaled(along_marker, j, b0)
+        along_disc = _plus_scaled(along_disc, j, b1)
     columns = np.empty((4, 2))
-    columns[0, 0], columns[0, 1], columns[1, 0], columns[1, 1] = a00, a01, a10, a11
-    columns[2, 0], columns[2, 1], columns[3, 0], columns[3, 1] = a20, a21, a30, a31
-    return _MarkerSums(gram_00, gram_01, project_0, columns)
+    for k in range(4):
+        columns[k, 0], columns[k, 1] = along_marker[k], along_disc[k]
+    return _MarkerSums(marker_norm2, marker_disc, marker_data, columns)
 
 
 @kernel
-def _amplitudes(gram_00: float, gram_01: float, disc_norm2: float, project_0: float,
-                project_1: float) -> _Amplitudes:
+def _amplitudes(sums: _MarkerSums, pixels: _Pixels) -> _Amplitudes:
     """Return the two amplitudes and the inverse of the 2x2 Gram matrix (closed form)."""
-    a = gram_00 + 1e-9
-    b = gram_01
-    d = disc_norm2 + 1e-9
+    a = sums.marker_norm2 + 1e-9
+    b = sums.marker_disc
+    d = pixels.disc_norm2 + 1e-9
     det = a * d - b * b
     inverse_00, inverse_01, inverse_11 = d / det, -b / det, a / det
-    coef_0 = inverse_00 * project_0 + inverse_01 * project_1
-    coef_1 = inverse_01 * project_0 + inverse_11 * project_1
+    coef_0 = inverse_00 * sums.marker_data + inverse_01 * pixels.disc_data
+    coef_1 = inverse_01 * sums.marker_data + inverse_11 * pixels.disc_data
     return _Amplitudes(coef_0, coef_1, (inverse_00, inverse_01, inverse_11))
 
 
 @kernel
-def _evaluate(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray, data: np.ndarray,
-              disc_term: np.ndarray, disc_norm2: float, project_1: float, marker: np.ndarray, jac: np.ndarray,
-              jtj: np.ndarray, jtr: np.ndarray) -> float:
+def _basis_weights(columns: np.ndarray, amplitudes: _Amplitudes, scale: float) -> np.ndarray:
+    """
+    Return each Jacobian column's part in the basis (marker, disc), as weights of the two (columns, 2).
+
+    ``columns`` are the columns' sums against the basis (columns, 2), short of the factor ``scale``.
+    """
+    inverse_00, inverse_01, inverse_11 = amplitudes.inverse
+    weights = np.empty((columns.shape[0], 2))
+    for k in range(columns.shape[0]):
+        weights[k, 0] = scale * (columns[k, 0] * inverse_00 + columns[k, 1] * inverse_01)
+        weights[k, 1] = scale * (columns[k, 0] * inverse_01 + columns[k, 1] * inverse_11)
+    return weights
+
+
+@kernel
+def _less_basis(value: float, weights: np.ndarray, b0: float, b1: float) -> float:
+    """Return a column's ``value`` at a pixel less its part in the basis terms (b0, b1), by the column's ``weights``."""
+    return value - (weights[0] * b0 + weights[1] * b1)
+
+
+@kernel
+def _projected_jacobian(jacobian: np.ndarray, i: int, scale: float, weights: np.ndarray, b0: float,
+                        b1: float) -> tuple[float, float, float, float]:
+    """Return row ``i`` of the variable-projection Jacobian: ``basis``' columns scaled, less their part in the basis."""
+    # Rows of ``weights`` rather than literal indices: one compiled signature of ``_less_basis``, not one per column.
+    return (_less_basis(scale * jacobian[i, 0], weights[0], b0, b1),
+            _less_basis(scale * jacobian[i, 1], weights[1], b0, b1),
+            _less_basis(scale * jacobian[i, 2], weights[2], b0, b1),
+            _less_basis(scale * jacobian[i, 3], weights[3], b0, b1))
+
+
+@kernel
+def _gram_plus(gram: tuple, j: tuple[float, float, float, float]) -> tuple:
+    """Return the Gram matrix's upper triangle (``_NO_GRAM``'s order) plus the outer product of the row ``j``."""
+    return (gram[0] + j[0] * j[0], gram[1] + j[0] * j[1], gram[2] + j[0] * j[2], gram[3] + j[0] * j[3],
+            gram[4] + j[1] * j[1], gram[5] + j[1] * j[2], gram[6] + j[1] * j[3],
+            gram[7] + j[2] * j[2], gram[8] + j[2] * j[3],
+            gram[9] + j[3] * j[3])
+
+
+@kernel
+def _plus_scaled(sums: tuple[float, float, float, float], j: tuple[float, float, float, float],
+                 factor: float) -> tuple[float, float, float, float]:
+    """Return the four ``sums`` plus the row ``j`` times ``factor``."""
+    return sums[0] + j[0] * factor, sums[1] + j[1] * factor, sums[2] + j[2] * factor, sums[3] + j[3] * factor
+
+
+@kernel
+def _fill_symmetric(gram: tuple, out: np.ndarray) -> None:
+    """Write the Gram matrix from its upper triangle (``_NO_GRAM``'s order) into ``out`` (4x4)."""
+    k = 0
+    for a in range(4):
+        for b in range(a, 4):
+            out[a, b] = out[b, a] = gram[k]
+            k += 1
+
+
+@kernel
+def _evaluate(params: np.ndarray, pixels: _Pixels, basis: _Basis, normal: _NormalEquations) -> float:
     """
     Return the marker model's cost at ``params`` (centre, radius, blur) with the amplitudes eliminated.
 
-    Fills the normal equations ``jtj`` (4x4) and ``jtr`` (4) of its variable-projection
-    Jacobian (Kaufman's approximation). ``marker``, ``jac``: scratch.
+    Fills ``normal`` with the normal equations of its variable-projection Jacobian (Kaufman's
+    approximation), and ``basis``.
 
     A pixel's redness is its row's lamp level times (k1 marker + k2 lamp disc), both
     blurred; k1, k2 are eliminated.
     """
-    blur = params[3]
-    sums = _marker_terms(params[0], params[1], params[2], blur, rounded, root, level, data, disc_term, marker, jac)
-    amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
-    coef_0, coef_1 = amplitudes.marker, amplitudes.disc
-    inverse_00, inverse_01, inverse_11 = amplitudes.inverse
-    columns = sums.columns
-    a00, a01, a10, a11 = columns[0, 0], columns[0, 1], columns[1, 0], columns[1, 1]
-    a20, a21, a30, a31 = columns[2, 0], columns[2, 1], columns[3, 0], columns[3, 1]
-    scale = coef_0 / (_SQRT_2PI * blur)
+    sums = _marker_terms(params, pixels, basis)
+    amplitudes = _amplitudes(sums, pixels)
+    scale = amplitudes.marker / (_SQRT_2PI * params[3])
     # The marker term's derivatives, minus their part in the basis.
-    w00 = scale * (a00 * inverse_00 + a01 * inverse_01)
-    w01 = scale * (a00 * inverse_01 + a01 * inverse_11)
-    w10 = scale * (a10 * inverse_00 + a11 * inverse_01)
-    w11 = scale * (a10 * inverse_01 + a11 * inverse_11)
-    w20 = scale * (a20 * inverse_00 + a21 * inverse_01)
-    w21 = scale * (a20 * inverse_01 + a21 * inverse_11)
-    w30 = scale * (a30 * inverse_00 + a31 * inverse_01)
-    w31 = scale * (a30 * inverse_01 + a31 * inverse_11)
+    weights = _basis_weights(sums.columns, amplitudes, scale)
     cost = 0.0
-    h00 = h01 = h02 = h03 = h11 = h12 = h13 = h22 = h23 = h33 = 0.0
-    g0 = g1 = g2 = g3 = 0.0
-    for i in range(data.size):
-        b0 = marker[i]
-        b1 = disc_term[i]
-        r = data[i] - (coef_0 * b0 + coef_1 * b1)
+    gram, gradient = _NO_GRAM, _NO_COLUMN_SUMS
+    for i in range(pixels.data.size):
+        b0 = basis.marker[i]
+        b1 = pixels.disc[i]
+        r = pixels.data[i] - (amplitudes.marker * b0 + amplitudes.disc * b1)
         cost += r * r
-        j0 = scale * jac[i, 0] - (w00 * b0 + w01 * b1)
-        j1 = scale * jac[i, 1] - (w10 * b0 + w11 * b1)
-        j2 = scale * jac[i, 2] - (w20 * b0 + w21 * b1)
-        j3 = scale * jac[i, 3] - (w30 * b0 + w31 * b1)
-        h00 += j0 * j0
-        h01 += j0 * j1
-        h02 += j0 * j2
-        h03 += j0 * j3
-        h11 += j1 * j1
-        h12 += j1 * j2
-        h13 += j1 * j3
-        h22 += j2 * j2
-        h23 += j2 * j3
-        h33 += j3 * j3
-        g0 += j0 * r
-        g1 += j1 * r
-        g2 += j2 * r
-        g3 += j3 * r
-    jtj[0, 0], jtj[1, 1], jtj[2, 2], jtj[3, 3] = h00, h11, h22, h33
-    jtj[0, 1] = jtj[1, 0] = h01
-    jtj[0, 2] = jtj[2, 0] = h02
-    jtj[0, 3] = jtj[3, 0] = h03
-    jtj[1, 2] = jtj[2, 1] = h12
-    jtj[1, 3] = jtj[3, 1] = h13
-    jtj[2, 3] = jtj[3, 2] = h23
-    jtr[0], jtr[1], jtr[2], jtr[3] = g0, g1, g2, g3
+        j = _projected_jacobian(basis.jacobian, i, scale, weights, b0, b1)
+        gram = _gram_plus(gram, j)
+        gradient = _plus_scaled(gradient, j, r)
+    _fill_symmetric(gram, normal.jtj)
+    normal.jtr[0], normal.jtr[1], normal.jtr[2], normal.jtr[3] = gradient
     return cost
 
 
 @kernel
-def _consider_terms(params: np.ndarray, rounded: np.ndarray, root: np.ndarray, level: np.ndarray,
-                    data: np.ndarray, disc_term: np.ndarray, disc_norm2: float, project_1: float, width: int,
-                    marker: np.ndarray, jac: np.ndarray) -> _ConsiderTerms:
+def _consider_terms(params: np.ndarray, pixels: _Pixels, basis: _Basis, sums: _MarkerSums,
+                    amplitudes: _Amplitudes) -> _ConsiderTerms:
     """
-    Return what the centre's covariance needs at ``params``.
+    Return what the centre's covariance needs at ``params``, ``basis``, ``sums`` and ``amplitudes`` taken there.
 
     The Gram matrix of the Jacobian (4x4), its columns against the two shape stretches'
     (4x2: along the axes and the diagonals, in the frame where the lamp is round), and each
     row's marker term against the first four columns (rows, 4; the columns are orthogonal to
     the basis, so a row's term needs no projection), and each row's vertical-centre column
-    against them (rows, 4). Rows are ``width`` pixels each.
+    against them (rows, 4).
     """
-    cx, cy, s, blur = params[0], params[1], params[2], params[3]
-    sums = _marker_terms(cx, cy, s, blur, rounded, root, level, data, disc_term, marker, jac)
-    n = data.size
+    n, width = pixels.data.size, pixels.width
     # The stretches' columns, like the others short of the factor amplitude / (sqrt(2 pi) blur).
-    shift_u = cx * root[0, 0] + cy * root[1, 0]
-    shift_v = cx * root[0, 1] + cy * root[1, 1]
-    inverse_blur = 1.0 / blur
+    centre = _rounded_centre(params, pixels.root)
+    radius, inverse_blur = params[2], 1.0 / params[3]
     stretches = np.empty((n, 2))
     along = np.zeros((6, 2))
     for i in range(n):
-        u = rounded[i, 0] - shift_u
-        v = rounded[i, 1] - shift_v
-        gradient_x = u * root[0, 0] + v * root[0, 1]
-        gradient_y = u * root[1, 0] + v * root[1, 1]
-        inverse_norm = 1.0 / max(math.sqrt(gradient_x * gradient_x + gradient_y * gradient_y), 1e-9)
-        rho = math.sqrt(u * u + v * v)
-        gain = rho * inverse_norm
-        z = (s - rho) * gain * inverse_blur
-        stretch = level[i] * math.exp(-0.5 * z * z) * gain / max(rho, 1e-9)
-        stretches[i, 0] = -0.5 * stretch * (u * u - v * v)
-        stretches[i, 1] = -stretch * u * v
+        edge = _edge(pixels, i, centre, radius, inverse_blur)
+        stretch = pixels.level[i] * math.exp(-0.5 * edge.z * edge.z) * edge.gain / max(edge.rho, 1e-9)
+        stretches[i, 0] = -0.5 * stretch * (edge.u * edge.u - edge.v * edge.v)
+        stretches[i, 1] = -stretch * edge.u * edge.v
         for k in range(2):
-            along[4 + k, 0] += stretches[i, k] * marker[i]
-            along[4 + k, 1] += stretches[i, k] * disc_term[i]
+            along[4 + k, 0] += stretches[i, k] * basis.marker[i]
+            along[4 + k, 1] += stretches[i, k] * pixels.disc[i]
     along[:4] = sums.columns
-    amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
-    coef_0 = amplitudes.marker
-    inverse_00, inverse_01, inverse_11 = amplitudes.inverse
-    scale = coef_0 / (_SQRT_2PI * blur)
-    weights = np.empty((6, 2))
-    for k in range(6):
-        weights[k, 0] = scale * (along[k, 0] * inverse_00 + along[k, 1] * inverse_01)
-        weights[k, 1] = scale * (along[k, 0] * inverse_01 + along[k, 1] * inverse_11)
-    w00, w01, w10, w11 = weights[0, 0], weights[0, 1], weights[1, 0], weights[1, 1]
-    w20, w21, w30, w31 = weights[2, 0], weights[2, 1], weights[3, 0], weights[3, 1]
-    w40, w41, w50, w51 = weights[4, 0], weights[4, 1], weights[5, 0], weights[5, 1]
-    h00 = h01 = h02 = h03 = h11 = h12 = h13 = h22 = h23 = h33 = 0.0
-    x04 = x05 = x14 = x15 = x24 = x25 = x34 = x35 = 0.0
+    scale = amplitudes.marker / (_SQRT_2PI * params[3])
+    weights = _basis_weights(along, amplitudes, scale)
+    gram = _NO_GRAM
+    cross_axes = cross_diagonals = _NO_COLUMN_SUMS
     rows = n // width
     row_terms = np.empty((rows, 4))
     row_vertical = np.empty((rows, 4))
     for row in range(rows):
-        t0 = t1 = t2 = t3 = 0.0
-        v0 = v1 = v2 = v3 = 0.0
+        terms = vertical = _NO_COLUMN_SUMS
         for i in range(row * width, (row + 1) * width):
-            b0 = marker[i]
-            b1 = disc_term[i]
-            j0 = scale * jac[i, 0] - (w00 * b0 + w01 * b1)
-            j1 = scale * jac[i, 1] - (w10 * b0 + w11 * b1)
-            j2 = scale * jac[i, 2] - (w20 * b0 + w21 * b1)
-            j3 = scale * jac[i, 3] - (w30 * b0 + w31 * b1)
-            j4 = scale * stretches[i, 0] - (w40 * b0 + w41 * b1)
-            j5 = scale * stretches[i, 1] - (w50 * b0 + w51 * b1)
-            h00 += j0 * j0
-            h01 += j0 * j1
-            h02 += j0 * j2
-            h03 += j0 * j3
-            h11 += j1 * j1
-            h12 += j1 * j2
-            h13 += j1 * j3
-            h22 += j2 * j2
-            h23 += j2 * j3
-            h33 += j3 * j3
-            x04 += j0 * j4
-            x05 += j0 * j5
-            x14 += j1 * j4
-            x15 += j1 * j5
-            x24 += j2 * j4
-            x25 += j2 * j5
-            x34 += j3 * j4
-            x35 += j3 * j5
-            term = coef_0 * b0
-            t0 += j0 * term
-            t1 += j1 * term
-            t2 += j2 * term
-            t3 += j3 * term
-            v0 += j0 * j1
-            v1 += j1 * j1
-            v2 += j2 * j1
-            v3 += j3 * j1
-        row_terms[row, 0], row_terms[row, 1], row_terms[row, 2], row_terms[row, 3] = t0, t1, t2, t3
-        row_vertical[row, 0], row_vertical[row, 1], row_vertical[row, 2], row_vertical[row, 3] = v0, v1, v2, v3
-    gram = np.empty((4, 4))
-    gram[0, 0], gram[1, 1], gram[2, 2], gram[3, 3] = h00, h11, h22, h33
-    gram[0, 1] = gram[1, 0] = h01
-    gram[0, 2] = gram[2, 0] = h02
-    gram[0, 3] = gram[3, 0] = h03
-    gram[1, 2] = gram[2, 1] = h12
-    gram[1, 3] = gram[3, 1] = h13
-    gram[2, 3] = gram[3, 2] = h23
+            b0 = basis.marker[i]
+            b1 = pixels.disc[i]
+            j = _projected_jacobian(basis.jacobian, i, scale, weights, b0, b1)
+            gram = _gram_plus(gram, j)
+            cross_axes = _plus_scaled(cross_axes, j, _less_basis(scale * stretches[i, 0], weights[4], b0, b1))
+            cross_diagonals = _plus_scaled(cross_diagonals, j, _less_basis(scale * stretches[i, 1], weights[5], b0, b1))
+            terms = _plus_scaled(terms, j, amplitudes.marker * b0)
+            vertical = _plus_scaled(vertical, j, j[1])
+        for k in range(4):
+            row_terms[row, k], row_vertical[row, k] = terms[k], vertical[k]
+    full_gram = np.empty((4, 4))
+    _fill_symmetric(gram, full_gram)
     cross = np.empty((4, 2))
-    cross[0, 0], cross[0, 1], cross[1, 0], cross[1, 1] = x04, x05, x14, x15
-    cross[2, 0], cross[2, 1], cross[3, 0], cross[3, 1] = x24, x25, x34, x35
-    return _ConsiderTerms(gram, cross, row_terms, row_vertical)
+    for k in range(4):
+        cross[k, 0], cross[k, 1] = cross_axes[k], cross_diagonals[k]
+    return _ConsiderTerms(full_gram, cross, row_terms, row_vertical)
 
 
 @kernel
@@ -572,8 +847,8 @@ def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _centre_covariance(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarray, noise_variance: float,
-                       shape_spread: float, row_spread: np.ndarray) -> np.ndarray:
+def _centre_covariance(terms: _ConsiderTerms, noise_variance: float, shape_spread: float,
+                       row_spread: np.ndarray) -> np.ndarray:
     """
     Covariance (2x2) of the centre: pixel noise plus two things the model holds fixed.
 
@@ -582,12 +857,13 @@ def _centre_covariance(gram: np.ndarray, cross: np.ndarray, row_terms: np.ndarra
     ``row_spread``, relative, of each row's level: ``_row_level_spread``) move the centre
     by the fit's sensitivity to them: a consider covariance. Both matter most when only
     part of the marker is lit.
-    ``gram`` (4x4): the Jacobian's (centre, radius, blur); ``cross`` (4x2): its columns against
-    the two shape stretches'; ``row_terms`` (rows, 4): each row's marker term against them.
+    ``terms.gram`` (4x4): the Jacobian's (centre, radius, blur); ``terms.cross`` (4x2): its columns
+    against the two shape stretches'; ``terms.row_terms`` (rows, 4): each row's marker term against them.
     The rows' terms move the centre mostly across the rows and the pixel noise least along
     a long chord: the covariance keeps those directions.
     """
-    inverse = _pseudo_inverse(gram)
+    inverse = _pseudo_inverse(terms.gram)
+    cross, row_terms = terms.cross, terms.row_terms
     covariance = np.zeros((2, 2))
     for i in range(2):
         for j in range(2):
@@ -638,8 +914,7 @@ def _row_level_spread(blur: float, rows: np.ndarray, level_gradient: np.ndarray)
 
 
 @kernel
-def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.ndarray, coef_0: float,
-                           coef_1: float, rows: np.ndarray, width: int) -> float:
+def _correlation_inflation(pixels: _Pixels, basis: _Basis, amplitudes: _Amplitudes, rows: np.ndarray) -> float:
     """
     How much more the residuals' mean square weighs than if it were independent per pixel.
 
@@ -650,10 +925,10 @@ def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.n
     pixels and adjacent used rows) inflates the variance by (1 + rho) / (1 - rho), as
     for a first-order autoregressive noise; rho is taken in [0, _MAX_CORRELATION].
     """
-    n = data.size
+    n, width = pixels.data.size, pixels.width
     residual = np.empty(n)
     for i in range(n):
-        residual[i] = data[i] - (coef_0 * marker[i] + coef_1 * disc_term[i])
+        residual[i] = pixels.data[i] - (amplitudes.marker * basis.marker[i] + amplitudes.disc * pixels.disc[i])
     along = along_norm = across = across_norm = 0.0
     count = rows.size
     for k in range(count):
@@ -673,7 +948,7 @@ def _correlation_inflation(data: np.ndarray, marker: np.ndarray, disc_term: np.n
 
 
 @kernel
-def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, rows: np.ndarray,
+def _row_mixing_shift(blur: float, terms: _ConsiderTerms, rows: np.ndarray,
                       level_gradient: np.ndarray) -> tuple[float, float]:
     """
     Return the shift (x, y) of the fitted centre if blur ``blur`` had mixed the rows after the shutter.
@@ -688,145 +963,10 @@ def _row_mixing_shift(blur: float, gram: np.ndarray, row_vertical: np.ndarray, r
     for r in range(rows.size):
         gradient = level_gradient[rows[r]]
         for k in range(4):
-            moment[k] += gradient * row_vertical[r, k]
-    inverse = _pseudo_inverse(gram)
+            moment[k] += gradient * terms.row_vertical[r, k]
+    inverse = _pseudo_inverse(terms.gram)
     shift_x = shift_y = 0.0
     for k in range(4):
         shift_x += inverse[0, k] * moment[k]
         shift_y += inverse[1, k] * moment[k]
     return -blur * blur * shift_x, -blur * blur * shift_y
-
-
-@kernel
-def _fit(red: np.ndarray, seed_x: float, seed_y: float, seed_radius: float, ellipse: np.ndarray,
-         blur_guess: float, margin: float, row_level: np.ndarray, rows_used: np.ndarray, level_gradient: np.ndarray,
-         spread: float) -> _Fitted:
-    """fit_marker's work."""
-    failed = _Fitted(False, np.zeros(2), np.zeros((2, 2)), 0.0, 0.0, np.zeros((2, 2)))
-    half = seed_radius + margin
-    x0 = max(int(np.floor(seed_x - half)), 0)
-    y0 = max(int(np.floor(seed_y - half)), 0)
-    x1 = min(int(np.ceil(seed_x + half)) + 1, red.shape[1])
-    y1 = min(int(np.ceil(seed_y + half)) + 1, red.shape[0])
-    last = min(y1, rows_used.size)
-    rows = np.empty(max(last - y0, 0), dtype=np.int64)
-    count = 0
-    for y in range(y0, last):
-        if rows_used[y]:
-            rows[count] = y
-            count += 1
-    rows = rows[:count]
-    if count < _MIN_MARKER_ROWS or x1 - x0 < 5:
-        return failed
-    width = x1 - x0
-    n = count * width
-    # The lamp's disc (blurred by the guess) by its Sampson distance, as ellipse.geometric_distances.
-    cx, cy, a, b, theta = ellipse[0], ellipse[1], ellipse[2], ellipse[3], ellipse[4]
-    c, s = math.cos(theta), math.sin(theta)
-    ia, ib = 1.0 / (a * a), 1.0 / (b * b)
-    xx, yy, xy = c * c * ia + s * s * ib, s * s * ia + c * c * ib, c * s * (ia - ib)
-    xw, yw = -(xx * cx + xy * cy), -(xy * cx + yy * cy)
-    ww = xx * cx * cx + 2.0 * xy * cx * cy + yy * cy * cy - 1.0
-    # The symmetric root of the lamp's shape (det 1): R diag(sqrt(b/a), sqrt(a/b)) R^T.
-    along, across = math.sqrt(b / a), math.sqrt(a / b)
-    off = c * s * (along - across)
-    root = np.empty((2, 2))
-    root[0, 0] = c * c * along + s * s * across
-    root[0, 1] = root[1, 0] = off
-    root[1, 1] = s * s * along + c * c * across
-    data = np.empty(n)
-    level = np.empty(n)
-    disc_term = np.empty(n)
-    rounded = np.empty((n, 2))
-    disc_norm2 = 0.0
-    project_1 = 0.0
-    i = 0
-    for row in rows:
-        py = float(row)
-        for column in range(x0, x1):
-            px = float(column)
-            data[i] = float(red[row, column])
-            level[i] = row_level[row]
-            gx = xx * px + xy * py + xw
-            gy = xy * px + yy * py + yw
-            value = gx * px + gy * py + (xw * px + yw * py + ww)
-            distance = 0.5 * value / math.sqrt(gx * gx + gy * gy)
-            disc_term[i] = row_level[row] * _ndtr(-distance / blur_guess)
-            disc_norm2 += disc_term[i] * disc_term[i]
-            project_1 += disc_term[i] * data[i]
-            rounded[i, 0] = px * root[0, 0] + py * root[1, 0]
-            rounded[i, 1] = px * root[0, 1] + py * root[1, 1]
-            i += 1
-    marker = np.empty(n)
-    jac = np.empty((n, 4))
-    params = np.array([seed_x, seed_y, seed_radius, blur_guess])
-    trial = np.empty(4)
-    zero_step = np.zeros(4)
-    jtj, trial_jtj = np.empty((4, 4)), np.empty((4, 4))
-    jtr, trial_jtr = np.empty(4), np.empty(4)
-    cost = _evaluate(params, rounded, root, level, data, disc_term, disc_norm2, project_1, marker, jac, jtj, jtr)
-    damping = 1e-3
-    for _ in range(_MAX_ITERATIONS):
-        damped = jtj.copy()
-        for k in range(4):
-            damped[k, k] += damping * (jtj[k, k] + 1e-12)
-        # A singular system (a pivot below OpenCV's DECOMP_LU floor) gives no step, as cv2.solve would.
-        solved = lu_solve(damped, jtr, OPENCV_PIVOT_FLOOR)
-        step = solved.solution if solved.ok else zero_step
-        trial[0] = params[0] + step[0]
-        trial[1] = params[1] + step[1]
-        trial[2] = _lower_bound(params[2] + step[2], 0.5)
-        trial[3] = _upper_bound(_lower_bound(params[3] + step[3], _BLUR_BOUNDS[0]), _BLUR_BOUNDS[1])
-        trial_cost = _evaluate(trial, rounded, root, level, data, disc_term, disc_norm2, project_1, marker, jac,
-                               trial_jtj, trial_jtr)
-        dx, dy = trial[0] - params[0], trial[1] - params[1]
-        moved = math.sqrt(dx * dx + dy * dy)
-        if trial_cost < cost:
-            params, trial = trial, params
-            jtj, trial_jtj = trial_jtj, jtj
-            jtr, trial_jtr = trial_jtr, jtr
-            cost = trial_cost
-            damping = max(damping * 0.3, 1e-6)
-        else:
-            damping *= 10.0
-        if moved < _CONVERGED or damping > 1e6:
-            break
-    mx, my, radius, blur = params[0], params[1], params[2], params[3]
-    # A marker must lie in its window, fit inside it, and be blurred by a plausible amount.
-    if (not (x0 <= mx < x1 and y0 <= my < y1) or radius > half
-            or not _BLUR_BOUNDS[0] < blur < _BLUR_BOUNDS[1]):
-        return failed
-    # Rows crossing the marker's image carry its position; one or two leave it ambiguous. A small
-    # marker's radius trades against its blur (both widen the spot), so the image's reach counts.
-    reach = math.hypot(radius, blur)
-    crossing = 0
-    for row in rows:
-        if abs(row - my) < reach:
-            crossing += 1
-    if crossing < _MIN_MARKER_ROWS:
-        return failed
-    dof = n - 4 - _LINEAR_COUNT
-    if dof <= 0:
-        return failed
-    terms = _consider_terms(params, rounded, root, level, data, disc_term, disc_norm2, project_1, width, marker, jac)
-    sums = _marker_terms(mx, my, radius, blur, rounded, root, level, data, disc_term, marker, jac)
-    amplitudes = _amplitudes(sums.marker_norm2, sums.marker_disc, disc_norm2, sums.marker_data, project_1)
-    inflation = _correlation_inflation(data, marker, disc_term, amplitudes.marker, amplitudes.disc, rows, width)
-    covariance = _centre_covariance(terms.gram, terms.cross, terms.row_terms, inflation * cost / dof, spread,
-                                    _row_level_spread(blur, rows, level_gradient))
-    # Optical blur acts before the shutter and leaves each row its own level (the model holds); blur
-    # after it (demosaicing, crosstalk, JPEG, a renderer that blurs the frame) mixes rows and shifts the
-    # fit. Which share of the blur is which the frame does not tell: half the shift is undone, and the
-    # other half is counted as the centre's uncertainty along the shift, so either way the error stays within it.
-    shift_x, shift_y = _row_mixing_shift(blur, terms.gram, terms.row_vertical, rows, level_gradient)
-    mx, my = mx - 0.5 * shift_x, my - 0.5 * shift_y
-    covariance[0, 0] += 0.25 * shift_x * shift_x
-    covariance[0, 1] += 0.25 * shift_x * shift_y
-    covariance[1, 0] += 0.25 * shift_x * shift_y
-    covariance[1, 1] += 0.25 * shift_y * shift_y
-    center, shape = np.empty(2), np.empty((2, 2))
-    center[0], center[1] = mx, my
-    for i in range(2):
-        for j in range(2):
-            shape[i, j] = root[i, 0] * root[0, j] + root[i, 1] * root[1, j]
-    return _Fitted(True, center, covariance, radius, blur, shape)

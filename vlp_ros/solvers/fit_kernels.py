@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from vlp_ros.compiled import kernel
-from vlp_ros.compiled.linalg import inverse3_into, lu_solve
+from vlp_ros.compiled.linalg import inverse3_into, lu_solve, Solved
 
 # Stop when the best step can lower the chi-square by less than this fraction of it, or
 # by less than the floor: the pose is then within sqrt(floor) = 0.03 sigma of the minimum
@@ -42,7 +42,7 @@ SINGULAR = 2
 
 class Terms(NamedTuple):
     """
-    Measurements as flat arrays, passed to the kernels as separate arguments; a kind left out has none.
+    Measurements as flat arrays, passed to the kernels whole; a kind left out has none.
 
     The arrays are C-contiguous float64, writable: numba compiles once per array type.
 
@@ -72,6 +72,28 @@ class Terms(NamedTuple):
     @property
     def residual_count(self) -> int:
         return len(self.rays) + 2 * len(self.marker_maps) + 2 * len(self.up_directions)
+
+
+class Linearization(NamedTuple):
+    """
+    A pose and the whitened residuals of ``Terms`` at it, which the kernels write in place.
+
+    ``rotation`` (3, 3) camera to map, ``position`` (3,), ``residuals`` (M,) and their ``jacobian``
+    (M, 6) in the pose perturbation of ``covariance.perturbed``: C-contiguous float64 arrays.
+    """
+
+    rotation: np.ndarray
+    position: np.ndarray
+    residuals: np.ndarray
+    jacobian: np.ndarray
+
+
+class Descent(NamedTuple):
+    """``iterate``'s result: how it ended (CONVERGED, PAUSED or SINGULAR), the chi-square and the damping it left."""
+
+    outcome: int
+    cost: float
+    damping: float
 
 
 def _fields(first: str, last: str) -> slice:
@@ -122,10 +144,10 @@ def linearize(terms: Terms, rotation: np.ndarray, position: np.ndarray) -> tuple
     of ``covariance.perturbed``.
     """
     count = terms.residual_count
-    residuals, jacobian = np.empty(count), np.empty((count, 6))
-    linearize_into(np.ascontiguousarray(rotation, dtype=float), np.ascontiguousarray(position, dtype=float),
-                   *terms, residuals, jacobian)
-    return residuals, jacobian
+    fit = Linearization(np.ascontiguousarray(rotation, dtype=float), np.ascontiguousarray(position, dtype=float),
+                        np.empty(count), np.empty((count, 6)))
+    linearize_into(fit, terms)
+    return fit.residuals, fit.jacobian
 
 
 @kernel
@@ -281,19 +303,25 @@ def _conic_derivatives(rotation, position, centre, radius_squared, conic, d_coni
 
 
 @kernel
-def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, centres, radii_squared,
-                   marker_maps, marker_pixels, marker_whitening, intrinsics, distortion,
-                   up_directions, up_tangents, up_sigma, residuals, jacobian):
-    """
-    Write the whitened residuals (M,) and their Jacobian (M, 6) of all ``Terms`` at the pose.
+def linearize_into(fit: Linearization, terms: Terms) -> float:
+    """Write the whitened residuals and Jacobian of ``terms`` at ``fit``'s pose into ``fit``; return the chi-square."""
+    row = _linearize_rim_points(fit, terms)
+    row = _linearize_markers(fit, terms, row)
+    _linearize_up_directions(fit, terms, row)
+    return _chi_square(fit.residuals)
 
-    They are written into ``residuals`` and ``jacobian``; returns the chi-square.
-    """
-    lamps = centres.shape[0]
+
+@kernel
+def _linearize_rim_points(fit: Linearization, terms: Terms) -> int:
+    """Write the rim points' rows, the first ones; return the row after them."""
+    rotation, position, residuals, jacobian = fit.rotation, fit.position, fit.residuals, fit.jacobian
+    lamps = terms.centres.shape[0]
     conics = np.empty((lamps, 3, 3))
     d_conics = np.empty((lamps, 6, 3, 3))
     for lamp in range(lamps):
-        _conic_derivatives(rotation, position, centres[lamp], radii_squared[lamp], conics[lamp], d_conics[lamp])
+        _conic_derivatives(rotation, position, terms.centres[lamp], terms.radii_squared[lamp], conics[lamp],
+                           d_conics[lamp])
+    rays, lens, lamp_of_point = terms.rays, terms.lens, terms.lamp_of_point
     a = np.empty(3)
     for n in range(rays.shape[0]):
         conic, d_conic, h = conics[lamp_of_point[n]], d_conics[lamp_of_point[n]], rays[n]
@@ -313,28 +341,34 @@ def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, cen
         a[0] = h[0] * half - pull * (g00 * p0 + g01 * p1)
         a[1] = h[1] * half - pull * (g10 * p0 + g11 * p1)
         a[2] = h[2] * half
-        sigma = rim_sigma[n]
+        sigma = terms.rim_sigma[n]
         residuals[n] = residual / sigma
         for k in range(6):
             total = 0.0
             for i in range(3):
                 total += a[i] * (d_conic[k, i, 0] * h[0] + d_conic[k, i, 1] * h[1] + d_conic[k, i, 2] * h[2])
             jacobian[n, k] = total / sigma
-    row = rays.shape[0]
+    return rays.shape[0]
+
+
+@kernel
+def _linearize_markers(fit: Linearization, terms: Terms, row: int) -> int:
+    """Write the markers' rows from ``row`` on, two per marker (u, v whitened); return the row after them."""
+    rotation, position, residuals, jacobian = fit.rotation, fit.position, fit.residuals, fit.jacobian
     point = np.empty(3)
     offset = np.empty(3)
     lens_jacobian = np.empty((2, 3))
     to_pixel = np.empty((2, 3))
     w = np.empty(3)
-    for marker in range(marker_maps.shape[0]):
+    for marker in range(terms.marker_maps.shape[0]):
         # Camera-frame point R^T (m - p); its change is R^T (offset x dtheta - dp).
         for m in range(3):
-            offset[m] = marker_maps[marker, m] - position[m]
+            offset[m] = terms.marker_maps[marker, m] - position[m]
         for i in range(3):
             point[i] = rotation[0, i] * offset[0] + rotation[1, i] * offset[1] + rotation[2, i] * offset[2]
-        u, v = project_point(point, intrinsics, distortion, lens_jacobian)
-        whitening = marker_whitening[marker]
-        du, dv = u - marker_pixels[marker, 0], v - marker_pixels[marker, 1]
+        u, v = project_point(point, terms.intrinsics, terms.distortion, lens_jacobian)
+        whitening = terms.marker_whitening[marker]
+        du, dv = u - terms.marker_pixels[marker, 0], v - terms.marker_pixels[marker, 1]
         for i in range(2):
             for m in range(3):
                 to_pixel[i, m] = (lens_jacobian[i, 0] * rotation[m, 0] + lens_jacobian[i, 1] * rotation[m, 1]
@@ -352,8 +386,16 @@ def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, cen
             jacobian[r, 4] = w[2] * offset[0] - w[0] * offset[2]
             jacobian[r, 5] = w[0] * offset[1] - w[1] * offset[0]
         row += 2
-    for k in range(up_directions.shape[0]):
-        g, tangents, sigma = up_directions[k], up_tangents[k], up_sigma[k]
+    return row
+
+
+@kernel
+def _linearize_up_directions(fit: Linearization, terms: Terms, row: int) -> None:
+    """Write the up directions' rows from ``row`` on, two per direction (along its tangent axes)."""
+    rotation, residuals, jacobian = fit.rotation, fit.residuals, fit.jacobian
+    w = np.empty(3)
+    for k in range(terms.up_directions.shape[0]):
+        g, tangents, sigma = terms.up_directions[k], terms.up_tangents[k], terms.up_sigma[k]
         # u = R^T e_z, the pose's map up in the camera.
         scale = 2.0 / (sigma * (1.0 + g[0] * rotation[2, 0] + g[1] * rotation[2, 1] + g[2] * rotation[2, 2]))
         for i in range(2):
@@ -373,6 +415,11 @@ def linearize_into(rotation, position, rays, lens, rim_sigma, lamp_of_point, cen
             jacobian[row + i, 4] = -w[0]
             jacobian[row + i, 5] = 0.0
         row += 2
+
+
+@kernel
+def _chi_square(residuals: np.ndarray) -> float:
+    """Return the sum of the squared (whitened) residuals, in their order."""
     cost = 0.0
     for r in range(residuals.shape[0]):
         cost += residuals[r] * residuals[r]
@@ -401,9 +448,7 @@ def forecast(residuals, jacobian):
     if not solved.ok:
         return 0.0
     step = solved.solution
-    cost = 0.0
-    for n in range(residuals.shape[0]):
-        cost += residuals[n] * residuals[n]
+    cost = _chi_square(residuals)
     for i in range(6):
         cost -= gradient[i] * step[i]
     return cost
@@ -432,59 +477,66 @@ def _normal_equations(residuals, jacobian, information, gradient):
 
 
 @kernel
-def iterate(rotation, position, residuals, jacobian, cost, damping, first, stop,
-            rays, lens, rim_sigma, lamp_of_point, centres, radii_squared, marker_maps, marker_pixels,
-            marker_whitening, intrinsics, distortion, up_directions, up_tangents, up_sigma):
+def iterate(fit: Linearization, terms: Terms, cost: float, damping: float, iterations: int) -> Descent:
     """
-    Run Levenberg-Marquardt iterations ``first`` to ``stop`` from the linearised pose.
+    Run up to ``iterations`` Levenberg-Marquardt iterations from ``fit``, linearised, of chi-square ``cost``.
 
-    The iterations update ``rotation``, ``position``, ``residuals`` and ``jacobian`` in place; returns
-    (outcome, cost, damping). CONVERGED when even the undamped Gauss-Newton step promises no real
-    decrease: that last step is still taken, its residuals (lower by under the floor) not evaluated,
-    since near the minimum it lands quadratically close to it. PAUSED at ``stop``; SINGULAR
-    when the normal equations are.
+    The iterations update ``fit`` in place. CONVERGED when even the undamped Gauss-Newton step promises
+    no real decrease: that last step is still taken, its residuals (lower by under the floor) not
+    evaluated, since near the minimum it lands quadratically close to it. PAUSED when the iterations
+    are spent; SINGULAR when the normal equations are.
     """
     information = np.empty((6, 6))
     damped = np.empty((6, 6))
     gradient = np.empty(6)
-    trial_rotation = np.empty((3, 3))
-    trial_position = np.empty(3)
-    trial_residuals = np.empty_like(residuals)
-    trial_jacobian = np.empty_like(jacobian)
-    for _ in range(first, stop):
-        _normal_equations(residuals, jacobian, information, gradient)
+    trial = Linearization(np.empty((3, 3)), np.empty(3), np.empty_like(fit.residuals), np.empty_like(fit.jacobian))
+    for _ in range(iterations):
+        _normal_equations(fit.residuals, fit.jacobian, information, gradient)
         for i in range(6):
             gradient[i] = -gradient[i]
         solved = lu_solve(information, gradient, 0.0)
         if not solved.ok:
-            return SINGULAR, cost, damping
-        step = solved.solution
-        decrease = 0.0
-        for i in range(6):
-            decrease += gradient[i] * step[i]
-        if decrease < max(_COST_TOLERANCE * cost, _DECREMENT_FLOOR):
-            perturb(rotation, position, step, trial_rotation, trial_position)
-            rotation[:, :] = trial_rotation
-            position[:] = trial_position
-            return CONVERGED, cost, damping
-        damped[:, :] = information
-        for i in range(6):
-            damped[i, i] += damping * information[i, i]
-        solved = lu_solve(damped, gradient, 0.0)
+            return Descent(SINGULAR, cost, damping)
+        if _decrease(gradient, solved.solution) < max(_COST_TOLERANCE * cost, _DECREMENT_FLOOR):
+            perturb(fit.rotation, fit.position, solved.solution, trial.rotation, trial.position)
+            _take_pose(trial, fit)
+            return Descent(CONVERGED, cost, damping)
+        solved = _damped_solve(information, gradient, damping, damped)
         if not solved.ok:
-            return SINGULAR, cost, damping
-        step = solved.solution
-        perturb(rotation, position, step, trial_rotation, trial_position)
-        trial_cost = linearize_into(trial_rotation, trial_position, rays, lens, rim_sigma, lamp_of_point, centres,
-                                    radii_squared, marker_maps, marker_pixels, marker_whitening, intrinsics, distortion,
-                                    up_directions, up_tangents, up_sigma, trial_residuals, trial_jacobian)
+            return Descent(SINGULAR, cost, damping)
+        perturb(fit.rotation, fit.position, solved.solution, trial.rotation, trial.position)
+        trial_cost = linearize_into(trial, terms)
         if not np.isfinite(trial_cost) or trial_cost > cost:
             damping *= 10.0
             continue
-        rotation[:, :] = trial_rotation
-        position[:] = trial_position
-        residuals[:] = trial_residuals
-        jacobian[:, :] = trial_jacobian
+        _take_pose(trial, fit)
+        fit.residuals[:] = trial.residuals
+        fit.jacobian[:, :] = trial.jacobian
         cost = trial_cost
         damping = max(damping / 10.0, _MIN_DAMPING)
-    return PAUSED, cost, damping
+    return Descent(PAUSED, cost, damping)
+
+
+@kernel
+def _decrease(gradient: np.ndarray, step: np.ndarray) -> float:
+    """Return the chi-square's decrease that the Gauss-Newton model forecasts for ``step`` (``gradient`` = -J^T r)."""
+    decrease = 0.0
+    for i in range(6):
+        decrease += gradient[i] * step[i]
+    return decrease
+
+
+@kernel
+def _damped_solve(information: np.ndarray, gradient: np.ndarray, damping: float, damped: np.ndarray) -> Solved:
+    """Solve the normal equations with each diagonal entry raised by ``damping`` times itself (in ``damped``)."""
+    damped[:, :] = information
+    for i in range(6):
+        damped[i, i] += damping * information[i, i]
+    return lu_solve(damped, gradient, 0.0)
+
+
+@kernel
+def _take_pose(source: Linearization, target: Linearization) -> None:
+    """Copy ``source``'s pose into ``target``."""
+    target.rotation[:, :] = source.rotation
+    target.position[:] = source.position

@@ -19,7 +19,8 @@ import numpy as np
 from vlp_ros.core.pose import Pose
 from vlp_ros.solvers.candidates import PoseCandidate
 from vlp_ros.solvers.covariance import allow_for_model_error, perturbed
-from vlp_ros.solvers.fit_kernels import CONVERGED, forecast, iterate, joined, linearize_into, PAUSED, SINGULAR, Terms
+from vlp_ros.solvers.fit_kernels import (CONVERGED, forecast, iterate, joined, Linearization, linearize_into, PAUSED,
+                                         SINGULAR, Terms)
 from vlp_ros.solvers.fit_kernels import linearize as linearize_terms
 from vlp_ros.solvers.measurement import LampMeasurement, rim_error_modes
 from vlp_ros.solvers.up_measurement import UpMeasurement
@@ -114,16 +115,16 @@ def descend(initial: Pose, measurements: Sequence[Measurement], max_iterations: 
 def _levenberg_marquardt(pose: Pose, terms: Terms, max_iterations: int,
                          give_up: Callable[[Pose, float], bool] | None = None
                          ) -> tuple[Pose, np.ndarray, np.ndarray, bool]:
-    rotation, position = np.array(pose.rotation, dtype=float), np.array(pose.position, dtype=float)
-    residuals, jacobian = np.empty(terms.residual_count), np.empty((terms.residual_count, 6))
-    cost = linearize_into(rotation, position, *terms, residuals, jacobian)
+    fit = Linearization(np.array(pose.rotation, dtype=float), np.array(pose.position, dtype=float),
+                        np.empty(terms.residual_count), np.empty((terms.residual_count, 6)))
+    rotation, position, residuals, jacobian = fit
+    cost = linearize_into(fit, terms)
     pause = PATIENCE if give_up is not None and max_iterations > PATIENCE else max_iterations
-    outcome, cost, damping = iterate(rotation, position, residuals, jacobian, cost, _INITIAL_DAMPING, 0, pause, *terms)
+    outcome, cost, damping = iterate(fit, terms, cost, _INITIAL_DAMPING, pause)
     if outcome == PAUSED and pause < max_iterations:
         if give_up(Pose(rotation.copy(), position.copy()), cost):
             return Pose(rotation, position), residuals, jacobian, False
-        outcome, cost, damping = iterate(rotation, position, residuals, jacobian, cost, damping, pause,
-                                         max_iterations, *terms)
+        outcome, cost, damping = iterate(fit, terms, cost, damping, max_iterations - pause)
     if outcome == SINGULAR:
         raise np.linalg.LinAlgError('singular normal equations')
     return Pose(rotation, position), residuals, jacobian, outcome == CONVERGED
