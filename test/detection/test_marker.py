@@ -1,7 +1,7 @@
 """
 The marker's compiled kernels against their numpy formulation.
 
-``fit_marker``, ``find_seed`` and ``redness`` run as numba kernels
+``fit_marker``, ``find_seed`` and ``redness_and_peaks`` run as numba kernels
 (vlp_ros.detection.marker). The reference here is the same fit written in numpy:
 the blurred-disc model with its amplitudes eliminated (variable
 projection, Kaufman's Jacobian), the Levenberg-Marquardt loop on it and the consider
@@ -17,7 +17,7 @@ from vlp_ros.core.ellipse import geometric_distances
 from vlp_ros.detection import detect_lamps
 from vlp_ros.detection import marker
 import vlp_ros.detection.detector as detector
-from vlp_ros.detection.marker import find_seed, fit_marker, MarkerSeed, redness, redness_and_peaks
+from vlp_ros.detection.marker import find_seed, fit_marker, MarkerSeed, redness_and_peaks
 from vlp_ros.sim.render import render_frame
 from vlp_ros.sim.scenarios import paper_scenario, robot_scenario
 
@@ -239,7 +239,7 @@ def test_redness_matches_numpy():
     rng = np.random.default_rng(1)
     image = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
     for roi in (image, image[7:41, 13:70], image[7:41, 13:70] // 3):
-        red = redness(roi)
+        red, _ = redness_and_peaks(roi)
         assert red.dtype == np.int16 and red.flags.c_contiguous
         np.testing.assert_array_equal(red, reference_redness(roi))
         both, peaks = redness_and_peaks(roi)

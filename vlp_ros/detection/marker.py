@@ -255,14 +255,10 @@ class MarkerFit:
         return ellipse_from_conic(conic)
 
 
-def redness(bgr: np.ndarray) -> np.ndarray:
-    """2 R - G - B (int16): large on the marker, near zero on a white lamp; linear in the light."""
-    return _redness(bgr).red
-
-
 def redness_and_peaks(bgr: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
     """
-    Return ``redness`` and the brightest value of each channel (b, g, r), in one pass over the pixels.
+    Return the redness 2 R - G - B (int16: large on the marker, near zero on a white lamp; linear in the light)
+    and the brightest value of each channel (b, g, r), in one pass over the pixels.
 
     It is the detector's first pass over a lamp box: reading it from the frame costs more than either.
     """
