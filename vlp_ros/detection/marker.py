@@ -257,8 +257,9 @@ class MarkerFit:
 
 def redness_and_peaks(bgr: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
     """
-    Return the redness 2 R - G - B (int16: large on the marker, near zero on a white lamp; linear in the light)
-    and the brightest value of each channel (b, g, r), in one pass over the pixels.
+    Return the redness 2 R - G - B and the brightest value of each channel (b, g, r), in one pass.
+
+    The redness (int16) is large on the marker, near zero on a white lamp, and linear in the light.
 
     It is the detector's first pass over a lamp box: reading it from the frame costs more than either.
     """
